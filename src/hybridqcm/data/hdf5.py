@@ -1,0 +1,211 @@
+"""The HDF5 dataset format (SPEC §5) — the interface other tools write to and read from.
+
+    attrs: schema = "hybridqcm.dataset/1", h, n_steps, speed_mps, prior, seed, created_by
+    /<split>/accel float32 [M, n_steps, 3] (a3, a2, a1)   /<split>/vel, /<split>/disp likewise
+    /<split>/road  float32 [M, n_steps]   u in metres     /<split>/params float64 [M, 10]
+    /<split>/road_class int8 [M]                          /<split>/profile_id int32 [M]
+
+Readers accept any producer's file that has the keys the task needs. Writers never leave a
+half-written file that looks valid: they write to a temporary file beside the target and
+rename it into place only after everything was written and flushed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Mapping
+
+import h5py
+import numpy as np
+
+SCHEMA = "hybridqcm.dataset/1"
+SCHEMA_FAMILY = "hybridqcm.dataset/"
+
+# key -> (dtype, trailing shape given n_steps); the leading dimension is the sample count M.
+LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
+    "accel": (np.dtype("float32"), ("n_steps", 3)),
+    "vel": (np.dtype("float32"), ("n_steps", 3)),
+    "disp": (np.dtype("float32"), ("n_steps", 3)),
+    "road": (np.dtype("float32"), ("n_steps",)),
+    "params": (np.dtype("float64"), (10,)),
+    "road_class": (np.dtype("int8"), ()),
+    "profile_id": (np.dtype("int32"), ()),
+}
+TIME_KEYS = ("accel", "vel", "disp", "road")
+
+
+class DatasetError(ValueError):
+    """A dataset file that cannot be used; the message names the file, key and value at fault."""
+
+
+def _trailing_shape(key: str, n_steps: int) -> tuple[int, ...]:
+    return tuple(n_steps if dim == "n_steps" else dim for dim in LAYOUT[key][1])
+
+
+def _open(path: str | os.PathLike) -> h5py.File:
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: dataset file does not exist (create one with `qcm-simulate output={path}`)")
+    try:
+        return h5py.File(path, "r")
+    except OSError as error:
+        raise DatasetError(f"{path}: not a readable HDF5 file ({error})") from None
+
+
+def _check_schema(path: Path, handle: h5py.File) -> None:
+    schema = handle.attrs.get("schema")
+    if schema is None:
+        return  # other producers may omit it; the layout checks below still apply
+    schema = schema.decode() if isinstance(schema, bytes) else str(schema)
+    if schema != SCHEMA:
+        raise DatasetError(f"{path}: attribute schema = {schema!r} is not supported (expected {SCHEMA!r})")
+
+
+def dataset_info(path: str | os.PathLike) -> dict:
+    """File attributes and, per split, its sample count, step count and keys."""
+    path = Path(path)
+    with _open(path) as handle:
+        _check_schema(path, handle)
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v.item() if hasattr(v, "item") else v)
+                 for k, v in handle.attrs.items()}
+        splits = {}
+        for name, group in handle.items():
+            if not isinstance(group, h5py.Group):
+                continue
+            keys = sorted(group.keys())
+            first = next((group[k] for k in ("accel", "road") if k in group), None)
+            splits[name] = {
+                "n_samples": int(first.shape[0]) if first is not None else 0,
+                "n_steps": int(first.shape[1]) if first is not None and first.ndim > 1 else None,
+                "keys": keys,
+            }
+    return {"path": str(path), "attrs": attrs, "splits": splits}
+
+
+def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str] = ("accel", "road", "params"),
+               n_steps: int | None = None, index: slice | np.ndarray | None = None,
+               check_finite: bool = True) -> dict[str, np.ndarray]:
+    """Read `keys` of one split, time-series cropped to the first `n_steps` steps.
+
+    Returns numpy arrays keyed as in the file plus "h" (float, step size) when the file has it.
+    Raises DatasetError for a missing file/split/key, a wrong shape, a window longer than the
+    stored steps, or NaN/inf values.
+    """
+    path = Path(path)
+    keys = list(keys)
+    with _open(path) as handle:
+        _check_schema(path, handle)
+        if split not in handle:
+            available = [k for k, v in handle.items() if isinstance(v, h5py.Group)]
+            raise DatasetError(f"{path}: split {split!r} not found; available splits: {available}")
+        group = handle[split]
+        missing = [k for k in keys if k not in group]
+        if missing:
+            raise DatasetError(f"{path}: /{split} lacks dataset(s) {missing} needed here; it has {sorted(group.keys())}")
+        out: dict[str, np.ndarray] = {}
+        n_samples = None
+        for key in keys:
+            data = group[key]
+            if n_samples is None:
+                n_samples = data.shape[0]
+            elif data.shape[0] != n_samples:
+                raise DatasetError(f"{path}: /{split}/{key} has {data.shape[0]} samples, other keys have {n_samples}")
+            if key in TIME_KEYS:
+                stored = data.shape[1] if data.ndim > 1 else 0
+                expected_tail = (3,) if key != "road" else ()
+                if data.ndim != 2 + len(expected_tail) or tuple(data.shape[2:]) != expected_tail:
+                    raise DatasetError(f"{path}: /{split}/{key} has shape {data.shape}, expected [M, n_steps{', 3' if expected_tail else ''}]")
+                window = stored if n_steps is None else int(n_steps)
+                if window < 1 or window > stored:
+                    raise DatasetError(f"{path}: window n_steps = {n_steps} but /{split}/{key} stores {stored} steps")
+                array = data[:, :window] if index is None else data[index if isinstance(index, slice) else np.sort(index), :window]
+            else:
+                if key in LAYOUT and tuple(data.shape[1:]) != _trailing_shape(key, 0):
+                    raise DatasetError(f"{path}: /{split}/{key} has shape {data.shape}, expected [M{', ' if LAYOUT[key][1] else ''}{', '.join(map(str, LAYOUT[key][1]))}]")
+                array = data[()] if index is None else data[index if isinstance(index, slice) else np.sort(index)]
+            array = np.asarray(array)
+            if check_finite and array.dtype.kind == "f" and not np.isfinite(array).all():
+                bad = np.argwhere(~np.isfinite(array))[0]
+                raise DatasetError(f"{path}: /{split}/{key} contains non-finite values (first at index {tuple(int(i) for i in bad)}: {array[tuple(bad)]})")
+            out[key] = array
+        if "h" in handle.attrs:
+            out["h"] = float(handle.attrs["h"])
+    return out
+
+
+class DatasetWriter:
+    """Writes a dataset atomically: into a temporary file beside `path`, renamed on success.
+
+        with DatasetWriter(path, attrs={...}) as writer:
+            writer.create_split("train", n_samples, n_steps)
+            writer.write("train", start, accel=..., vel=..., ...)
+
+    If the block raises (or the process dies), the target is untouched and the temporary
+    file is removed (or, after a hard kill, left under a name that no reader takes for data).
+    """
+
+    def __init__(self, path: str | os.PathLike, attrs: Mapping | None = None, overwrite: bool = False,
+                 compression: str | None = "gzip", compression_level: int | None = 1, chunk_samples: int = 256) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
+        if self.path.is_dir():
+            raise DatasetError(f"{self.path} is a directory, not a file path")
+        self.attrs = dict(attrs or {})
+        self.compression = compression
+        self.compression_opts = compression_level if compression == "gzip" else None
+        self.chunk_samples = chunk_samples
+        self._handle: h5py.File | None = None
+        self._tmp: Path | None = None
+
+    def __enter__(self) -> "DatasetWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
+        os.close(fd)
+        self._tmp = Path(tmp)
+        self._handle = h5py.File(self._tmp, "w")
+        self._handle.attrs["schema"] = SCHEMA
+        for key, value in self.attrs.items():
+            self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+        return self
+
+    def create_split(self, split: str, n_samples: int, n_steps: int, keys: Iterable[str] = tuple(LAYOUT)) -> None:
+        assert self._handle is not None, "use DatasetWriter as a context manager"
+        group = self._handle.create_group(split)
+        for key in keys:
+            dtype, _ = LAYOUT[key]
+            shape = (n_samples, *_trailing_shape(key, n_steps))
+            chunks = (max(1, min(self.chunk_samples, n_samples)), *shape[1:]) if n_samples else None
+            group.create_dataset(key, shape=shape, dtype=dtype, chunks=chunks,
+                                 compression=self.compression if n_samples else None,
+                                 compression_opts=self.compression_opts if n_samples else None,
+                                 shuffle=bool(self.compression) and n_samples > 0)
+
+    def write(self, split: str, start: int, **arrays: np.ndarray) -> None:
+        """Write rows [start, start + len) of each given key."""
+        assert self._handle is not None
+        group = self._handle[split]
+        for key, array in arrays.items():
+            array = np.asarray(array)
+            if array.dtype.kind == "f" and not np.isfinite(array).all():
+                raise DatasetError(f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}..")
+            group[key][start:start + array.shape[0]] = array
+
+    def set_attr(self, key: str, value) -> None:
+        assert self._handle is not None
+        self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        assert self._handle is not None and self._tmp is not None
+        try:
+            self._handle.flush()
+            self._handle.close()
+        finally:
+            self._handle = None
+        if exc_type is None:
+            os.chmod(self._tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
+            os.replace(self._tmp, self.path)
+        else:
+            self._tmp.unlink(missing_ok=True)

@@ -1,0 +1,165 @@
+"""Sample generation: draw parameters and roads, integrate, and stream datasets to HDF5.
+
+One road profile is shared by `samples_per_profile` parameter draws (the reference protocol:
+340 train / 170 test profiles x 100 draws). Generation runs in chunks of whole profiles and
+each chunk is written before the next is simulated, so memory stays bounded by the chunk.
+"""
+from __future__ import annotations
+
+import getpass
+
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from hybridqcm import __version__
+from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.physics.integrators import simulate
+from hybridqcm.physics.prior import _RejectionPrior
+from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index
+
+
+def simulate_samples(prior: _RejectionPrior, road_profile: RoadProfile, road_class: torch.Tensor, n_steps: int,
+                     h: float, speed_mps: float, generator: torch.Generator, samples_per_profile: int = 1,
+                     method: str = "semi_explicit_euler") -> dict[str, torch.Tensor | int]:
+    """Simulate `len(road_class) * samples_per_profile` samples.
+
+    road_class: LongTensor [profiles]. Returns float64 tensors accel/vel/disp [M, n_steps, 3],
+    road [M, n_steps], params [M, 10], road_class [M], profile [M] (0-based within this call)
+    and `n_drawn`, the prior's candidate count (for its acceptance rate).
+    """
+    road_class = torch.as_tensor(road_class, dtype=torch.long).reshape(-1)
+    n_profiles = road_class.shape[0]
+    roads = road_profile.sample(road_class, n_steps, h, speed_mps, generator)          # [profiles, n_steps]
+    draw = prior.sample(n_profiles * samples_per_profile, generator)
+    profile = torch.arange(n_profiles).repeat_interleave(samples_per_profile)
+    road = roads[profile]
+    trajectory = simulate(draw.params, road, h, method)
+    return {
+        "accel": trajectory.accel, "vel": trajectory.vel, "disp": trajectory.disp, "road": road,
+        "params": draw.params, "road_class": road_class[profile], "profile": profile, "n_drawn": draw.n_drawn,
+    }
+
+
+@dataclass
+class SplitSummary:
+    """What a written split holds, for the console and the file's attributes."""
+
+    n_samples: int = 0
+    n_drawn: int = 0
+    per_class: dict = field(default_factory=dict)
+    param_min: np.ndarray | None = None
+    param_max: np.ndarray | None = None
+    peak_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    seconds: float = 0.0
+
+    def update(self, batch: Mapping) -> None:
+        params = batch["params"].numpy()
+        self.n_samples += params.shape[0]
+        self.n_drawn += int(batch["n_drawn"])
+        for c in batch["road_class"].unique().tolist():
+            name = ROAD_CLASSES[c]
+            self.per_class[name] = self.per_class.get(name, 0) + int((batch["road_class"] == c).sum())
+        low, high = params.min(0), params.max(0)
+        self.param_min = low if self.param_min is None else np.minimum(self.param_min, low)
+        self.param_max = high if self.param_max is None else np.maximum(self.param_max, high)
+        self.peak_accel = np.maximum(self.peak_accel, batch["accel"].abs().amax((0, 1)).numpy())
+
+    @property
+    def acceptance_rate(self) -> float:
+        return self.n_samples / max(self.n_drawn, 1)
+
+    def as_dict(self) -> dict:
+        return {
+            "n_samples": self.n_samples, "per_class": self.per_class,
+            "prior_acceptance_rate": round(self.acceptance_rate, 5),
+            "param_min": [float(x) for x in (self.param_min if self.param_min is not None else [])],
+            "param_max": [float(x) for x in (self.param_max if self.param_max is not None else [])],
+            "peak_accel_a3_a2_a1": [float(x) for x in self.peak_accel],
+            "seconds": round(self.seconds, 2),
+        }
+
+
+def _class_list(profiles: Mapping[str, int], split: str) -> list[int]:
+    classes: list[int] = []
+    for name, count in profiles.items():
+        try:
+            index = road_class_index(name)
+        except ValueError as error:
+            raise ValueError(f"splits.{split}.profiles: {error}") from None
+        if not isinstance(count, int) or count < 0:
+            raise ValueError(f"splits.{split}.profiles.{name} must be a non-negative integer, got {count!r}")
+        classes += [index] * count
+    return classes
+
+
+def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _RejectionPrior, road_profile: RoadProfile,
+                  n_steps: int, h: float, speed_mps: float, samples_per_profile: int, seed: int,
+                  overwrite: bool = False, profiles_per_chunk: int = 10, method: str = "semi_explicit_euler",
+                  attrs: Mapping | None = None, progress: bool = True, compression: str | None = "gzip") -> dict[str, SplitSummary]:
+    """Simulate every split and stream it into `output` (atomically). Returns a summary per split.
+
+    splits: {split: {"profiles": {"A": 200, ...}}}. The same seed gives identical arrays: each
+    split has its own generator seeded from (seed, split position).
+    """
+    if n_steps < 1 or samples_per_profile < 1 or h <= 0 or speed_mps <= 0:
+        raise ValueError(f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
+                         f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}")
+    plan = {split: _class_list(spec.get("profiles", {}), split) for split, spec in splits.items()}
+    total = sum(len(c) * samples_per_profile for c in plan.values())
+    if total == 0:
+        raise ValueError("nothing to simulate: every split has zero profiles")
+    file_attrs = {
+        "h": float(h), "n_steps": int(n_steps), "speed_mps": float(speed_mps), "prior": getattr(prior, "name", "custom"),
+        "seed": int(seed), "samples_per_profile": int(samples_per_profile), "integrator": method,
+        "created_by": f"hybridqcm {__version__} qcm-simulate ({getpass.getuser()}@{platform.node()})",
+        **dict(attrs or {}),
+    }
+    summaries: dict[str, SplitSummary] = {}
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("samples"), TimeRemainingColumn())
+    with DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer, \
+            Progress(*columns, disable=not progress, transient=False) as bar:
+        task = bar.add_task(f"simulating {Path(output).name}", total=total)
+        for split_index, (split, classes) in enumerate(plan.items()):
+            generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
+            n_samples = len(classes) * samples_per_profile
+            writer.create_split(split, n_samples, n_steps)
+            summary = summaries.setdefault(split, SplitSummary())
+            start_time = time.perf_counter()
+            # Shuffle the class order so a prefix of the split is a fair mix of classes.
+            order = torch.randperm(len(classes), generator=generator)
+            classes_tensor = torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
+            for first in range(0, len(classes), profiles_per_chunk):
+                chunk = classes_tensor[first:first + profiles_per_chunk]
+                batch = simulate_samples(prior, road_profile, chunk, n_steps, h, speed_mps, generator, samples_per_profile, method)
+                row = first * samples_per_profile
+                if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
+                    raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
+                writer.write(
+                    split, row,
+                    accel=batch["accel"].float().numpy(), vel=batch["vel"].float().numpy(), disp=batch["disp"].float().numpy(),
+                    road=batch["road"].float().numpy(), params=batch["params"].numpy(),
+                    road_class=batch["road_class"].numpy().astype(np.int8),
+                    profile_id=(batch["profile"] + first).numpy().astype(np.int32),
+                )
+                summary.update(batch)
+                bar.advance(task, batch["params"].shape[0])
+            summary.seconds = time.perf_counter() - start_time
+        import json
+
+        writer.set_attr("summary", json.dumps({s: v.as_dict() for s, v in summaries.items()}))
+    return summaries
+
+
+def kmh_to_mps(speed_kmh: float) -> float:
+    return float(speed_kmh) / 3.6
+
+
+__all__ = ["simulate_samples", "write_dataset", "SplitSummary", "kmh_to_mps"]

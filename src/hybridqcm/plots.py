@@ -1,0 +1,93 @@
+"""Plots people would rather look at than read: sorted predictions, overlays, histograms.
+
+All functions return a matplotlib Figure (for TensorBoard's add_figure) and, given `path`,
+also save it as PNG. The Agg backend is used so nothing needs a display.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _save(fig, path: str | Path | None):
+    if path is not None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.tmp.png")
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+        tmp.replace(path)
+    return fig
+
+
+def plot_sorted_predictions(pred: np.ndarray, target: np.ndarray, name: str, path: str | Path | None = None,
+                            title: str | None = None, max_points: int = 20000):
+    """Samples ordered by true value: the true curve, predictions, ±10 % and ±25 % bands."""
+    pred, target = np.asarray(pred, dtype=float).ravel(), np.asarray(target, dtype=float).ravel()
+    order = np.argsort(target)
+    if order.size > max_points:  # keep the figure light; an even subsample shows the same picture
+        order = order[np.linspace(0, order.size - 1, max_points).astype(int)]
+    t, p = target[order], pred[order]
+    x = np.arange(t.size)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.fill_between(x, 0.75 * t, 1.25 * t, color="tab:orange", alpha=0.15, label="±25 %")
+    ax.fill_between(x, 0.9 * t, 1.1 * t, color="tab:green", alpha=0.25, label="±10 %")
+    ax.plot(x, p, ".", ms=1.5, color="tab:blue", alpha=0.6, label="estimate")
+    ax.plot(x, t, "-", lw=1.2, color="black", label="true")
+    ax.set_xlabel("sample (sorted by true value)")
+    ax.set_ylabel(name)
+    ax.set_title(title or f"{name}: sorted predictions")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_overlays(time: np.ndarray, curves: dict[str, np.ndarray], path: str | Path | None = None,
+                  title: str = "", ylabel: str = "acceleration [m/s²]"):
+    """A few example signals on top of each other, one panel per row of the arrays [examples, time]."""
+    n = next(iter(curves.values())).shape[0]
+    fig, axes = plt.subplots(n, 1, figsize=(8, 1.8 * n + 0.6), sharex=True, squeeze=False)
+    for i in range(n):
+        for label, values in curves.items():
+            axes[i, 0].plot(time, values[i], lw=1, label=label)
+        axes[i, 0].set_ylabel(ylabel, fontsize=7)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def plot_histogram(values: np.ndarray, path: str | Path | None = None, title: str = "", xlabel: str = "",
+                   log_x: bool = True):
+    """Histogram of per-sample values (log-spaced bins for errors spanning decades)."""
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    if values.size:
+        if log_x and (values > 0).all():
+            bins = np.logspace(np.log10(values.min()), np.log10(values.max()) + 1e-12, 50)
+            ax.set_xscale("log")
+        else:
+            bins = 50
+        ax.hist(values, bins=bins, color="tab:blue", alpha=0.8)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("samples")
+    ax.set_title(title)
+    fig.tight_layout()
+    _save(fig, path)
+    return fig
+
+
+def close(fig) -> None:
+    plt.close(fig)
+
+
+__all__: Sequence[str] = ["plot_sorted_predictions", "plot_overlays", "plot_histogram", "close"]
