@@ -1,0 +1,229 @@
+"""Stage-by-stage pipelines over the console scripts: `qcm-pipeline demo` and `qcm-pipeline reproduce`.
+
+Each stage is one console-script call with its own run folder. A stage whose outputs exist is
+skipped, so an interrupted pipeline resumes where it stopped (delete a run folder to redo it).
+Every finished stage is recorded in `<root>/manifest.json` (command, run folder, seconds,
+which table of the source study it answers); `qcm-results` turns that manifest into tables.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+
+
+@dataclass
+class Stage:
+    name: str
+    app: str                       # qcm-simulate | qcm-train | qcm-estimate
+    overrides: list[str]
+    run_dir: str
+    done_when: list[str]           # files (relative to run_dir, or absolute) that mark the stage finished
+    minutes: float                 # expected cost on 2 CPU cores, for the plan
+    table: str | None = None       # thesis table id answered (e.g. "5.11"), or None
+    experiment: str | None = None  # thesis experiment key (exp1 ... exp10)
+    setting: str = ""
+    needs: list[str] = field(default_factory=list)
+
+    def command(self) -> list[str]:
+        return [str(BIN / self.app), *self.overrides, f"hydra.run.dir={self.run_dir}"]
+
+    def is_done(self) -> bool:
+        return all((Path(self.run_dir) / f if not os.path.isabs(f) else Path(f)).exists() for f in self.done_when)
+
+
+def _train(name, experiment, dataset, root, minutes, table=None, thesis=None, setting="", extra=()):
+    run_dir = f"{root}/{name}"
+    return Stage(name, "qcm-train", [f"experiment={experiment}", f"data.path={dataset}", *extra], run_dir,
+                 ["checkpoints/last.ckpt", "test_metrics.json"], minutes, table, thesis, setting)
+
+
+def _evaluate(name, experiment, dataset, root, checkpoint_stage, sigma, table, thesis, setting, denoiser_stage=None):
+    extra = [f"train=false", f"ckpt_path={root}/{checkpoint_stage}/checkpoints/last.ckpt", f"data.noise_sigma={sigma}"]
+    if denoiser_stage:
+        extra.append(f"denoiser_ckpt={root}/{denoiser_stage}/checkpoints/last.ckpt")
+    return Stage(name, "qcm-train", [f"experiment={experiment}", f"data.path={dataset}", *extra], f"{root}/{name}",
+                 ["error_distribution.csv"], 1.0, table, thesis, setting,
+                 needs=[checkpoint_stage] + ([denoiser_stage] if denoiser_stage else []))
+
+
+def _estimate(name, experiment, dataset, root, minutes, table=None, thesis=None, setting="", cnn=None, unet=None,
+              cae=None, extra=()):
+    overrides = [f"experiment={experiment}", f"data.path={dataset}", *extra]
+    needs = []
+    for key, stage in (("cnn_ckpt", cnn), ("unet_ckpt", unet), ("cae_ckpt", cae)):
+        if stage:
+            overrides.append(f"{key}={root}/{stage}/checkpoints/last.ckpt")
+            needs.append(stage)
+    return Stage(name, "qcm-estimate", overrides, f"{root}/{name}", ["estimates.csv", "error_distribution.csv"], minutes,
+                 table, thesis, setting, needs)
+
+
+def demo_stages(root: str = "outputs/demo", dataset: str = "data/demo.h5", preset: str = "small",
+                train_time: str = "00:00:04:00") -> list[Stage]:
+    """Small end to end run: simulate, train the physics CNN and the U-Net briefly, GN exps 5 and 10.
+
+    train_time bounds each training run (Lightning's DD:HH:MM:SS)."""
+    minutes = train_time
+    return [
+        Stage("simulate", "qcm-simulate", [f"preset={preset}", f"output={dataset}"], f"{root}/simulate", [os.path.abspath(dataset)], 0.5),
+        _train("exp2_physics", "exp2_physics", dataset, root, 4.5, "5.2", "exp2", "physics-residual CNN clean",
+               extra=[f"trainer.max_time={minutes}"]),
+        _train("exp9_unet", "exp9_unet", dataset, root, 4.5, None, "exp9", "U-Net completion",
+               extra=[f"trainer.max_time={minutes}"]),
+        _estimate("exp5_random_init", "exp5_random_init", dataset, root, 0.5, "5.11", "exp5", "GN full observation random init"),
+        _estimate("exp10_hybrid", "exp10_hybrid", dataset, root, 0.5, "5.15", "exp10", "hybrid GN U-Net completion CNN init",
+                  cnn="exp2_physics", unet="exp9_unet"),
+    ]
+
+
+def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/reference.h5") -> list[Stage]:
+    """The reference protocol (51 000 samples): every experiment, noise sweeps, CPU-scale training recipes."""
+    s = [Stage("simulate", "qcm-simulate", [f"output={dataset}"], f"{root}/simulate", [os.path.abspath(dataset)], 1.5)]
+    s += [
+        _train("exp1_labelled", "exp1_labelled", dataset, root, 11, "5.1", "exp1", "labelled CNN clean"),
+        _train("exp2_physics", "exp2_physics", dataset, root, 11, "5.2", "exp2", "physics-residual CNN clean"),
+        _train("exp4_denoiser", "exp4_denoiser", dataset, root, 11, None, "exp4", "CAE denoiser"),
+        _train("exp9_unet", "exp9_unet", dataset, root, 11, None, "exp9", "U-Net completion"),
+    ]
+    for cnn, label, tables in (("exp1_labelled", "labelled CNN", ("5.3", "5.5", "5.7", "5.8")),
+                               ("exp2_physics", "physics-residual CNN", ("5.4", "5.6", "5.9", "5.10"))):
+        s += [
+            _evaluate(f"exp3a_{cnn}", cnn, dataset, root, cnn, 0.01, tables[0], "exp3a", f"{label} noise 0.01"),
+            _evaluate(f"exp3b_{cnn}", cnn, dataset, root, cnn, 0.05, tables[1], "exp3b", f"{label} noise 0.05"),
+            _evaluate(f"exp4_raw_{cnn}", cnn, dataset, root, cnn, 0.1, tables[2], "exp4", f"{label} noise 0.1 raw"),
+            _evaluate(f"exp4_cae_{cnn}", cnn, dataset, root, cnn, 0.1, tables[3], "exp4", f"{label} noise 0.1 after CAE",
+                      denoiser_stage="exp4_denoiser"),
+        ]
+    s += [
+        _estimate("exp5_random_init", "exp5_random_init", dataset, root, 1, "5.11", "exp5", "GN full observation random init"),
+        _estimate("exp6_cnn_init", "exp6_cnn_init", dataset, root, 1, "5.12", "exp6", "GN full observation CNN init of p1 p2",
+                  cnn="exp2_physics"),
+        _estimate("exp7_known_p3p5", "exp7_known_p3p5", dataset, root, 1, "5.13", "exp7", "GN full observation p3 p5 known CNN init",
+                  cnn="exp2_physics"),
+        _estimate("exp8_occupant_only", "exp8_occupant_only", dataset, root, 2, "5.14", "exp8", "GN occupant only p3 p5 known CNN init",
+                  cnn="exp2_physics"),
+        _estimate("exp10_hybrid", "exp10_hybrid", dataset, root, 1, "5.15", "exp10", "hybrid GN U-Net completion CNN init",
+                  cnn="exp2_physics", unet="exp9_unet"),
+    ]
+    for sigma in (0.01, 0.05, 0.1):
+        s += [
+            _estimate(f"exp5_noise{sigma}", "exp5_random_init", dataset, root, 1, None, "exp5", f"GN alone, noise {sigma}",
+                      extra=[f"noise_sigma={sigma}"]),
+            _estimate(f"exp8_noise{sigma}", "exp8_occupant_only", dataset, root, 2, None, "exp8", f"GN a3 only + CNN init, noise {sigma}",
+                      cnn="exp2_physics", extra=[f"noise_sigma={sigma}"]),
+            _estimate(f"exp10_noise{sigma}", "exp10_hybrid", dataset, root, 1, None, "exp10", f"hybrid, noise {sigma}",
+                      cnn="exp2_physics", unet="exp9_unet", extra=[f"noise_sigma={sigma}"]),
+            _estimate(f"exp10_cae_noise{sigma}", "exp10_hybrid", dataset, root, 1, None, "exp10",
+                      f"hybrid with CAE denoiser, noise {sigma}", cnn="exp2_physics", unet="exp9_unet", cae="exp4_denoiser",
+                      extra=[f"noise_sigma={sigma}"]),
+        ]
+    return s
+
+
+PIPELINES = {"demo": demo_stages, "reproduce": reproduce_stages}
+
+
+def _manifest_path(root: str) -> Path:
+    return Path(root) / "manifest.json"
+
+
+def load_manifest(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: pipeline manifest not found (run `qcm-pipeline demo` or `reproduce` first)")
+    try:
+        manifest = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: malformed manifest ({error})") from None
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("stages"), list):
+        raise ValueError(f"{path}: malformed manifest (no 'stages' list)")
+    return manifest
+
+
+def _write_manifest(root: str, pipeline: str, dataset: str, records: dict) -> None:
+    path = _manifest_path(root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"pipeline": pipeline, "dataset": dataset, "stages": list(records.values())}, indent=2))
+    tmp.replace(path)
+
+
+def run_pipeline(name: str, root: str | None = None, dataset: str | None = None, only: list[str] | None = None,
+                 plan: bool = False, **options) -> int:
+    root = root or f"outputs/{name}"
+    dataset = dataset or ("data/demo.h5" if name == "demo" else "data/reference.h5")
+    stages = PIPELINES[name](root, dataset, **options)
+    if only:
+        unknown = sorted(set(only) - {s.name for s in stages})
+        if unknown:
+            raise SystemExit(f"error: unknown stage(s) {unknown}; stages: {[s.name for s in stages]}")
+        stages = [s for s in stages if s.name in only]
+    total = sum(s.minutes for s in stages if not s.is_done())
+    print(f"[qcm-pipeline] {name}: {len(stages)} stages, about {total:.0f} min of work left on 2 CPU cores; root {root}")
+    if plan:
+        for s in stages:
+            state = "done" if s.is_done() else f"~{s.minutes:g} min"
+            print(f"  {s.name:28s} {state:>10s}  {shlex.join(s.command())}")
+        return 0
+    previous = {}
+    if _manifest_path(root).exists():
+        previous = {r["name"]: r for r in load_manifest(_manifest_path(root))["stages"]}
+    records = dict(previous)
+    for index, stage in enumerate(stages, 1):
+        header = f"[{index}/{len(stages)}] {stage.name}"
+        if stage.is_done():
+            print(f"{header}: done already ({stage.run_dir}), skipped")
+            records.setdefault(stage.name, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None})
+            continue
+        missing = [n for n in stage.needs if not next((x for x in stages if x.name == n), stage).is_done()]
+        if missing:
+            print(f"{header}: needs {missing}, which did not finish; skipped")
+            continue
+        print(f"{header}: {shlex.join(stage.command())}", flush=True)
+        start = time.perf_counter()
+        result = subprocess.run(stage.command())
+        seconds = time.perf_counter() - start
+        if result.returncode != 0:
+            print(f"{header}: FAILED (exit {result.returncode}) after {seconds:.0f} s; see {stage.run_dir}", file=sys.stderr)
+            _write_manifest(root, name, dataset, records)
+            return result.returncode
+        records[stage.name] = {**asdict(stage), "command": shlex.join(stage.command()), "seconds": round(seconds, 1)}
+        _write_manifest(root, name, dataset, records)
+        print(f"{header}: finished in {seconds:.0f} s -> {stage.run_dir}")
+    _write_manifest(root, name, dataset, records)
+    from hybridqcm.apps.results import print_summary
+
+    print_summary(_manifest_path(root))
+    print(f"\nArtefacts: dataset {dataset}; run folders under {root}/ (checkpoints, estimates.csv, error_distribution.*, plots)")
+    print(f"Manifest: {_manifest_path(root)}    Results: qcm-results --manifest {_manifest_path(root)}")
+    print(f"TensorBoard: {BIN / 'tensorboard'} --logdir {root}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="qcm-pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("pipeline", choices=sorted(PIPELINES), help="demo (small, ~20 min) or reproduce (reference protocol)")
+    parser.add_argument("--root", help="folder of the run folders and manifest (default outputs/<pipeline>)")
+    parser.add_argument("--dataset", help="dataset file (default data/demo.h5 or data/reference.h5)")
+    parser.add_argument("--only", nargs="+", metavar="STAGE", help="run only these stages")
+    parser.add_argument("--plan", action="store_true", help="print the stages, their commands and expected cost, run nothing")
+    parser.add_argument("--preset", help="demo only: qcm-simulate preset (default small; tiny for a smoke test)")
+    parser.add_argument("--train-time", help="demo only: time limit of each training run, DD:HH:MM:SS (default 00:00:04:00)")
+    args = parser.parse_args(argv)
+    options = {k: v for k, v in (("preset", args.preset), ("train_time", args.train_time)) if v is not None}
+    if options and args.pipeline != "demo":
+        parser.error("--preset and --train-time apply to the demo pipeline only")
+    return run_pipeline(args.pipeline, args.root, args.dataset, args.only, args.plan, **options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

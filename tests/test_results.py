@@ -1,0 +1,93 @@
+"""The results generator: reads pipeline run folders, compares with the source, fails loudly."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hybridqcm.apps import results
+from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+
+
+def _run_folder(tmp_path: Path, name: str, error_scale: float, n_params: int = 10, bias: float = 0.0) -> Path:
+    """A run folder whose error table is written by the metrics code path from known errors."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(1, 2, size=(500, n_params))
+    pred = truth * (1 + bias + error_scale * rng.standard_normal(truth.shape))
+    run_dir = tmp_path / name
+    write_error_distribution(error_distribution_rows(pred, truth, [f"p{i + 1}" for i in range(n_params)]), run_dir)
+    return run_dir
+
+
+def _manifest(tmp_path: Path, stages: list[dict]) -> Path:
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps({"pipeline": "test", "dataset": "x.h5", "stages": stages}))
+    return path
+
+
+def _stage(name, run_dir, table, app="qcm-estimate"):
+    return {"name": name, "app": app, "run_dir": str(run_dir), "table": table, "setting": "s", "command": f"{app} ...", "seconds": 1.0}
+
+
+def test_verdict_requires_every_criterion():
+    source = {"mean_err": 0.1, "within_10pct": 0.8, "over_25pct": 0.05, "max_err": 1.0}
+    good = {"mean_err": 0.01, "within_10pct": 0.99, "over_25pct": 0.0, "max_err": 0.2}
+    assert results.verdict(good, source) == (True, [])
+    assert results.verdict({**good, "max_err": 1.5}, source) == (False, ["max"])
+    assert results.verdict({**good, "mean_err": 0.1}, source)[1] == ["mean"]
+    assert results.verdict({**good, "within_10pct": 0.5, "over_25pct": 0.06}, source)[1] == ["≤10 %", ">25 %"]
+
+
+def test_thesis_tables_are_packaged_and_complete():
+    rows = results.load_thesis_tables()
+    tables = {r["table"] for r in rows}
+    assert {"5.1", "5.11", "5.14", "5.15"} <= tables
+    exp5 = [r for r in rows if r["table"] == "5.11"]
+    assert len(exp5) == 10 and abs(exp5[2]["over_25pct"] - 0.77024) < 1e-9  # p3: 77 % of samples > 25 % off
+
+
+def test_render_compares_with_source_rows(tmp_path):
+    good = _run_folder(tmp_path, "good", 0.001)
+    bad = _run_folder(tmp_path, "bad", 0.0, bias=999.0)  # every estimate 1000x too large
+    manifest = _manifest(tmp_path, [_stage("exp5_good", good, "5.11"), _stage("exp5_bad", bad, "5.11")])
+    text, beaten, compared = results.render([manifest], tmp_path / "RESULTS.md", copy_plots=False)
+    assert compared == 20
+    assert beaten == 10  # the accurate run beats all ten rows of table 5.11, the noisy one none
+    assert (tmp_path / "RESULTS.md").read_text() == text
+    assert "Rows beaten: 10 of 20" in text and "qcm-estimate ..." in text
+
+
+def test_missing_parameter_is_reported_not_beaten(tmp_path):
+    run_dir = _run_folder(tmp_path, "two", 0.001, n_params=2)
+    rows = results.compare_stage(_stage("exp5", run_dir, "5.11"), results.load_thesis_tables())
+    assert [r["beat"] for r in rows[:2]] == [True, True]
+    assert all(r["short"] == ["missing"] for r in rows[2:])
+
+
+def test_missing_run_folder_fails_loudly(tmp_path):
+    manifest = _manifest(tmp_path, [_stage("exp5", tmp_path / "nowhere", "5.11")])
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        results.render([manifest], tmp_path / "R.md", copy_plots=False)
+    assert results.main(["--manifest", str(manifest), "--output", str(tmp_path / "R.md")]) == 2
+    assert not (tmp_path / "R.md").exists()
+
+
+def test_malformed_table_and_manifest_fail_loudly(tmp_path):
+    run_dir = tmp_path / "broken"
+    run_dir.mkdir()
+    (run_dir / "error_distribution.csv").write_text("param,n,max_err\np1,3,0.1\n")
+    with pytest.raises(ValueError, match="missing columns"):
+        results.render([_manifest(tmp_path, [_stage("exp5", run_dir, "5.11")])], tmp_path / "R.md", copy_plots=False)
+    bad_manifest = tmp_path / "bad.json"
+    bad_manifest.write_text("{not json")
+    with pytest.raises(ValueError, match="malformed manifest"):
+        results.render([bad_manifest], tmp_path / "R.md", copy_plots=False)
+    assert results.main(["--manifest", str(tmp_path / "absent.json"), "--output", str(tmp_path / "R.md")]) == 2
+
+
+def test_unknown_table_id_fails(tmp_path):
+    run_dir = _run_folder(tmp_path, "x", 0.01)
+    with pytest.raises(ValueError, match="no test rows for table 9.99"):
+        results.compare_stage(_stage("exp", run_dir, "9.99"), results.load_thesis_tables())
