@@ -134,7 +134,13 @@ def read_error_distribution(path: str | Path) -> list[dict]:
         rows = []
         for line_no, raw in enumerate(reader, start=2):
             try:
-                rows.append({k: (raw[k] if k == "param" else float(raw[k])) for k in COLUMNS})
-            except (TypeError, ValueError):
+                row = {k: (raw[k] if k == "param" else float(raw[k])) for k in COLUMNS}
+                row["n"] = int(row["n"]) if float(row["n"]).is_integer() else row["n"]
+                if raw.get("non_finite") not in (None, "", "0"):   # written only when there were some
+                    row["non_finite"] = int(raw["non_finite"])
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{path}:{line_no}: malformed value in row {raw}") from None
+            if row["param"] in (None, ""):
+                raise ValueError(f"{path}:{line_no}: row without a parameter name: {raw}")
+            rows.append(row)
     return rows

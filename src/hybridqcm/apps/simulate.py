@@ -22,15 +22,25 @@ from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.road import RoadProfile
 
 
+def _number(cfg: DictConfig, key: str, kind: type):
+    value = cfg[key]
+    if isinstance(value, bool) or (kind is int and isinstance(value, float) and not value.is_integer()):
+        raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
+    try:
+        return kind(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {value!r}") from None
+
+
 def run(cfg: DictConfig) -> dict:
     output = Path(cfg.output)
     if output.exists() and not cfg.overwrite:
         raise FileExistsError(f"output={output} exists; pass overwrite=true to replace it")
-    for key in ("n_steps", "samples_per_profile"):
-        if int(cfg[key]) < 1:
+    for key in ("n_steps", "samples_per_profile", "profiles_per_chunk"):
+        if _number(cfg, key, int) < 1:
             raise ValueError(f"{key} must be >= 1, got {cfg[key]}")
     for key in ("h", "speed_kmh"):
-        if float(cfg[key]) <= 0:
+        if not _number(cfg, key, float) > 0:
             raise ValueError(f"{key} must be > 0, got {cfg[key]}")
     options = OmegaConf.to_container(cfg.prior_options, resolve=True)
     prior = build_prior(cfg.prior, h=float(cfg.h), mass_range=tuple(options.pop("mass_range")), **options)

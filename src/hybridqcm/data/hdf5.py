@@ -63,13 +63,40 @@ def _check_schema(path: Path, handle: h5py.File) -> None:
         raise DatasetError(f"{path}: attribute schema = {schema!r} is not supported (expected {SCHEMA!r})")
 
 
+def _attr_value(value):
+    """A plain Python value for an HDF5 attribute (bytes decoded, numpy scalars and arrays unwrapped)."""
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.ndarray):
+        return value.item() if value.ndim == 0 else value.tolist()
+    return value.item() if hasattr(value, "item") else value
+
+
+def _row_selection(path: Path, split: str, index, n_samples: int):
+    """(sorted unique rows to read, how to put them back in the requested order) for `index`."""
+    if index is None or isinstance(index, slice):
+        return index, None
+    index = np.asarray(index)
+    if index.dtype == bool:
+        if index.shape != (n_samples,):
+            raise DatasetError(f"{path}: boolean index of shape {index.shape} for /{split} with {n_samples} samples")
+        index = np.flatnonzero(index)
+    if index.ndim != 1 or index.dtype.kind not in "iu":
+        raise DatasetError(f"{path}: index must be a slice, a boolean mask or a 1-D integer array, got {index.dtype} {index.shape}")
+    index = np.where(index < 0, index + n_samples, index)
+    if index.size and (index.min() < 0 or index.max() >= n_samples):
+        raise DatasetError(f"{path}: index out of range for /{split} with {n_samples} samples "
+                           f"(min {int(index.min())}, max {int(index.max())})")
+    unique, inverse = np.unique(index, return_inverse=True)   # h5py reads increasing, unique rows only
+    return unique, inverse
+
+
 def dataset_info(path: str | os.PathLike) -> dict:
     """File attributes and, per split, its sample count, step count and keys."""
     path = Path(path)
     with _open(path) as handle:
         _check_schema(path, handle)
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v.item() if hasattr(v, "item") else v)
-                 for k, v in handle.attrs.items()}
+        attrs = {k: _attr_value(v) for k, v in handle.attrs.items()}
         splits = {}
         for name, group in handle.items():
             if not isinstance(group, h5py.Group):
@@ -89,6 +116,8 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
                check_finite: bool = True) -> dict[str, np.ndarray]:
     """Read `keys` of one split, time-series cropped to the first `n_steps` steps.
 
+    `index` (a slice, a boolean mask or integer rows, in any order, repeats allowed) selects
+    samples; rows come back in the order asked for.
     Returns numpy arrays keyed as in the file plus "h" (float, step size) when the file has it.
     Raises DatasetError for a missing file/split/key, a wrong shape, a window longer than the
     stored steps, or NaN/inf values.
@@ -101,15 +130,21 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
             available = [k for k, v in handle.items() if isinstance(v, h5py.Group)]
             raise DatasetError(f"{path}: split {split!r} not found; available splits: {available}")
         group = handle[split]
+        if not isinstance(group, h5py.Group):
+            raise DatasetError(f"{path}: /{split} is a {type(group).__name__}, not a group of datasets")
         missing = [k for k in keys if k not in group]
         if missing:
             raise DatasetError(f"{path}: /{split} lacks dataset(s) {missing} needed here; it has {sorted(group.keys())}")
         out: dict[str, np.ndarray] = {}
         n_samples = None
+        rows = inverse = None
         for key in keys:
             data = group[key]
+            if not isinstance(data, h5py.Dataset) or data.ndim < 1:
+                raise DatasetError(f"{path}: /{split}/{key} is not an array with one row per sample")
             if n_samples is None:
                 n_samples = data.shape[0]
+                rows, inverse = _row_selection(path, split, index, n_samples)
             elif data.shape[0] != n_samples:
                 raise DatasetError(f"{path}: /{split}/{key} has {data.shape[0]} samples, other keys have {n_samples}")
             if key in TIME_KEYS:
@@ -120,12 +155,14 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
                 window = stored if n_steps is None else int(n_steps)
                 if window < 1 or window > stored:
                     raise DatasetError(f"{path}: window n_steps = {n_steps} but /{split}/{key} stores {stored} steps")
-                array = data[:, :window] if index is None else data[index if isinstance(index, slice) else np.sort(index), :window]
+                array = data[:, :window] if rows is None else data[rows, :window]
             else:
                 if key in LAYOUT and tuple(data.shape[1:]) != _trailing_shape(key, 0):
                     raise DatasetError(f"{path}: /{split}/{key} has shape {data.shape}, expected [M{', ' if LAYOUT[key][1] else ''}{', '.join(map(str, LAYOUT[key][1]))}]")
-                array = data[()] if index is None else data[index if isinstance(index, slice) else np.sort(index)]
+                array = data[()] if rows is None else data[rows]
             array = np.asarray(array)
+            if inverse is not None:
+                array = array[inverse]
             if check_finite and array.dtype.kind == "f" and not np.isfinite(array).all():
                 bad = np.argwhere(~np.isfinite(array))[0]
                 raise DatasetError(f"{path}: /{split}/{key} contains non-finite values (first at index {tuple(int(i) for i in bad)}: {array[tuple(bad)]})")
@@ -149,10 +186,12 @@ class DatasetWriter:
     def __init__(self, path: str | os.PathLike, attrs: Mapping | None = None, overwrite: bool = False,
                  compression: str | None = "gzip", compression_level: int | None = 1, chunk_samples: int = 256) -> None:
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
         if self.path.is_dir():
             raise DatasetError(f"{self.path} is a directory, not a file path")
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
+        if compression not in (None, "gzip", "lzf"):
+            raise DatasetError(f"{self.path}: compression = {compression!r} is not supported; use gzip, lzf or null")
         self.attrs = dict(attrs or {})
         self.compression = compression
         self.compression_opts = compression_level if compression == "gzip" else None
@@ -165,10 +204,17 @@ class DatasetWriter:
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
-        self._handle = h5py.File(self._tmp, "w")
-        self._handle.attrs["schema"] = SCHEMA
-        for key, value in self.attrs.items():
-            self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+        try:
+            self._handle = h5py.File(self._tmp, "w")
+            self._handle.attrs["schema"] = SCHEMA
+            for key, value in self.attrs.items():
+                self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
+        except BaseException:  # __exit__ is not called when __enter__ fails: clean up here
+            if self._handle is not None:
+                self._handle.close()
+                self._handle = None
+            self._tmp.unlink(missing_ok=True)
+            raise
         return self
 
     def create_split(self, split: str, n_samples: int, n_steps: int, keys: Iterable[str] = tuple(LAYOUT)) -> None:
@@ -189,6 +235,12 @@ class DatasetWriter:
         group = self._handle[split]
         for key, array in arrays.items():
             array = np.asarray(array)
+            if key not in group:
+                raise DatasetError(f"{self.path}: /{split} has no dataset {key!r}; created: {sorted(group.keys())}")
+            target = group[key]
+            if array.ndim != target.ndim or array.shape[1:] != target.shape[1:] or not 0 <= start <= target.shape[0] - array.shape[0]:
+                raise DatasetError(f"{self.path}: cannot write {key} of shape {array.shape} at row {start} into "
+                                   f"/{split}/{key} of shape {target.shape}")
             if array.dtype.kind == "f" and not np.isfinite(array).all():
                 raise DatasetError(f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}..")
             group[key][start:start + array.shape[0]] = array

@@ -19,7 +19,7 @@ import torch
 
 from hybridqcm import __version__
 from hybridqcm.data.hdf5 import DatasetWriter
-from hybridqcm.physics.integrators import simulate
+from hybridqcm.physics.integrators import METHODS, simulate
 from hybridqcm.physics.prior import _RejectionPrior
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index
 
@@ -98,6 +98,13 @@ def _class_list(profiles: Mapping[str, int], split: str) -> list[int]:
     return classes
 
 
+def _user() -> str:
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no login name (some containers)
+        return "unknown"
+
+
 def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _RejectionPrior, road_profile: RoadProfile,
                   n_steps: int, h: float, speed_mps: float, samples_per_profile: int, seed: int,
                   overwrite: bool = False, profiles_per_chunk: int = 10, method: str = "semi_explicit_euler",
@@ -110,6 +117,14 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
     if n_steps < 1 or samples_per_profile < 1 or h <= 0 or speed_mps <= 0:
         raise ValueError(f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
                          f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}")
+    if profiles_per_chunk < 1:
+        raise ValueError(f"profiles_per_chunk must be >= 1, got {profiles_per_chunk}")
+    if method not in METHODS:
+        raise ValueError(f"unknown integrator {method!r}; choose one of {METHODS}")
+    prior_h = getattr(prior, "h", None)
+    if prior_h is not None and abs(float(prior_h) - float(h)) > 1e-12 * float(h):
+        # the prior rejects draws that are unstable under the Euler map of *its* h
+        raise ValueError(f"the prior checks stability at h = {prior_h} but the data are simulated at h = {h}")
     plan = {split: _class_list(spec.get("profiles", {}), split) for split, spec in splits.items()}
     total = sum(len(c) * samples_per_profile for c in plan.values())
     if total == 0:
@@ -117,7 +132,7 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
     file_attrs = {
         "h": float(h), "n_steps": int(n_steps), "speed_mps": float(speed_mps), "prior": getattr(prior, "name", "custom"),
         "seed": int(seed), "samples_per_profile": int(samples_per_profile), "integrator": method,
-        "created_by": f"hybridqcm {__version__} qcm-simulate ({getpass.getuser()}@{platform.node()})",
+        "created_by": f"hybridqcm {__version__} qcm-simulate ({_user()}@{platform.node()})",
         **dict(attrs or {}),
     }
     summaries: dict[str, SplitSummary] = {}

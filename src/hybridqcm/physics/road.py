@@ -71,10 +71,18 @@ class RoadProfile:
         amplitude, phase = self._draw(road_class, generator)
         return self.evaluate(amplitude, phase, self._distance(n_steps, h, speed_mps))
 
+    def basis(self, distance: Tensor) -> Tensor:
+        """[sin(Omega s); -cos(Omega s)] as [2 waves, n]; cached, since every chunk of a dataset shares its grid."""
+        key = (distance.shape[0], float(distance[-1]) if distance.numel() else 0.0)
+        if getattr(self, "_basis_key", None) != key:
+            angle = self.omega[:, None] * distance[None, :]
+            self._basis, self._basis_key = torch.cat([torch.sin(angle), -torch.cos(angle)]), key
+        return self._basis
+
     def evaluate(self, amplitude: Tensor, phase: Tensor, distance: Tensor) -> Tensor:
-        """u [batch, n] at distances s [n] for amplitudes and phases [batch, waves]."""
-        angle = self.omega[:, None] * distance[None, :]
-        return (amplitude * torch.cos(phase)) @ torch.sin(angle) - (amplitude * torch.sin(phase)) @ torch.cos(angle)
+        """u [batch, n] at distances s [n] for amplitudes and phases [batch, waves]: one matrix product."""
+        weights = torch.cat([amplitude * torch.cos(phase), amplitude * torch.sin(phase)], -1)  # [batch, 2 waves]
+        return weights @ self.basis(distance)
 
     def sample_direct(self, road_class: Tensor, n_steps: int, h: float, speed_mps: float,
                       generator: torch.Generator | None = None) -> Tensor:

@@ -1,0 +1,72 @@
+"""qcm-pipeline: plans, resumes (finished stages are skipped) and records a manifest."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hybridqcm import pipeline
+
+
+def test_demo_plan_lists_every_stage_with_its_command(tmp_path, capsys):
+    assert pipeline.main(["demo", "--plan", "--root", str(tmp_path / "r"), "--dataset", str(tmp_path / "d.h5")]) == 0
+    out = capsys.readouterr().out
+    for name in ("simulate", "exp2_physics", "exp9_unet", "exp5_random_init", "exp10_hybrid"):
+        assert name in out
+    assert f"cnn_ckpt={tmp_path}/r/exp2_physics/checkpoints/last.ckpt" in out
+
+
+def test_reproduce_covers_every_source_table():
+    tables = {s.table for s in pipeline.reproduce_stages() if s.table}
+    from hybridqcm.apps.results import load_thesis_tables
+
+    assert tables == {r["table"] for r in load_thesis_tables()}
+
+
+def test_finished_stages_are_skipped_and_recorded(tmp_path, monkeypatch):
+    root, dataset = tmp_path / "r", tmp_path / "d.h5"
+    dataset.write_bytes(b"")  # the simulate stage's output exists -> done
+    calls = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    assert pipeline.run_pipeline("demo", str(root), str(dataset), only=["simulate"]) == 0
+    assert calls == []
+    manifest = json.loads((root / "manifest.json").read_text())
+    assert [s["name"] for s in manifest["stages"]] == ["simulate"]
+
+
+def test_stage_with_unfinished_dependency_is_not_run(tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    pipeline.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
+    assert calls == []
+    assert "needs ['exp2_physics', 'exp9_unet']" in capsys.readouterr().out
+
+
+def test_failed_stage_stops_the_pipeline(tmp_path, monkeypatch):
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 3))
+    assert pipeline.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["simulate"]) == 3
+
+
+def test_unknown_stage_is_an_error(tmp_path):
+    with pytest.raises(SystemExit, match="unknown stage"):
+        pipeline.run_pipeline("demo", str(tmp_path), only=["nope"], plan=True)
+
+
+@pytest.mark.slow
+def test_demo_end_to_end_on_a_tiny_scale(tmp_path):
+    """The whole demo (simulate, train CNN and U-Net briefly, GN exps 5 and 10, tables) on tiny data."""
+    root, dataset = tmp_path / "demo", tmp_path / "tiny.h5"
+    command = [sys.executable, "-m", "hybridqcm.pipeline", "demo", "--root", str(root), "--dataset", str(dataset),
+               "--preset", "tiny", "--train-time", "00:00:00:30"]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    for stage in ("exp5_random_init", "exp10_hybrid"):
+        assert (root / stage / "estimates.csv").exists()
+        assert (root / stage / "error_distribution.csv").exists()
+    assert "vs source table 5.11" in result.stdout
+    # A second run finds every stage done and runs nothing.
+    again = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert again.returncode == 0 and again.stdout.count("done already") == 5

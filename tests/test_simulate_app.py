@@ -1,0 +1,120 @@
+"""qcm-simulate end to end, run as a subprocess (Hydra), including its bad-input behaviour."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, dataset_info, read_split
+
+
+def _command(tmp_path: Path, overrides, output: Path | None, run_name: str) -> list[str]:
+    script = Path(sys.executable).parent / "qcm-simulate"
+    command = [str(script)] if script.exists() else [sys.executable, "-m", "hybridqcm.apps.simulate"]
+    output = output if output is not None else tmp_path / "data" / "out.h5"
+    return command + ["preset=tiny", f"output={output}", f"hydra.run.dir={tmp_path / run_name}", *overrides]
+
+
+ENV = {**os.environ, "COLUMNS": "160", "PYTHONWARNINGS": "ignore"}
+
+
+def qcm_simulate(tmp_path: Path, *overrides: str, output: Path | None = None, run_name: str = "run",
+                 timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(_command(tmp_path, overrides, output, run_name), capture_output=True, text=True,
+                          timeout=timeout, env=ENV, cwd=tmp_path)
+
+
+def test_tiny_preset_writes_a_valid_dataset(tmp_path):
+    result = qcm_simulate(tmp_path)
+    assert result.returncode == 0, result.stderr
+    out = tmp_path / "data" / "out.h5"
+    info = dataset_info(out)
+    assert info["attrs"]["schema"] == SCHEMA and info["attrs"]["prior"] == "thesis"
+    assert info["attrs"]["h"] == 0.01 and info["attrs"]["n_steps"] == 512
+    assert info["attrs"]["speed_mps"] == pytest.approx(30 / 3.6)
+    assert info["splits"]["train"]["n_samples"] == 48 and info["splits"]["test"]["n_samples"] == 32
+    for split in ("train", "test"):
+        assert info["splits"][split]["keys"] == sorted(LAYOUT)
+        data = read_split(out, split, tuple(LAYOUT))
+        for key, (dtype, _) in LAYOUT.items():
+            assert data[key].dtype == dtype, key
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["train"]["per_class"] == {"A": 24, "B": 16, "C": 8}
+    assert 0.4 < summary["train"]["prior_acceptance_rate"] < 0.9
+    assert "prior acceptance" in result.stdout and "parameter ranges" in result.stdout
+    assert [p.name for p in (tmp_path / "data").iterdir()] == ["out.h5"]
+
+
+def test_same_seed_gives_byte_identical_arrays(tmp_path):
+    a, b, c = tmp_path / "a.h5", tmp_path / "b.h5", tmp_path / "c.h5"
+    for path, seed, run in ((a, 7, "ra"), (b, 7, "rb"), (c, 8, "rc")):
+        result = qcm_simulate(tmp_path, f"seed={seed}", "n_steps=128", output=path, run_name=run)
+        assert result.returncode == 0, result.stderr
+    with h5py.File(a) as fa, h5py.File(b) as fb, h5py.File(c) as fc:
+        for split in ("train", "test"):
+            for key in LAYOUT:
+                xa, xb = fa[split][key][()], fb[split][key][()]
+                assert xa.dtype == xb.dtype and xa.tobytes() == xb.tobytes(), (split, key)
+            assert not np.array_equal(fa[split]["params"][()], fc[split]["params"][()])
+        assert fa.attrs["seed"] == 7 and fc.attrs["seed"] == 8
+
+
+BAD_INPUTS = [
+    ("+splits.train.profiles.Z=3", "unknown road class 'Z'"),
+    ("splits.test.profiles.B=-2", "splits.test.profiles.B must be a non-negative integer, got -2"),
+    ("samples_per_profile=-1", "samples_per_profile must be >= 1, got -1"),
+    ("n_steps=0", "n_steps must be >= 1, got 0"),
+    ("h=0", "h must be > 0, got 0"),
+    ("h=-0.01", "h must be > 0, got -0.01"),
+    ("speed_kmh=-30", "speed_kmh must be > 0"),
+    ("prior=nope", "unknown prior 'nope'"),
+    ("profiles_per_chunk=0", "profiles_per_chunk must be >= 1, got 0"),
+    ("integrator=euler", "unknown integrator 'euler'"),
+    ("prior_options.sigma=-0.5", "prior sigma must be >= 0"),
+]
+
+
+@pytest.fixture(scope="module")
+def bad_runs(tmp_path_factory) -> dict[str, tuple[Path, int, str]]:
+    """All bad-input runs, two at a time (they are independent and mostly interpreter start-up)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(item):
+        i, override = item
+        folder = tmp_path_factory.mktemp(f"bad{i}")
+        result = qcm_simulate(folder, override)
+        return override, (folder, result.returncode, result.stderr)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(pool.map(one, enumerate(o for o, _ in BAD_INPUTS)))
+
+
+@pytest.mark.parametrize("override,message", BAD_INPUTS)
+def test_bad_input_fails_cleanly(bad_runs, override, message):
+    folder, returncode, stderr = bad_runs[override]
+    assert returncode != 0
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert lines and lines[-1].startswith("error:"), stderr
+    assert message in lines[-1], lines[-1]
+    assert "Traceback" not in stderr
+    data_dir = folder / "data"
+    assert not data_dir.exists() or list(data_dir.iterdir()) == [], "no output or temporary file may be left"
+
+
+def test_refuses_to_overwrite_existing_output(tmp_path):
+    out = tmp_path / "data" / "out.h5"
+    out.parent.mkdir()
+    out.write_bytes(b"keep me")
+    result = qcm_simulate(tmp_path)
+    assert result.returncode != 0
+    assert "exists; pass overwrite=true" in result.stderr and "Traceback" not in result.stderr
+    assert out.read_bytes() == b"keep me"
+    result = qcm_simulate(tmp_path, "overwrite=true", "n_steps=32")
+    assert result.returncode == 0, result.stderr
+    assert dataset_info(out)["splits"]["test"]["n_steps"] == 32
