@@ -1,0 +1,445 @@
+"""qcm-estimate: Gauss-Newton (and hybrid) parameter estimation on an HDF5 dataset (SPEC §7 exps 5-10).
+
+    qcm-estimate experiment=exp5_random_init data.path=FILE [n_samples=2000 noise_sigma=0.05 seed=0]
+    qcm-estimate experiment=exp10_hybrid data.path=FILE cnn_ckpt=CKPT unet_ckpt=CKPT hydra.run.dir=DIR
+
+Every bad input (unknown or non-estimation experiment, missing/wrong-kind checkpoint, a key or
+channel the pipeline needs but the file lacks, NaN, a window longer than the stored steps) is
+reported in one line naming the file, key and value, before any work is done.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+import yaml
+
+from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
+
+PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
+CHANNELS = ("a3", "a2", "a1")
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot work; the message names the key and value."""
+
+
+# --------------------------------------------------------------------------------------------------
+# experiment pre-check (before Hydra composes: a training experiment would fail there obscurely)
+def experiment_task(name: str, config_dir: Path = CONFIG_DIR) -> str | None:
+    path = Path(config_dir) / "experiment" / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"unknown experiment {name!r} (no {path}); estimation experiments: "
+                          f"{', '.join(estimation_experiments(config_dir))}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML ({error})") from None
+    return data.get("task") if isinstance(data, dict) else None
+
+
+def estimation_experiments(config_dir: Path = CONFIG_DIR) -> list[str]:
+    names = []
+    for path in sorted((Path(config_dir) / "experiment").glob("*.yaml")):
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError:
+            continue
+        if isinstance(data, dict) and data.get("task") == "estimate":
+            names.append(path.stem)
+    return names
+
+
+def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key.lstrip("+~") != "experiment" or not value or value == "null":
+            continue
+        for name in value.split(","):
+            name = name.strip()
+            task = experiment_task(name, config_dir)
+            if task != "estimate":
+                raise ConfigError(f"experiment {name!r} is not an estimation experiment (its config says task: {task}); "
+                                  f"qcm-estimate runs {', '.join(estimation_experiments(config_dir))} — "
+                                  f"train networks with qcm-train")
+
+
+# --------------------------------------------------------------------------------------------------
+def _atomic_write_text(path: Path, text: str) -> None:
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(text)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence]) -> None:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(header)
+    writer.writerows(rows)
+    _atomic_write_text(path, buffer.getvalue())
+
+
+def _param_index(names: Sequence[str], key: str) -> list[int]:
+    out = []
+    for name in names:
+        if str(name) not in PARAM_NAMES:
+            raise ConfigError(f"{key}: {name!r} is not a parameter name (p1..p10)")
+        out.append(PARAM_NAMES.index(str(name)))
+    return out
+
+
+def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
+    """(method, SolverConfig kwargs) from the solver group plus per-stage overrides."""
+    from dataclasses import fields
+
+    from omegaconf import OmegaConf
+
+    from hybridqcm.estimation.solver import SOLVERS, SolverConfig
+
+    base = OmegaConf.to_container(cfg.solver, resolve=True)
+    base.update(dict(overrides or {}))
+    method = base.pop("method", "gauss_newton")
+    if method not in SOLVERS:
+        raise ConfigError(f"solver.method={method!r} is unknown; choose one of {sorted(SOLVERS)}")
+    allowed = {f.name for f in fields(SolverConfig)}
+    unknown = sorted(set(base) - allowed)
+    if unknown:
+        raise ConfigError(f"unknown solver setting(s) {unknown}; valid: {sorted(allowed)}")
+    if int(base.get("max_iterations", 1)) < 0:
+        raise ConfigError(f"solver.max_iterations must be >= 0, got {base['max_iterations']}")
+    if float(base.get("initial_step", 1.0)) <= 0:
+        raise ConfigError(f"solver.initial_step must be > 0, got {base['initial_step']}")
+    return method, base
+
+
+# --------------------------------------------------------------------------------------------------
+def validate(cfg) -> dict:
+    """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
+    from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.estimation.hybrid import CheckpointKindError, checkpoint_class
+
+    if cfg.get("task") != "estimate":
+        raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
+    n_steps = int(cfg.n_steps)
+    if n_steps < 2:
+        raise ConfigError(f"n_steps must be >= 2, got {cfg.n_steps}")
+    sigma = float(cfg.noise_sigma)
+    if not math.isfinite(sigma) or sigma < 0:
+        raise ConfigError(f"noise_sigma must be a finite value >= 0, got {cfg.noise_sigma}")
+    if cfg.n_samples is not None and int(cfg.n_samples) < 1:
+        raise ConfigError(f"n_samples must be >= 1 (or null for all), got {cfg.n_samples}")
+    observed = [str(c) for c in cfg.observed]
+    bad = [c for c in observed if c not in CHANNELS]
+    if bad or not observed:
+        raise ConfigError(f"observed={observed}: channels must be a non-empty subset of {list(CHANNELS)}")
+    known = _param_index(cfg.known, "known")
+    if len(known) == 10:
+        raise ConfigError("known lists all 10 parameters: nothing left to estimate")
+    if cfg.known_source not in ("file", "reference"):
+        raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
+    if int(cfg.batch_size) < 1:
+        raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
+
+    stages = []
+    for i, stage in enumerate(cfg.stages):
+        stage = dict(stage)
+        name = str(stage.pop("name", f"stage{i}"))
+        channels = stage.pop("channels", "all")
+        window = stage.pop("n_steps", None)
+        guard = bool(stage.pop("guard", False))
+        if window is not None and not 2 <= int(window):
+            raise ConfigError(f"stages[{i}].n_steps must be >= 2 (or null for n_steps), got {window}")
+        method, settings = solver_settings(cfg, stage)
+        stages.append({"name": name, "channels": channels if isinstance(channels, str) else list(channels),
+                       "method": method, "settings": settings, "n_steps": None if window is None else int(window),
+                       "guard": guard})
+    if not stages:
+        raise ConfigError("stages is empty: give at least one GN stage")
+
+    # Checkpoints: present, readable, of the right kind — and the ones the experiment needs.
+    kinds = {"cnn_ckpt": "cnn", "unet_ckpt": "unet", "cae_ckpt": "cae"}
+    for key, kind in kinds.items():
+        if cfg.get(key):
+            try:
+                checkpoint_class(cfg[key], kind, key)
+            except CheckpointKindError as error:
+                raise ConfigError(str(error)) from None
+    if cfg.init.cnn and not cfg.cnn_ckpt:
+        raise ConfigError(f"experiment {cfg.experiment_name} initialises p1, p2 with the CNN: give cnn_ckpt=PATH "
+                          f"(or init.cnn=false for a random init)")
+    completes = bool(cfg.unet_ckpt) and not {"a2", "a1"} <= set(observed)
+    if cfg.init.equation_error and not (completes or set(observed) == set(CHANNELS)):
+        raise ConfigError(f"init.equation_error needs all three accelerations: observe them or give unet_ckpt=PATH "
+                          f"(observed={observed})")
+    for stage in stages:  # explicit channel lists must be measured or completed
+        if not isinstance(stage["channels"], str):
+            available = set(observed) | ({"a2", "a1"} if completes else set())
+            missing = [c for c in stage["channels"] if c not in available]
+            if missing:
+                raise ConfigError(f"stage {stage['name']!r} uses channels {missing}, which are neither observed "
+                                  f"(observed={observed}) nor completed by a U-Net")
+        elif stage["channels"] not in ("all", "observed"):
+            raise ConfigError(f"stage {stage['name']!r}: channels={stage['channels']!r}; use all, observed or a list")
+    if cfg.init.cnn and "a2" not in observed and not completes and not cfg.cnn_a2_from_file:
+        raise ConfigError("the CNN initialiser reads a2, which is not observed: give unet_ckpt=PATH to complete it "
+                          "(or cnn_a2_from_file=true to use the file's a2 for the initial guess only)")
+    if cfg.cae_ckpt and "a2" not in observed and not completes:
+        raise ConfigError("cae_ckpt denoises (a3, a2) but a2 is neither observed nor completed (give unet_ckpt)")
+
+    # Dataset: split, keys, window; NaNs are checked when reading (read_split names the index).
+    path = Path(str(cfg.data.path))
+    info = dataset_info(path)
+    split = str(cfg.data.split)
+    if split not in info["splits"]:
+        raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
+    keys = info["splits"][split]["keys"]
+    for key in ("accel", "road"):
+        if key not in keys:
+            raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
+    has_params = "params" in keys
+    if not has_params and known and cfg.known_source == "file":
+        raise DatasetError(f"{path}: /{split} has no 'params', so the known parameters {[PARAM_NAMES[i] for i in known]} "
+                           f"cannot come from the file; set known_source=reference to take them from the vehicle config")
+    import h5py
+
+    with h5py.File(path, "r") as handle:
+        stored = int(handle[split]["accel"].shape[1])
+        n_total = int(handle[split]["accel"].shape[0])
+        h_file = float(handle.attrs["h"]) if "h" in handle.attrs else None
+    needed = n_steps
+    windows = {}
+    from hybridqcm.estimation.hybrid import load_network
+
+    for key in ("cnn_ckpt", "unet_ckpt", "cae_ckpt"):
+        if cfg.get(key) and (key != "cnn_ckpt" or cfg.init.cnn):
+            windows[key] = int(load_network(cfg[key], kinds[key], key).hparams.window)
+    if cfg.init.cnn:
+        needed = max(needed, windows.get("cnn_ckpt", n_steps))
+    if needed > stored:
+        what = "n_steps" if needed == n_steps else f"the CNN window ({needed})"
+        raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
+    n_samples = n_total if cfg.n_samples is None else min(int(cfg.n_samples), n_total)
+    return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
+            "stages": stages, "n_read_steps": needed, "n_samples": n_samples, "h": h_file or 0.01,
+            "completes": completes, "windows": windows}
+
+
+# --------------------------------------------------------------------------------------------------
+def build_inputs(cfg, plan: Mapping) -> dict:
+    """Read data, draw the random init (seed) and the measurement noise (seed + 1)."""
+    from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.physics.parameters import PhysicalConstants
+
+    keys = ["accel", "road"] + (["params"] if plan["has_params"] else [])
+    arrays = read_split(plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(0, plan["n_samples"]))
+    accel = torch.from_numpy(np.asarray(arrays["accel"], dtype=np.float64))
+    road = torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64))
+    m = accel.shape[0]
+    vehicle = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()})
+    p_ref = vehicle.to_params()
+    true = torch.from_numpy(np.asarray(arrays["params"], dtype=np.float64)) if plan["has_params"] else None
+
+    # The same δ for every experiment: drawn first, for the whole file prefix, from `seed`.
+    init_gen = torch.Generator().manual_seed(int(cfg.seed))
+    delta = float(cfg.init.relative_sigma) * torch.randn(m, 10, generator=init_gen, dtype=torch.float64)
+    init = p_ref * (1.0 + delta)
+    init = torch.where(init > 0, init, p_ref.expand_as(init))  # a δ < -1 would start outside the domain
+    known_values = true if (true is not None and cfg.known_source == "file") else p_ref.expand(m, 10)
+    for j in plan["known"]:
+        init[:, j] = known_values[:, j]
+    if cfg.pu_known:
+        pu = (known_values[:, 9] - known_values[:, 8]) if (true is not None and cfg.known_source == "file") \
+            else torch.full((m,), float(p_ref[9] - p_ref[8]), dtype=torch.float64)
+    else:
+        pu = torch.full((m,), float(p_ref[9] - p_ref[8]), dtype=torch.float64)  # only the U-Net would read it
+
+    sigma = float(cfg.noise_sigma)
+    if sigma > 0:
+        noise_gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
+        accel = accel * (1.0 + sigma * torch.randn(accel.shape, generator=noise_gen, dtype=torch.float64))
+    out = {"accel": accel, "road": road, "pu": pu, "init": init, "true": true, "index": torch.arange(m)}
+    if sigma > 0 and cfg.noise_weighting:
+        out["noise_sigma"] = torch.full((m,), sigma, dtype=torch.float64)
+    return out
+
+
+class _DictDataset(torch.utils.data.Dataset):
+    def __init__(self, tensors: Mapping[str, torch.Tensor]):
+        self.tensors = dict(tensors)
+        self.n = int(next(iter(self.tensors.values())).shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitems__(self, indices):
+        idx = torch.as_tensor(indices)
+        return {k: v[idx] for k, v in self.tensors.items()}
+
+    def __getitem__(self, i):
+        return {k: v[i] for k, v in self.tensors.items()}
+
+
+def _identity(batch):
+    return batch
+
+
+# --------------------------------------------------------------------------------------------------
+def run(cfg) -> dict:
+    import lightning
+    from hydra.core.hydra_config import HydraConfig
+
+    from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage, HybridEstimator
+    from hybridqcm.estimation.solver import STATUS_LABELS, build_solver
+    from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+
+    t_start = time.perf_counter()
+    plan = validate(cfg)
+    run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    inputs = build_inputs(cfg, plan)
+    known_mask = torch.zeros(10, dtype=torch.bool)
+    known_mask[plan["known"]] = True
+
+    module = HybridEstimator(
+        cnn_ckpt=cfg.cnn_ckpt if cfg.init.cnn else None, unet_ckpt=cfg.unet_ckpt, cae_ckpt=cfg.cae_ckpt,
+        observed=plan["observed"], n_steps=int(cfg.n_steps), h=plan["h"], cnn_init=bool(cfg.init.cnn),
+        equation_error_init=bool(cfg.init.equation_error), known=[PARAM_NAMES[j] for j in plan["known"]],
+        pu_known=bool(cfg.pu_known), cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
+    )
+    stages = [GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"],
+                               s["guard"]) for s in plan["stages"]]
+    sigma = float(cfg.noise_sigma)
+    # Restart threshold on L/(½Σa²): noise-free fits end near 1e-15; with noise the floor is ~σ².
+    threshold = float(cfg.restarts.threshold) if sigma == 0 else max(float(cfg.restarts.threshold), 4.0 * sigma**2)
+    refinement = GaussNewtonRefinement(stages, known=known_mask, pu_known=bool(cfg.pu_known), h=plan["h"],
+                                       log_dir=run_dir / "tb" if cfg.tensorboard else None,
+                                       restarts=int(cfg.restarts.count), restart_threshold=threshold,
+                                       restart_sigma=float(cfg.restarts.sigma), seed=int(cfg.seed),
+                                       restart_mass_factors=list(cfg.restarts.get("mass_factors") or []))
+    loader = torch.utils.data.DataLoader(
+        _DictDataset({k: v for k, v in inputs.items() if k != "true"}), batch_size=int(cfg.batch_size),
+        shuffle=False, collate_fn=_identity, num_workers=0)
+    trainer = lightning.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
+                                enable_progress_bar=bool(cfg.progress), enable_model_summary=False,
+                                callbacks=[refinement], default_root_dir=str(run_dir), inference_mode=False)
+    t_solve = time.perf_counter()
+    trainer.predict(module, dataloaders=loader, return_predictions=False)
+    solve_seconds = time.perf_counter() - t_solve
+    collected = refinement.collect()
+    result = collected.result
+    params, std = result.params, result.std
+    status = [STATUS_LABELS[int(s)] for s in result.status]
+    K3 = float(cfg.K3)
+    m3 = K3 / params[:, 1]
+    m3_std = K3 / params[:, 1].square() * std[:, 1]
+
+    # estimates.csv: index, p1..p10, status, std_p1..std_p10, m3, m3_std (known parameters echoed, std 0)
+    header = ["index", *PARAM_NAMES, "status", *[f"std_{n}" for n in PARAM_NAMES], "m3", "m3_std"]
+    rows = []
+    for i in range(params.shape[0]):
+        rows.append([int(collected.index[i]), *[repr(float(x)) for x in params[i]], status[i],
+                     *[repr(float(x)) for x in std[i]], repr(float(m3[i])), repr(float(m3_std[i]))])
+    _write_csv(run_dir / "estimates.csv", header, rows)
+    status_rows = [[int(collected.index[i]), status[i], int(result.iterations[i]), repr(float(result.loss[i])),
+                    repr(float(collected.relative_loss[i])), int(collected.restarts[i]),
+                    repr(float(result.condition_number[i]))] for i in range(params.shape[0])]
+    _write_csv(run_dir / "status.csv", ["index", "status", "iterations", "loss", "relative_loss", "restarts",
+                                        "condition_number"], status_rows)
+
+    free = [j for j in range(10) if j not in plan["known"]]
+    free_names = [PARAM_NAMES[j] for j in free]
+    table_rows = None
+    summary = {
+        "experiment": cfg.experiment_name, "data": str(plan["path"]), "split": plan["split"],
+        "n_samples": int(params.shape[0]), "n_steps": int(cfg.n_steps), "noise_sigma": float(cfg.noise_sigma),
+        "seed": int(cfg.seed), "observed": plan["observed"], "known": [PARAM_NAMES[j] for j in plan["known"]],
+        "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
+        "stages": collected.stage_status, "stage_mean_loss": collected.stage_loss,
+        "iterations_mean": float(result.iterations.double().mean()),
+        "restarted_samples": int((collected.restarts > 0).sum()),
+        "seconds_solve": solve_seconds,
+    }
+    if inputs["true"] is not None:
+        true = inputs["true"]
+        table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
+        title = f"{cfg.experiment_name}: {params.shape[0]} samples, N = {cfg.n_steps}, noise σ = {cfg.noise_sigma}"
+        write_error_distribution(table_rows, run_dir, title=title)
+        err = ((params - true).abs() / true)[:, free]
+        summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
+        summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
+        # calibration: fraction of true values inside the 95 % interval p̂ ± 1.96 σ
+        cal_rows = []
+        for j, name in zip(free, free_names):
+            inside = ((params[:, j] - true[:, j]).abs() <= 1.96 * std[:, j]).double()
+            finite = torch.isfinite(std[:, j])
+            cal_rows.append([name, int(params.shape[0]), float(inside.mean()), float(std[:, j][finite].median() / true[:, j][finite].median()) if bool(finite.any()) else math.inf])
+        true_m3 = K3 / true[:, 1]
+        inside = ((m3 - true_m3).abs() <= 1.96 * m3_std).double()
+        cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()), float(m3_std.median() / true_m3.median())])
+        _write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
+        summary["m3_mean_rel_err"] = float(((m3 - true_m3).abs() / true_m3).mean())
+        if cfg.plots:
+            from hybridqcm.plots import close, plot_sorted_predictions
+
+            for j, name in zip(free, free_names):
+                close(plot_sorted_predictions(params[:, j].numpy(), true[:, j].numpy(), name,
+                                              run_dir / "plots" / f"sorted_{name}.png", title=f"{cfg.experiment_name}: {name}"))
+            close(plot_sorted_predictions(m3.numpy(), true_m3.numpy(), "m3 [kg]", run_dir / "plots" / "sorted_m3.png",
+                                          title=f"{cfg.experiment_name}: occupant mass"))
+    summary["seconds_total"] = time.perf_counter() - t_start
+    _atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+
+    print_table(f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()])
+    if table_rows is not None:
+        print_table(f"{cfg.experiment_name}: relative error, {params.shape[0]} samples", 
+                    ["param", "max", "mean", "≤1 %", "≤5 %", "≤10 %", "≤25 %", ">25 %"],
+                    [[r["param"], f"{100 * r['max_err']:.3g} %", f"{100 * r['mean_err']:.3g} %", f"{100 * r['within_1pct']:.2f} %",
+                      f"{100 * r['within_5pct']:.2f} %", f"{100 * r['within_10pct']:.2f} %", f"{100 * r['within_25pct']:.2f} %",
+                      f"{100 * r['over_25pct']:.2f} %"] for r in table_rows])
+        print(f"all estimated parameters within 1 %: {100 * summary['all_within_1pct']:.2f} % of samples; "
+              f"GN {summary['seconds_solve']:.1f} s, total {summary['seconds_total']:.1f} s -> {run_dir}")
+    else:
+        print(f"estimates of {params.shape[0]} samples (no params in the file: no error table) -> {run_dir}")
+    return summary
+
+
+def _hydra_entry(cfg) -> None:
+    from hybridqcm.data.hdf5 import DatasetError
+
+    try:
+        run(cfg)
+    except (ConfigError, DatasetError, FileNotFoundError) as error:
+        fail(error)
+
+
+def _hydra_main():
+    import hydra
+
+    return hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="estimate")(_hydra_entry)()
+
+
+def main() -> None:
+    try:
+        check_experiment_overrides(sys.argv[1:])
+    except ConfigError as error:
+        fail(error)
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

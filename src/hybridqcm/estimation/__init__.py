@@ -1,0 +1,15 @@
+"""Parameter estimation: forward-mode sensitivities, batched Gauss-Newton / LM, hybrid pipeline."""
+from hybridqcm.estimation.sensitivity import (EulerSensitivity, accelerations_and_jacobian, euler_accelerations,
+                                              euler_sensitivities)
+from hybridqcm.estimation.solver import (SOLVERS, STATUS_LABELS, GaussNewton, LeastSquaresProblem, LevenbergMarquardt,
+                                         NonlinearLeastSquares, SolverConfig, SolverResult, SolverStatus, build_solver)
+from hybridqcm.estimation.hybrid import (CheckpointKindError, GaussNewtonRefinement, GaussNewtonStage, HybridEstimator,
+                                         equation_error_params, load_network)
+
+__all__ = [
+    "EulerSensitivity", "accelerations_and_jacobian", "euler_accelerations", "euler_sensitivities",
+    "SOLVERS", "STATUS_LABELS", "GaussNewton", "LeastSquaresProblem", "LevenbergMarquardt", "NonlinearLeastSquares",
+    "SolverConfig", "SolverResult", "SolverStatus", "build_solver",
+    "CheckpointKindError", "GaussNewtonRefinement", "GaussNewtonStage", "HybridEstimator", "equation_error_params",
+    "load_network",
+]

@@ -1,0 +1,475 @@
+"""Hybrid estimation: networks in front, Gauss-Newton on the physics behind (SPEC §7 exps 6-10).
+
+    (â3, â2) --CAE?--> (a3, a2) --U-Net?--> completed (a2, a1) from (a3, p_u u)
+             --CNN--> (p1, p2) initial values --> GN stage(s) on the (completed) residual
+
+:class:`HybridEstimator` is a LightningModule composed from checkpoint paths; its predict/test
+step runs the networks and returns the GN problem of the batch. :class:`GaussNewtonRefinement`
+is the callback that runs the solver stages on every predict/test batch, collects per-sample
+results and writes per-iteration losses to TensorBoard. Used together::
+
+    trainer.predict(HybridEstimator(cnn_ckpt=...), loader, callbacks=[GaussNewtonRefinement(stages)])
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import torch
+from lightning.pytorch import Callback, LightningModule
+from torch import Tensor
+
+from .sensitivity import N_PARAMS
+from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus
+
+CHANNELS = ("a3", "a2", "a1")
+KIND_CLASSES = {
+    "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
+    "unet": ("CompletionUNet",),
+    "cae": ("DenoisingAutoencoder",),
+}
+
+
+class CheckpointKindError(ValueError):
+    """A checkpoint path that is missing, unreadable or holds the wrong kind of network."""
+
+
+def checkpoint_class(path: str | os.PathLike, kind: str, config_key: str | None = None) -> str:
+    """Name of the model class stored in ``path``; raises CheckpointKindError unless it fits ``kind``."""
+    key = f"{config_key}=" if config_key else ""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointKindError(f"{key}{path}: checkpoint file does not exist")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointKindError(f"{key}{path}: not a readable torch checkpoint ({type(error).__name__}: {error})") from None
+    stored = raw.get("hybridqcm_class") if isinstance(raw, dict) else None
+    allowed = KIND_CLASSES[kind]
+    if stored not in allowed:
+        raise CheckpointKindError(
+            f"{key}{path}: holds a {stored or 'non-hybridqcm'} checkpoint, but {kind} needs one of {list(allowed)}"
+        )
+    return stored
+
+
+def load_network(path: str | os.PathLike, kind: str, config_key: str | None = None) -> LightningModule:
+    """Load a CNN / U-Net / CAE checkpoint for inference (eval mode, CPU)."""
+    from hybridqcm.models import modules
+
+    name = checkpoint_class(path, kind, config_key)
+    module = getattr(modules, name).load_from_checkpoint(str(path), map_location="cpu")
+    module.eval()
+    return module
+
+
+# ----------------------------------------------------------------------------------------------
+def equation_error_params(accel: Tensor, road: Tensor, h: float, fallback: Tensor, known: Tensor,
+                          scaled_road: bool = False) -> Tensor:
+    """Parameters from accelerations of all three bodies by linear least squares ("equation error").
+
+    Integrating the accelerations with the model's own Euler recursion (from rest) gives v_k, q_k
+    exactly for noise-free data, and a_k = D v_k + S q_k + b_k is linear in p, row by row. With
+    noisy or network-completed accelerations the states drift, so this is an initialiser for GN.
+    accel [batch, time, 3], road [batch, time] (u, or p_u u if ``scaled_road``), fallback [batch, 10]
+    (used for known parameters and wherever the fit is not positive/finite) -> p [batch, 10].
+    """
+    accel = accel.double()
+    road = road.double()
+    batch, n_steps, _ = accel.shape
+    vel = torch.zeros_like(accel)
+    disp = torch.zeros_like(accel)
+    v = torch.zeros(batch, 3, dtype=torch.float64)
+    q = torch.zeros_like(v)
+    for k in range(n_steps):  # v_k, q_k as recorded at step k (same convention as the generator)
+        vel[:, k], disp[:, k] = v, q
+        v = v + h * accel[:, k]
+        q = q + h * v
+    v3, v2, v1 = vel.unbind(-1)
+    q3, q2, q1 = disp.unbind(-1)
+    a3, a2, a1 = accel.unbind(-1)
+    p = fallback.double().clone()
+    zeros = torch.zeros_like(road)
+    forcing_known = road if scaled_road else zeros
+    u = zeros if scaled_road else road
+    rows = [  # (parameter indices, regressors c_j [batch, time], target)
+        ((0, 1), (v2 - v3, q2 - q3), a3),
+        ((2, 3, 4, 5), (v3 - v2, v1 - v2, q3 - q2, q1 - q2), a2),
+        ((6, 7, 8, 9), (v2, -v1, q2 - u, u - q1), a1 - forcing_known),
+    ]
+    for index, regressors, target in rows:
+        free = [j for j, i in enumerate(index) if not bool(known[i])]
+        if not free:
+            continue
+        design = torch.stack(regressors, -1)  # [batch, time, n]
+        rhs = target.clone()
+        for j, i in enumerate(index):
+            if bool(known[i]):
+                rhs = rhs - p[:, i, None] * design[..., j]
+        design = design[..., free]
+        scale = design.square().sum(1).sqrt().clamp_min(1e-300)  # column scaling, as in GN
+        solution = torch.linalg.lstsq(design / scale[:, None, :], rhs.unsqueeze(-1)).solution.squeeze(-1) / scale
+        cols = [index[j] for j in free]
+        ok = torch.isfinite(solution).all(1) & (solution > 0).all(1)
+        p[:, cols] = torch.where(ok[:, None], solution, p[:, cols])
+    return p
+
+
+# ----------------------------------------------------------------------------------------------
+class HybridEstimator(LightningModule):
+    """Networks in front of Gauss-Newton, composed from checkpoint paths (each optional).
+
+    Batch contract (dict): ``accel`` [batch, time, 3] (a3, a2, a1; unobserved channels are never
+    read), ``road`` [batch, time] u in metres, ``pu`` [batch] p_u (needed by the U-Net),
+    ``init`` [batch, 10] initial parameters (known ones already at their values), ``index``.
+    ``time`` may exceed ``n_steps``: the networks see the whole window they need, GN the first
+    ``n_steps``. predict_step returns the GN problem of the batch: ``targets`` [batch, n_steps, 3]
+    (observed channels, completed ones where the U-Net filled them in), ``road``, ``pu``, ``init``.
+    """
+
+    def __init__(self, cnn_ckpt: str | None = None, unet_ckpt: str | None = None, cae_ckpt: str | None = None,
+                 observed: Sequence[str] = CHANNELS, n_steps: int = 100, h: float = 0.01,
+                 cnn_init: bool = True, equation_error_init: bool = False, known: Sequence[str] = (),
+                 pu_known: bool = True, cnn_a2_from_data: bool = False):
+        super().__init__()
+        self.observed = tuple(observed)
+        unknown = [c for c in self.observed if c not in CHANNELS]
+        if unknown or not self.observed:
+            raise ValueError(f"observed channels must be a non-empty subset of {CHANNELS}, got {list(observed)}")
+        self.n_steps, self.h = int(n_steps), float(h)
+        self.cnn = load_network(cnn_ckpt, "cnn", "cnn_ckpt") if cnn_ckpt else None
+        self.unet = load_network(unet_ckpt, "unet", "unet_ckpt") if unet_ckpt else None
+        self.cae = load_network(cae_ckpt, "cae", "cae_ckpt") if cae_ckpt else None
+        self.cnn_init = bool(cnn_init) and self.cnn is not None
+        self.equation_error_init = bool(equation_error_init)
+        self.pu_known = bool(pu_known)
+        # a2 unobserved and not completed: may the CNN initialiser still read the batch's a2?
+        self.cnn_a2_from_data = bool(cnn_a2_from_data)
+        known_mask = torch.zeros(N_PARAMS, dtype=torch.bool)
+        for name in known:
+            known_mask[int(str(name).lstrip("p")) - 1] = True
+        self.register_buffer("known_mask", known_mask, persistent=False)
+        if self.cae is not None and list(self.cae.hparams.channels) != ["a3", "a2"]:
+            raise CheckpointKindError(f"cae_ckpt: denoiser channels {list(self.cae.hparams.channels)}, expected ['a3', 'a2']")
+        if self.unet is not None and (list(self.unet.hparams.input_channels) != ["a3", "pu_u"]
+                                      or list(self.unet.hparams.target_channels) != ["a2", "a1"]):
+            raise CheckpointKindError("unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
+                                      f"{list(self.unet.hparams.input_channels)} -> {list(self.unet.hparams.target_channels)}")
+        if self.cnn is not None and list(self.cnn.hparams.input_channels) != ["a3", "a2"]:
+            raise CheckpointKindError(f"cnn_ckpt: estimator inputs {list(self.cnn.hparams.input_channels)}, expected ['a3', 'a2']")
+
+    # -- what the pipeline needs ---------------------------------------------------------------
+    @property
+    def completes(self) -> bool:
+        """True when unobserved a2/a1 are filled in by the U-Net."""
+        return self.unet is not None and not {"a2", "a1"} <= set(self.observed)
+
+    def required_steps(self) -> int:
+        """Steps of input the networks and GN need (the CNN reads ``window`` steps)."""
+        need = self.n_steps
+        if self.cnn_init:
+            need = max(need, int(self.cnn.hparams.window))
+        return need
+
+    def gn_channels(self) -> tuple[bool, bool, bool]:
+        """Channels with data for GN: observed ones plus completed ones."""
+        return tuple((c in self.observed) or (self.completes and c in ("a2", "a1")) for c in CHANNELS)
+
+    # -- the network part -----------------------------------------------------------------------
+    @torch.no_grad()
+    def prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        accel = batch["accel"].double().clone()
+        road = batch["road"].double()
+        pu = batch["pu"].double()
+        init = batch["init"].double().clone()
+        if accel.shape[1] < self.required_steps():
+            raise ValueError(f"the pipeline needs {self.required_steps()} steps of input, the batch has {accel.shape[1]}")
+        a2_observed = "a2" in self.observed
+        if self.completes:
+            accel[:, :, 1:] = self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+        if self.cae is not None:
+            if not a2_observed and not self.completes:
+                raise ValueError("the CAE denoises (a3, a2): a2 must be observed or completed by the U-Net")
+            denoised = self.cae.denoise(accel[:, :, :2].transpose(1, 2).float()).double().transpose(1, 2)
+            accel[:, :, 0] = denoised[:, :, 0]
+            if a2_observed:
+                accel[:, :, 1] = denoised[:, :, 1]
+            if self.completes:  # complete again from the denoised a3
+                accel[:, :, 1:] = self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+        if self.cnn_init:
+            if not a2_observed and not self.completes and not self.cnn_a2_from_data:
+                raise ValueError("the CNN initialiser reads a2: observe a2 or give a U-Net (unet_ckpt) to complete it")
+            p12 = self.cnn.estimate(accel[:, :, 0].float(), accel[:, :, 1].float()).double()
+            keep = self.known_mask[:2]
+            init[:, :2] = torch.where(keep, init[:, :2], p12)
+        accel = accel[:, : self.n_steps]
+        road = road[:, : self.n_steps]
+        if self.equation_error_init:
+            if not all(self.gn_channels()):
+                raise ValueError("equation-error initialisation needs all three accelerations (observed or completed)")
+            # p_u known: the forcing is data (scaled road); otherwise p9, p10 carry it.
+            forcing = pu[:, None] * road if self.pu_known else road
+            init = equation_error_params(accel, forcing, self.h, init, self.known_mask, scaled_road=self.pu_known)
+        prepared = {"targets": accel, "road": road, "pu": pu, "init": init, "index": batch["index"]}
+        if batch.get("noise_sigma") is not None and float(batch["noise_sigma"].max()) > 0:
+            # Noise-aware weighting for multiplicative noise a(1 + η): a channel's noise std is
+            # σ·rms(a_c), so weights 1/(σ rms_c) standardise every channel (completed ones too,
+            # whose error is unknown: they get the same rule, which only balances their scale).
+            rms = accel.square().mean(1).sqrt().clamp_min(1e-12)  # [batch, 3]
+            prepared["weights"] = 1.0 / (batch["noise_sigma"].double()[:, None] * rms)
+        return prepared
+
+    def forward(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        return self.prepare(batch)
+
+    def predict_step(self, batch: Mapping[str, Tensor], batch_idx: int = 0) -> dict[str, Tensor]:
+        return self.prepare(batch)
+
+    def test_step(self, batch: Mapping[str, Tensor], batch_idx: int = 0) -> dict[str, Tensor]:
+        return self.prepare(batch)
+
+
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class GaussNewtonStage:
+    """One solver pass: which channels enter the residual and with which solver.
+
+    channels: "all" = every channel GN has data for (observed + completed), "observed" = only
+    measured ones (e.g. a3 in exp 8/10), or an explicit list like ["a3"].
+    """
+
+    name: str
+    solver: NonlinearLeastSquares
+    channels: Any = "all"
+    n_steps: Optional[int] = None  # residual on the first n_steps only (window continuation); None: all
+    # For stages on network-completed channels: keep the result only where it fits the *measured*
+    # channels better than its start, and skip the stage in restarts (a poor completion must not
+    # drag every attempt away from the measurement).
+    guard: bool = False
+
+
+@dataclass
+class RefinementResult:
+    """Concatenated per-sample results of all batches, in batch order."""
+
+    index: Tensor
+    init: Tensor
+    result: SolverResult
+    stage_loss: dict = field(default_factory=dict)  # stage -> mean loss per iteration (list)
+    stage_status: dict = field(default_factory=dict)  # stage -> status counts
+    restarts: Optional[Tensor] = None  # [batch] restarts run per sample
+    relative_loss: Optional[Tensor] = None  # [batch] final L / ½Σa² (observed channels)
+
+
+class GaussNewtonRefinement(Callback):
+    """Runs the GN stages on every predict/test batch of a :class:`HybridEstimator`.
+
+    known [10] bool: parameters held fixed; pu_known: the wheel forcing p_u u is data (scaled road,
+    p9/p10 only through S), else it depends on p9, p10 through p_u = p10 - p9.
+    Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
+    """
+
+    def __init__(self, stages: Sequence[GaussNewtonStage], known: Tensor | None = None, pu_known: bool = False,
+                 h: float = 0.01, log_dir: str | os.PathLike | None = None, restarts: int = 0,
+                 restart_threshold: float = 1e-10, restart_sigma: float = 0.1, seed: int = 0,
+                 observed: Sequence[str] = CHANNELS, restart_mass_factors: Sequence[float] = ()):
+        super().__init__()
+        if not stages:
+            raise ValueError("GaussNewtonRefinement needs at least one stage")
+        self.stages = list(stages)
+        self.known = torch.zeros(N_PARAMS, dtype=torch.bool) if known is None else torch.as_tensor(known, dtype=torch.bool)
+        self.pu_known = bool(pu_known)
+        self.h = float(h)
+        self.log_dir = log_dir
+        self.observed = tuple(observed)  # used when refine() is called without a HybridEstimator
+        # Multi-start: samples whose final loss stays above restart_threshold x ½Σa² (relative
+        # residual; noise-free fits end near 1e-15, local minima at >= 1e-8) run all stages again
+        # from init (1 + restart_sigma δ'); the lower loss wins. Seeded, so runs repeat exactly.
+        self.restarts = int(restarts)
+        self.restart_threshold = float(restart_threshold)
+        self.restart_sigma = float(restart_sigma)
+        self.generator = torch.Generator().manual_seed(int(seed) + 2)
+        # Restart k (k < len) also rescales the start of p1, p2 by restart_mass_factors[k]: both are
+        # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
+        # which a 10 % perturbation cannot undo. E.g. [0.6, 1.6, 0.4, 2.5] walks m3 over the prior.
+        self.restart_mass_factors = [float(f) for f in restart_mass_factors]
+        self._batches: list[dict] = []
+
+    def _channels(self, stage: GaussNewtonStage, module: HybridEstimator) -> tuple[bool, bool, bool]:
+        available = module.gn_channels() if isinstance(module, HybridEstimator) else (True, True, True)
+        if stage.channels == "all":
+            return available
+        if stage.channels == "observed":
+            observed = module.observed if isinstance(module, HybridEstimator) else self.observed
+            return tuple(c in observed for c in CHANNELS)
+        names = list(stage.channels)
+        wanted = tuple(c in names for c in CHANNELS)
+        missing = [c for c, w, a in zip(CHANNELS, wanted, available) if w and not a]
+        if missing:
+            raise ValueError(f"stage {stage.name!r} uses channels {missing} that are neither observed nor completed")
+        return wanted
+
+    def _run_stages(self, outputs, init: Tensor, module, restart: bool = False) -> tuple[dict, SolverResult, Tensor, Tensor]:
+        """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
+        guess directly, in case the completed channels were what misled the first attempt);
+        returns (per-stage results, last result, params, relative loss)."""
+        params = init
+        road = outputs["road"].double()
+        if self.pu_known:
+            road = outputs["pu"].double()[:, None] * road
+        per_stage = {}
+        result = None
+        skip_guarded = restart and not all(stage.guard for stage in self.stages)
+        for stage in self.stages:
+            if skip_guarded and stage.guard:
+                continue
+            observed = self._channels(stage, module)
+            window = outputs["targets"].shape[1] if stage.n_steps is None else min(int(stage.n_steps), outputs["targets"].shape[1])
+            problem = LeastSquaresProblem(outputs["targets"][:, :window].double(), road[:, :window], self.h,
+                                          scaled_road=self.pu_known, observed=observed, known=self.known,
+                                          weights=outputs.get("weights"))
+            result = stage.solver.solve(problem, params)
+            per_stage[stage.name] = result
+            # A stage that diverged keeps its input for the next stage rather than garbage.
+            keep_input = result.status == SolverStatus.DIVERGED
+            if stage.guard:
+                measured = tuple(c in (module.observed if isinstance(module, HybridEstimator) else self.observed)
+                                 for c in CHANNELS)
+                before = self._measured_loss(outputs, road, params, measured)
+                after = self._measured_loss(outputs, road, result.params, measured)
+                keep_input |= ~(after <= before)
+            params = torch.where(keep_input[:, None], params, result.params)
+        channels = [i for i, o in enumerate(problem.observed) if o]
+        weighted = outputs["targets"].double()
+        if outputs.get("weights") is not None:
+            weighted = weighted * outputs["weights"].double()[:, None, :]
+        energy = 0.5 * weighted[:, :, channels].square().sum((1, 2))
+        relative = result.loss / energy.clamp_min(1e-300)
+        relative = torch.where(result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative)
+        return per_stage, result, params, relative
+
+    def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured) -> Tensor:
+        """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite)."""
+        from .sensitivity import euler_accelerations
+
+        channels = [i for i, m in enumerate(measured) if m]
+        accel = euler_accelerations(params.double(), road, self.h, self.pu_known)[:, :, channels]
+        residual = accel - outputs["targets"].double()[:, :, channels]
+        if outputs.get("weights") is not None:
+            residual = residual * outputs["weights"].double()[:, None, channels]
+        loss = 0.5 * residual.square().sum((1, 2))
+        return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
+
+    def refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
+        """Run every stage (and restarts) on one prepared batch; returns per-sample results."""
+        init = outputs["init"].double()
+        per_stage, result, params, relative = self._run_stages(outputs, init, module)
+        restarted = torch.zeros(init.shape[0], dtype=torch.int64)
+        for attempt in range(self.restarts):
+            retry = (relative > self.restart_threshold).nonzero().squeeze(1)
+            if retry.numel() == 0:
+                break
+            sub = {k: (v[retry] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
+                   for k, v in outputs.items()}
+            delta = torch.randn(retry.numel(), N_PARAMS, generator=self.generator, dtype=torch.float64)
+            new_init = init[retry] * (1.0 + self.restart_sigma * delta)
+            if attempt < len(self.restart_mass_factors):
+                new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[attempt]
+            new_init = torch.where(self.known | (new_init <= 0), init[retry], new_init)
+            _, sub_result, sub_params, sub_relative = self._run_stages(sub, new_init, module, restart=True)
+            better = sub_relative < relative[retry]
+            take = retry[better]
+            restarted[retry] += 1
+            params[take] = sub_params[better]
+            relative[take] = sub_relative[better]
+            for name in ("status", "iterations", "loss", "std", "covariance", "singular_values", "residual_variance"):
+                getattr(result, name)[take] = getattr(sub_result, name)[better]
+            result.params[take] = sub_result.params[better]
+        record = {"index": outputs["index"].cpu(), "init": init.cpu(), "stages": per_stage,
+                  "final": result, "params": params, "restarts": restarted, "relative_loss": relative}
+        self._batches.append(record)
+        return record
+
+    # Lightning hooks ------------------------------------------------------------------------------
+    def on_predict_epoch_start(self, trainer, pl_module) -> None:
+        self._batches = []
+
+    def on_test_epoch_start(self, trainer, pl_module) -> None:
+        self._batches = []
+
+    def on_predict_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
+        self.refine(outputs, pl_module)
+
+    def on_test_batch_end(self, trainer, pl_module, outputs, batch, batch_idx, dataloader_idx=0) -> None:
+        self.refine(outputs, pl_module)
+
+    def on_predict_epoch_end(self, trainer, pl_module) -> None:
+        self._log_tensorboard()
+
+    def on_test_epoch_end(self, trainer, pl_module) -> None:
+        self._log_tensorboard()
+
+    # Results ----------------------------------------------------------------------------------------
+    def collect(self) -> RefinementResult:
+        """All batches concatenated (final stage), plus mean loss per iteration of every stage."""
+        if not self._batches:
+            raise RuntimeError("GaussNewtonRefinement has no results: run trainer.predict/test first")
+        b = self._batches
+        final = [r["final"] for r in b]
+        history_len = max(f.loss_history.shape[0] for f in final)
+        n_free_max = max(f.singular_values.shape[1] for f in final)
+
+        def pad_history(h: Tensor) -> Tensor:  # finished samples carry their last loss
+            return torch.cat([h, h[-1:].expand(history_len - h.shape[0], -1)]) if h.shape[0] < history_len else h
+
+        merged = SolverResult(
+            params=torch.cat([r["params"] for r in b]),
+            status=torch.cat([f.status for f in final]),
+            iterations=torch.cat([f.iterations for f in final]),
+            loss=torch.cat([f.loss for f in final]),
+            loss_history=torch.cat([pad_history(f.loss_history) for f in final], 1),
+            std=torch.cat([f.std for f in final]),
+            covariance=torch.cat([f.covariance for f in final]),
+            singular_values=torch.cat([torch.nn.functional.pad(f.singular_values, (0, n_free_max - f.singular_values.shape[1])) for f in final]),
+            residual_variance=torch.cat([f.residual_variance for f in final]),
+            seconds=[s for f in final for s in f.seconds],
+        )
+        stage_loss, stage_status = {}, {}
+        for stage in self.stages:
+            results = [r["stages"][stage.name] for r in b]
+            length = max(x.loss_history.shape[0] for x in results)
+            total = torch.zeros(length, dtype=torch.float64)
+            count = 0
+            for x in results:
+                h = x.loss_history
+                h = torch.cat([h, h[-1:].expand(length - h.shape[0], -1)]) if h.shape[0] < length else h
+                total += h.sum(1)
+                count += h.shape[1]
+            stage_loss[stage.name] = (total / max(count, 1)).tolist()
+            counts: dict[str, int] = {}
+            for x in results:
+                for k, v in x.status_counts().items():
+                    counts[k] = counts.get(k, 0) + v
+            stage_status[stage.name] = counts
+            stage_status[stage.name + "_iterations_mean"] = float(torch.cat([x.iterations for x in results]).double().mean())
+        return RefinementResult(index=torch.cat([r["index"] for r in b]), init=torch.cat([r["init"] for r in b]),
+                                result=merged, stage_loss=stage_loss, stage_status=stage_status,
+                                restarts=torch.cat([r["restarts"] for r in b]),
+                                relative_loss=torch.cat([r["relative_loss"] for r in b]))
+
+    def _log_tensorboard(self) -> None:
+        if self.log_dir is None or not self._batches:
+            return
+        from torch.utils.tensorboard import SummaryWriter
+
+        collected = self.collect()
+        writer = SummaryWriter(log_dir=str(self.log_dir))
+        try:
+            for name, losses in collected.stage_loss.items():
+                for iteration, value in enumerate(losses):
+                    writer.add_scalar(f"gn/{name}/mean_loss", value, iteration)
+        finally:
+            writer.close()

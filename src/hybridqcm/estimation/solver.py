@@ -1,0 +1,508 @@
+"""Batched nonlinear least squares for the quarter-car parameters (SPEC §8).
+
+One base class, :class:`NonlinearLeastSquares`, owns the loop: Jacobian passes over the
+*active* samples in chunks, per-sample Armijo backtracking, convergence tests, per-sample
+status and the final uncertainty report. A concrete method supplies only its step from the
+column-scaled normal equations (:class:`GaussNewton`, :class:`LevenbergMarquardt`), in the
+spirit of theseus' optimizer/linear-solver split.
+
+Loss per sample: L(p) = ½ Σ_k Σ_{i observed} (y_{k,i}(p) − a_{k,i})², y from the Euler model of
+:mod:`hybridqcm.estimation.sensitivity`. Armijo test: L(p − αg) ≤ L(p) − c α gᵀJᵀR with a
+sufficient-decrease constant c (default 1e-4). Note that the literal c = 1 of SPEC §8 rejects
+every full Gauss-Newton step on a quadratic model (there L(p − g) = L(p) − ½ gᵀJᵀR), which is one
+reason the source needed so many iterations; c is configurable so the literal form can be run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Callable, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from .sensitivity import N_PARAMS, euler_accelerations, euler_sensitivities
+
+
+class SolverStatus(IntEnum):
+    """Per-sample outcome. Values are stable (they go into CSV files)."""
+
+    CONVERGED = 0  # a step, loss or decrease tolerance was met
+    MAX_ITERATIONS = 1  # still improving when the iteration budget ran out
+    SINGULAR = 2  # the column-scaled Jacobian is rank deficient at the estimate (not identifiable)
+    DIVERGED = 3  # non-finite model at the start, or the estimate left the domain p > 0
+    STALLED = 4  # no Armijo step found although the gradient test was not met
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+STATUS_LABELS = {s.value: s.label for s in SolverStatus}
+
+
+@dataclass
+class SolverConfig:
+    """Settings shared by all methods (also the Hydra ``solver`` group's fields)."""
+
+    max_iterations: int = 30
+    initial_step: float = 1.0  # α0 of the Armijo backtracking
+    armijo_c: float = 1e-4  # sufficient-decrease constant; 1.0 is SPEC §8 read literally
+    max_backtracks: int = 30  # α halves at most this often (α ≥ α0 2^-30)
+    # Convergence is judged on the *full* step (α = 1), never on an accepted, backtracked one
+    # (a tiny α says nothing about being at a minimum):
+    step_tol: float = 1e-9  # converged when max_j |δ_j| / p_j ≤ step_tol
+    decrease_tol: float = 1e-12  # ... or when the predicted decrease δᵀJᵀR ≤ decrease_tol · L
+    loss_tol: float = 1e-26  # ... or when L ≤ loss_tol · ½ Σ a² (noise-free exact fit)
+    rcond: float = 1e-7  # singular values of the scaled J below rcond·s_max count as zero
+    chunk_size: int = 512  # samples per Jacobian pass (keeps the per-step working set in cache)
+    # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
+    # 2-core machine each op waited milliseconds for the second thread (measured). None: leave as is.
+    num_threads: Optional[int] = 1
+    # How a step is applied (with column scaling all three give the same direction):
+    #   "unconstrained": p <- p - αδ; iterates may leave p > 0 on the way, a final estimate
+    #                    with any p_j <= 0 gets status DIVERGED (default: see docs/notes/estimation.md,
+    #                    ~75 % of exp-5 paths cross p3/p5/p7 <= 0 and most come back to the truth);
+    #   "linear": p <- p - αδ, trials with any p <= 0 count as Armijo failures (SPEC/issue wording);
+    #   "log": p <- p exp(-αδ/p), a step in log p (positivity by construction).
+    parametrization: str = "unconstrained"
+    # Trust cap: the first trial α is cut so that no free parameter changes by more than this
+    # fraction (|αδ_j| ≤ cap·p_j) in one iteration; null/0 disables it. Weakly identified
+    # parameters (p3, p5) otherwise take huge early steps that Armijo accepts (the other
+    # parameters reduce the loss) and land near zero, where they get stuck.
+    max_relative_step: Optional[float] = None
+    lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
+    lm_min_damping: float = 1e-12
+    lm_max_damping: float = 1e8
+
+
+@dataclass
+class LeastSquaresProblem:
+    """Observed accelerations of a batch and what is known about it.
+
+    targets   [batch, time, 3] accelerations (a3, a2, a1); unobserved channels are never read
+    road      [batch, time] u in metres, or p_u·u when ``scaled_road``
+    observed  which of (a3, a2, a1) enter the residual
+    known     [10] bool, parameters held fixed at their initial value (masked out of J)
+    """
+
+    targets: Tensor
+    road: Tensor
+    h: float = 0.01
+    scaled_road: bool = False
+    observed: Sequence[bool] = (True, True, True)
+    known: Optional[Tensor] = None
+    # [batch, 3] per-channel residual weights (noise-aware weighting: 1/σ_c of each channel's
+    # measurement noise); None = 1. Rows of R and J are multiplied by them.
+    weights: Optional[Tensor] = None
+
+    def __post_init__(self):
+        if self.targets.ndim != 3 or self.targets.shape[-1] != 3:
+            raise ValueError(f"targets must be [batch, time, 3], got {tuple(self.targets.shape)}")
+        if tuple(self.road.shape) != tuple(self.targets.shape[:2]):
+            raise ValueError(f"road {tuple(self.road.shape)} must be [batch, time] = {tuple(self.targets.shape[:2])}")
+        self.observed = tuple(bool(o) for o in self.observed)
+        if len(self.observed) != 3 or not any(self.observed):
+            raise ValueError(f"observed must name 3 channel flags with at least one True, got {self.observed}")
+        known = torch.zeros(N_PARAMS, dtype=torch.bool) if self.known is None else torch.as_tensor(self.known, dtype=torch.bool).cpu()
+        if known.shape != (N_PARAMS,):
+            raise ValueError(f"known must be a [10] bool mask, got shape {tuple(known.shape)}")
+        if bool(known.all()):
+            raise ValueError("all 10 parameters are known: nothing to estimate")
+        self.known = known
+        if not torch.isfinite(self.targets[..., list(self.observed_index)]).all():
+            raise ValueError("observed targets contain NaN/inf")
+        if not torch.isfinite(self.road).all():
+            raise ValueError("road contains NaN/inf")
+        if self.weights is not None:
+            self.weights = torch.as_tensor(self.weights, dtype=torch.float64)
+            if tuple(self.weights.shape) != (self.targets.shape[0], 3):
+                raise ValueError(f"weights must be [batch, 3], got {tuple(self.weights.shape)}")
+            w = self.weights[:, self.observed_index]
+            if not (torch.isfinite(w).all() and (w > 0).all()):
+                raise ValueError("weights of observed channels must be finite and > 0")
+
+    @property
+    def observed_index(self) -> list[int]:
+        return [i for i, o in enumerate(self.observed) if o]
+
+    @property
+    def free_index(self) -> list[int]:
+        return [i for i in range(N_PARAMS) if not bool(self.known[i])]
+
+    @property
+    def n_residuals(self) -> int:
+        return self.targets.shape[1] * len(self.observed_index)
+
+
+@dataclass
+class SolverResult:
+    """Everything per sample; never NaN (non-identifiable standard deviations are +inf).
+
+    params [batch, 10], status [batch] (SolverStatus values), iterations [batch],
+    loss [batch] (final ½ RSS), loss_history [max_iterations + 1, batch] (finished samples carry
+    their last loss), std [batch, 10] (0 for known parameters), covariance [batch, 10, 10]
+    (σ̂² (JᵀJ)⁺, zero rows/cols for known), singular_values [batch, n_free] of the column-scaled J
+    (descending), residual_variance [batch] σ̂², seconds: wall time per iteration.
+    """
+
+    params: Tensor
+    status: Tensor
+    iterations: Tensor
+    loss: Tensor
+    loss_history: Tensor
+    std: Tensor
+    covariance: Tensor
+    singular_values: Tensor
+    residual_variance: Tensor
+    seconds: list = field(default_factory=list)
+
+    def status_counts(self) -> dict[str, int]:
+        return {s.label: int((self.status == s.value).sum()) for s in SolverStatus}
+
+    @property
+    def condition_number(self) -> Tensor:
+        s = self.singular_values
+        return torch.where(s[:, -1] > 0, s[:, 0] / s[:, -1].clamp_min(1e-300), torch.full_like(s[:, 0], math.inf))
+
+
+IterationCallback = Callable[[int, Tensor, int], None]  # (iteration, loss [batch], n_active)
+
+
+class NonlinearLeastSquares:
+    """Base loop. Subclasses implement :meth:`direction` (and optionally :meth:`after_line_search`)."""
+
+    def __init__(self, config: SolverConfig | None = None, **overrides):
+        self.config = config or SolverConfig()
+        for key, value in overrides.items():
+            if not hasattr(self.config, key):
+                raise TypeError(f"unknown solver setting {key!r}")
+            setattr(self.config, key, value)
+        if self.config.parametrization not in ("log", "linear", "unconstrained"):
+            raise ValueError(f"solver parametrization must be 'log' or 'linear', got {self.config.parametrization!r}")
+
+    # --- method hooks -------------------------------------------------------------------
+    def init_state(self, batch: int, dtype) -> None:
+        """Per-sample method state (e.g. LM damping); GN has none."""
+
+    def direction(self, fisher_scaled: Tensor, gradient_scaled: Tensor, index: Tensor) -> Tensor:
+        """Step in scaled coordinates from Fs [b, n, n] δs = gs [b, n]; ``index`` = sample ids."""
+        raise NotImplementedError
+
+    def after_line_search(self, index: Tensor, full_step_accepted: Tensor, any_step_accepted: Tensor) -> None:
+        """Update method state after the line search of the samples ``index``."""
+
+    # --- the loop -----------------------------------------------------------------------
+    def solve(self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None) -> SolverResult:
+        """Minimise every sample's loss from ``initial_params`` [batch, 10] (known entries kept)."""
+        threads = torch.get_num_threads()
+        if self.config.num_threads:
+            torch.set_num_threads(int(self.config.num_threads))
+        try:
+            with torch.no_grad():
+                return self._solve(problem, initial_params, callback)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _solve(self, problem, initial_params, callback):
+        cfg = self.config
+        dtype = torch.float64
+        params = initial_params.detach().to(dtype).clone()
+        if params.ndim != 2 or params.shape != (problem.targets.shape[0], N_PARAMS):
+            raise ValueError(f"initial params must be [batch, 10] = [{problem.targets.shape[0]}, 10], got {tuple(params.shape)}")
+        if not torch.isfinite(params).all():
+            raise ValueError("initial params contain NaN/inf")
+        batch = params.shape[0]
+        free = torch.tensor(problem.free_index)
+        obs = problem.observed_index
+        # [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
+        targets = problem.targets.to(dtype)[:, :, obs].contiguous()
+        road = problem.road.to(dtype)
+        self._weights = None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()  # [batch, n_obs]
+        weighted_targets = targets if self._weights is None else targets * self._weights[:, None, :]
+        data_energy = 0.5 * weighted_targets.square().sum(dim=(1, 2))  # [batch]
+
+        self.init_state(batch, dtype)
+        status = torch.full((batch,), SolverStatus.MAX_ITERATIONS, dtype=torch.int8)
+        iterations = torch.zeros(batch, dtype=torch.int64)
+        loss = torch.full((batch,), math.inf, dtype=dtype)
+        active = torch.ones(batch, dtype=torch.bool)
+        bad_start = (params[:, free] <= 0).any(dim=1)
+        status[bad_start] = SolverStatus.DIVERGED
+        active &= ~bad_start
+        history = []
+        seconds = []
+
+        for iteration in range(cfg.max_iterations + 1):
+            t0 = time.perf_counter()
+            index = active.nonzero().squeeze(1)
+            if iteration == cfg.max_iterations or index.numel() == 0:
+                # No Jacobian needed to stop: the accepted losses are known from the line search.
+                if iteration == 0:  # max_iterations = 0: just evaluate the start
+                    loss[index] = self._loss_at(problem, params[index], targets, road, index)
+                    history.append(torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)))
+                exact = index[loss[index] <= cfg.loss_tol * data_energy[index]]
+                status[exact] = SolverStatus.CONVERGED
+                break
+            fisher, gradient, loss_now = self._normal_equations(problem, params, targets, road, index)
+            finite = torch.isfinite(loss_now) & torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(gradient).all(1)
+            loss[index] = torch.where(finite, loss_now, loss[index])
+            if iteration == 0:
+                history.append(torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)))
+            # A model that overflows at an accepted point cannot be continued: stop it there.
+            if not bool(finite.all()):
+                blown = index[~finite]
+                status[blown] = SolverStatus.DIVERGED
+                active[blown] = False
+                index, fisher, gradient, loss_now = index[finite], fisher[finite], gradient[finite], loss_now[finite]
+            tiny = loss_now <= cfg.loss_tol * data_energy[index]
+            if bool(tiny.any()):  # exact fit already (noise-free data): nothing left to do
+                done = index[tiny]
+                status[done] = SolverStatus.CONVERGED
+                active[done] = False
+                index, fisher, gradient, loss_now = index[~tiny], fisher[~tiny], gradient[~tiny], loss_now[~tiny]
+            if index.numel() == 0:
+                break
+
+            scale = fisher.diagonal(dim1=1, dim2=2).sqrt()  # column norms of J [b, n_free]
+            safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+            fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            gradient_scaled = gradient / safe_scale
+            step = self.direction(fisher_scaled, gradient_scaled, index) / safe_scale
+            step = torch.where(scale > 0, step, torch.zeros_like(step))
+            predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
+            full_rel_step = (step / params[index][:, free]).abs().amax(1)
+            stationary = (full_rel_step <= cfg.step_tol) | (predicted <= cfg.decrease_tol * loss_now)
+
+            accepted_alpha, new_loss = self._line_search(problem, params, targets, road, index, free, step, loss_now, predicted)
+            accepted = accepted_alpha > 0
+            self.after_line_search(index, accepted_alpha == cfg.initial_step, accepted)
+
+            # Update accepted samples (free parameters only: known ones stay bit-identical).
+            acc_index = index[accepted]
+            old_free = params[acc_index][:, free]
+            new_free = self._apply_step(old_free, accepted_alpha[accepted].unsqueeze(1) * step[accepted])
+            params[acc_index.unsqueeze(1), free.unsqueeze(0)] = new_free
+            loss[acc_index] = new_loss[accepted]
+            iterations[acc_index] += 1
+
+            status[index[stationary]] = SolverStatus.CONVERGED
+            active[index[stationary]] = False
+
+            # No acceptable step: at a (numerical) minimum if the predicted decrease is at
+            # rounding level of the loss, otherwise the line search genuinely stalled.
+            rejected = ~accepted & ~stationary
+            rej_index = index[rejected]
+            at_minimum = predicted[rejected] <= 1e-10 * loss_now[rejected] + 1e-300
+            status[rej_index] = torch.where(
+                at_minimum, torch.tensor(SolverStatus.CONVERGED, dtype=torch.int8), torch.tensor(SolverStatus.STALLED, dtype=torch.int8)
+            )
+            active[rej_index] = False
+
+            history.append(loss.clone())
+            seconds.append(time.perf_counter() - t0)
+            if callback is not None:
+                callback(iteration + 1, loss, int(active.sum()))
+
+        # An unconstrained path may end outside the physical domain: report it, keep the numbers.
+        outside = (params[:, free] <= 0).any(1)
+        status[outside] = SolverStatus.DIVERGED
+        history_t = torch.stack(history)
+        history_t = torch.where(torch.isfinite(history_t), history_t, torch.zeros_like(history_t))
+        return self._finish(problem, params, targets, road, free, status, iterations, loss, history_t, seconds)
+
+    # --- pieces -------------------------------------------------------------------------
+    def _normal_equations(self, problem, params, targets, road, index):
+        """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``.
+
+        The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
+        targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
+        """
+        free_cols = torch.tensor(problem.free_index) + 1  # column 0 of the tangents is the primal
+        cols = torch.cat([torch.zeros(1, dtype=torch.long), free_cols])
+        obs = problem.observed_index
+        fishers, grads, losses = [], [], []
+        for chunk in index.split(self.config.chunk_size):
+            out = euler_sensitivities(params[chunk], road[chunk], problem.h, problem.scaled_road)  # [b, T, 3, 11]
+            if len(obs) < 3:
+                out = out[:, :, obs[0]:obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
+            out[..., 0] -= targets[chunk]  # residual R in column 0
+            if self._weights is not None:
+                out *= self._weights[chunk][:, None, :, None]
+            b = chunk.numel()
+            augmented = out.view(b, -1, N_PARAMS + 1) if out.is_contiguous() else out.reshape(b, -1, N_PARAMS + 1)
+            gram = torch.bmm(augmented.transpose(1, 2), augmented)  # [b, 11, 11]
+            if len(cols) < N_PARAMS + 1:
+                gram = gram[:, cols][:, :, cols]
+            losses.append(0.5 * gram[:, 0, 0])
+            grads.append(gram[:, 1:, 0])
+            fishers.append(gram[:, 1:, 1:])
+        return torch.cat(fishers), torch.cat(grads), torch.cat(losses)
+
+    def _apply_step(self, free_params: Tensor, scaled_step: Tensor) -> Tensor:
+        """p - αδ, or p exp(-αδ/p) in the log parametrization (same first-order step)."""
+        if self.config.parametrization == "log":
+            return free_params * torch.exp(-scaled_step / free_params)
+        return free_params - scaled_step
+
+    def _line_search(self, problem, params, targets, road, index, free, step, loss_now, predicted):
+        """Per-sample Armijo backtracking; returns (α [b] with 0 = none found, new loss [b])."""
+        cfg = self.config
+        b = index.numel()
+        alpha = torch.full((b,), cfg.initial_step, dtype=params.dtype)
+        if cfg.max_relative_step:
+            relative = (step / params[index][:, free]).abs().amax(1)
+            alpha = torch.minimum(alpha, cfg.max_relative_step / relative.clamp_min(1e-300))
+        accepted_alpha = torch.zeros(b, dtype=params.dtype)
+        new_loss = loss_now.clone()
+        searching = predicted > 0  # a zero direction cannot decrease the loss
+        for _ in range(cfg.max_backtracks + 1):
+            pos = searching.nonzero().squeeze(1)
+            if pos.numel() == 0:
+                break
+            trial = params[index[pos]].clone()
+            trial[:, free] = self._apply_step(trial[:, free], alpha[pos].unsqueeze(1) * step[pos])
+            positive = (trial[:, free] > 0).all(1) if cfg.parametrization != "unconstrained" else torch.ones(pos.numel(), dtype=torch.bool)
+            trial_loss = torch.full((pos.numel(),), math.inf, dtype=params.dtype)
+            if bool(positive.any()):
+                # Evaluate only positive trials; the others count as Armijo failures.
+                sub = positive.nonzero().squeeze(1)
+                trial_loss[sub] = self._loss_at(problem, trial[sub], targets, road, index[pos[sub]])
+            ok = torch.isfinite(trial_loss) & (trial_loss <= loss_now[pos] - cfg.armijo_c * alpha[pos] * predicted[pos])
+            accepted_alpha[pos[ok]] = alpha[pos[ok]]
+            new_loss[pos[ok]] = trial_loss[ok]
+            searching[pos[ok]] = False
+            alpha[pos[~ok]] *= 0.5
+        return accepted_alpha, new_loss
+
+    def _loss_at(self, problem, trial_params, targets, road, index) -> Tensor:
+        obs = problem.observed_index
+        losses = []
+        for start in range(0, index.numel(), self.config.chunk_size * 2):
+            sl = slice(start, start + self.config.chunk_size * 2)
+            chunk = index[sl]
+            accel = euler_accelerations(trial_params[sl], road[chunk], problem.h, problem.scaled_road)
+            residual = accel[:, :, obs] - targets[chunk]
+            if self._weights is not None:
+                residual = residual * self._weights[chunk][:, None, :]
+            loss = 0.5 * residual.square().sum((1, 2))
+            losses.append(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf)))
+        return torch.cat(losses)
+
+    def _finish(self, problem, params, targets, road, free, status, iterations, loss, history, seconds) -> SolverResult:
+        """Uncertainty and conditioning at the final estimate (one more Jacobian pass)."""
+        cfg = self.config
+        batch, n_free = params.shape[0], free.numel()
+        covariance = torch.zeros(batch, N_PARAMS, N_PARAMS, dtype=params.dtype)
+        std = torch.zeros(batch, N_PARAMS, dtype=params.dtype)
+        singular_values = torch.zeros(batch, n_free, dtype=params.dtype)
+        residual_variance = torch.zeros(batch, dtype=params.dtype)
+        index = (status != SolverStatus.DIVERGED).nonzero().squeeze(1)
+        std[status == SolverStatus.DIVERGED] = math.inf
+        std[:, problem.known] = 0.0
+        if index.numel():
+            fisher, _, final_loss = self._normal_equations(problem, params, targets, road, index)
+            ok = torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(final_loss)
+            fisher = torch.where(ok[:, None, None], fisher, torch.zeros_like(fisher))
+            final_loss = torch.where(ok, final_loss, loss[index])
+            loss[index] = final_loss
+            scale = fisher.diagonal(dim1=1, dim2=2).sqrt()
+            safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+            fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            fisher_scaled = torch.where((scale > 0).unsqueeze(2) & (scale > 0).unsqueeze(1), fisher_scaled, torch.zeros_like(fisher_scaled))
+            eigval, eigvec = torch.linalg.eigh(fisher_scaled)  # ascending
+            eigval = eigval.clamp_min(0.0)
+            sv = eigval.sqrt().flip(1)
+            singular_values[index] = sv
+            keep = eigval > (cfg.rcond**2) * eigval[:, -1:].clamp_min(1e-300)
+            keep &= eigval > 0
+            inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+            pinv_scaled = (eigvec * inv.unsqueeze(1)) @ eigvec.transpose(1, 2)
+            dof = max(problem.n_residuals - n_free, 1)
+            sigma2 = 2.0 * final_loss / dof
+            residual_variance[index] = sigma2
+            cov_free = sigma2[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            # A parameter with any weight on a zero-eigenvalue direction has unbounded variance.
+            null_weight = (eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2)  # [b, n_free]
+            unidentified = (null_weight > 1e-6) | (scale == 0)
+            std_free = torch.where(unidentified, torch.full_like(scale, math.inf), cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt())
+            rows = index.unsqueeze(1)
+            std[rows, free.unsqueeze(0)] = std_free
+            cov_full = torch.zeros(index.numel(), N_PARAMS, N_PARAMS, dtype=params.dtype)
+            cov_full[:, free.unsqueeze(1), free.unsqueeze(0)] = cov_free
+            covariance[index] = cov_full
+            rank_deficient = (~keep).any(1) | (scale == 0).any(1) | ~ok
+            status[index[rank_deficient]] = SolverStatus.SINGULAR
+        return SolverResult(
+            params=params, status=status, iterations=iterations, loss=loss, loss_history=history,
+            std=std, covariance=covariance, singular_values=singular_values,
+            residual_variance=residual_variance, seconds=seconds,
+        )
+
+
+def _pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
+    """Solve matrix [b, n, n] x = rhs [b, n] (symmetric PSD); Cholesky where well conditioned,
+    eigen-decomposition with cutoff rcond² on the eigenvalues elsewhere. Returns (x, rank_deficient)."""
+    x = torch.zeros_like(rhs)
+    rank_deficient = torch.zeros(rhs.shape[0], dtype=torch.bool)
+    if rhs.shape[0] == 0:
+        return x, rank_deficient
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    pivots = factor.diagonal(dim1=1, dim2=2)
+    # The smallest Cholesky pivot² bounds the smallest eigenvalue from above: a cheap test for
+    # which samples need the (slower) eigen-decomposition.
+    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
+    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
+    if bool(well.any()):
+        x[well] = torch.cholesky_solve(rhs[well].unsqueeze(2), factor[well]).squeeze(2)
+    if bool((~well).any()):
+        ill = (~well).nonzero().squeeze(1)
+        eigval, eigvec = torch.linalg.eigh(matrix[ill])
+        keep = eigval > (rcond**2) * eigval[:, -1:].clamp_min(1e-300)
+        inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+        proj = (eigvec.transpose(1, 2) @ rhs[ill].unsqueeze(2)).squeeze(2)
+        x[ill] = (eigvec @ (inv * proj).unsqueeze(2)).squeeze(2)
+        rank_deficient[ill] = (~keep).any(1)
+    return x, rank_deficient
+
+
+class GaussNewton(NonlinearLeastSquares):
+    """Gauss-Newton step δ = F⁺ JᵀR on the column-scaled normal equations."""
+
+    def direction(self, fisher_scaled, gradient_scaled, index):
+        step, _ = _pseudo_inverse_solve(fisher_scaled, gradient_scaled, self.config.rcond)
+        return step
+
+
+class LevenbergMarquardt(NonlinearLeastSquares):
+    """Damped step (F + λ diag F) δ = JᵀR; λ per sample, shrunk after a full step, grown after backtracking."""
+
+    def init_state(self, batch, dtype):
+        self.damping = torch.full((batch,), self.config.lm_initial_damping, dtype=dtype)
+
+    def direction(self, fisher_scaled, gradient_scaled, index):
+        # Scaled F has unit diagonal (non-zero columns), so λ I is Marquardt's λ diag(F).
+        lam = self.damping[index]
+        eye = torch.eye(fisher_scaled.shape[-1], dtype=fisher_scaled.dtype)
+        step, _ = _pseudo_inverse_solve(fisher_scaled + lam[:, None, None] * eye, gradient_scaled, self.config.rcond)
+        return step
+
+    def after_line_search(self, index, full_step_accepted, any_step_accepted):
+        cfg = self.config
+        lam = self.damping[index]
+        lam = torch.where(full_step_accepted, (lam / 3.0).clamp_min(cfg.lm_min_damping), (lam * 4.0).clamp_max(cfg.lm_max_damping))
+        self.damping[index] = lam
+
+
+SOLVERS = {"gauss_newton": GaussNewton, "levenberg_marquardt": LevenbergMarquardt}
+
+
+def build_solver(method: str = "gauss_newton", **settings) -> NonlinearLeastSquares:
+    """Solver by name with :class:`SolverConfig` fields as keyword settings."""
+    if method not in SOLVERS:
+        raise ValueError(f"unknown solver method {method!r}; choose one of {sorted(SOLVERS)}")
+    config = SolverConfig(**{k: v for k, v in settings.items()})
+    return SOLVERS[method](config)

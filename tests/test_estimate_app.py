@@ -1,0 +1,167 @@
+"""qcm-estimate: outputs of a run, and a clear error for every bad input before any work."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from hybridqcm.apps.common import CONFIG_DIR
+from hybridqcm.apps.estimate import ConfigError, build_inputs, check_experiment_overrides, validate
+from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.estimation.synthetic import synthetic_samples, train_tiny_checkpoints, write_dataset
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory):
+    samples = synthetic_samples(32, n_steps=160, seed=0)
+    return train_tiny_checkpoints(tmp_path_factory.mktemp("ckpt"), samples, steps=3, window=128)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    root = tmp_path_factory.mktemp("estimate_files")
+    samples = synthetic_samples(8, n_steps=160, seed=4)
+    out = {"no_params": write_dataset(root / "no_params.h5", samples, with_params=False),
+           "good": write_dataset(root / "good.h5", samples)}
+    # A file that lacks the road (another producer's partial file)
+    with h5py.File(root / "no_road.h5", "w") as f:
+        f.attrs["schema"] = "hybridqcm.dataset/1"
+        f.create_dataset("test/accel", data=samples["accel"].numpy().astype(np.float32))
+        f.create_dataset("test/params", data=samples["params"].numpy())
+    out["no_road"] = root / "no_road.h5"
+    # NaN in an acceleration (written raw: the project's writer refuses non-finite values)
+    accel = samples["accel"].numpy().astype(np.float32)
+    accel[3, 17, 0] = np.nan
+    with h5py.File(root / "nan.h5", "w") as f:
+        f.attrs["schema"] = "hybridqcm.dataset/1"
+        f.create_dataset("test/accel", data=accel)
+        f.create_dataset("test/road", data=samples["road"].numpy().astype(np.float32))
+        f.create_dataset("test/params", data=samples["params"].numpy())
+    out["nan"] = root / "nan.h5"
+    return out
+
+
+def _cfg(overrides):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose("estimate", overrides=list(overrides))
+
+
+def _run_app(tmp_path, *overrides):
+    cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", *overrides, f"hydra.run.dir={tmp_path}", "progress=false"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+
+def _rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+# ---------------------------------------------------------------------------------------------- runs
+def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
+    proc = _run_app(tmp_path, "experiment=exp5_random_init", f"data.path={tiny_dataset}", "n_samples=16")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(tmp_path / "estimates.csv")
+    assert len(rows) == 16
+    header = list(rows[0])
+    assert header[:12] == ["index", *[f"p{i}" for i in range(1, 11)], "status"]
+    assert header[12:] == [*[f"std_p{i}" for i in range(1, 11)], "m3", "m3_std"]
+    assert {r["status"] for r in rows} <= {"converged", "max_iterations", "singular", "diverged", "stalled"}
+    table = _rows(tmp_path / "error_distribution.csv")
+    assert [r["param"] for r in table] == [f"p{i}" for i in range(1, 11)]
+    assert (tmp_path / "error_distribution.md").exists()
+    assert [r["param"] for r in _rows(tmp_path / "calibration.csv")][-1] == "m3"
+    assert (tmp_path / "plots" / "sorted_p3.png").exists() and (tmp_path / "plots" / "sorted_m3.png").exists()
+    assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["all_within_1pct"] >= 0.9  # noise-free: GN recovers all ten parameters
+    assert "within 1 %" in proc.stdout
+
+
+def test_exp10_hybrid_with_noise_and_denoiser(tiny_dataset, checkpoints, tmp_path):
+    proc = _run_app(tmp_path, "experiment=exp10_hybrid", f"data.path={tiny_dataset}", "n_samples=8",
+                    f"cnn_ckpt={checkpoints['cnn']}", f"unet_ckpt={checkpoints['unet']}", f"cae_ckpt={checkpoints['cae']}",
+                    "noise_sigma=0.05", "seed=3", "plots=false", "restarts.count=1",
+                    "stages=[{name:completed,channels:all,max_iterations:2},{name:a3,channels:observed,max_iterations:5}]")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(tmp_path / "estimates.csv")
+    with h5py.File(tiny_dataset) as f:
+        true = f["test/params"][:8]
+    for i, r in enumerate(rows):  # known parameters are echoed from the file, exactly
+        assert float(r["p3"]) == true[i, 2] and float(r["p5"]) == true[i, 4]
+        assert float(r["std_p3"]) == 0.0
+        assert all(np.isfinite(float(r[f"p{j}"])) for j in range(1, 11))
+    assert [r["param"] for r in _rows(tmp_path / "error_distribution.csv")] == ["p1", "p2", "p4", "p6", "p7", "p8", "p9", "p10"]
+
+
+def test_inference_without_params(files, tmp_path):
+    proc = _run_app(tmp_path, "experiment=exp5_random_init", f"data.path={files['no_params']}",
+                    "stages=[{name:gn,channels:all,max_iterations:3}]", "restarts.count=0")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert len(_rows(tmp_path / "estimates.csv")) == 8
+    assert not (tmp_path / "error_distribution.csv").exists()
+
+
+# ---------------------------------------------------------------------------------------------- bad inputs
+def test_unknown_and_training_experiments(tmp_path):
+    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*exp5_random_init"):
+        check_experiment_overrides(["experiment=nope"])
+    with pytest.raises(ConfigError, match="'exp2_physics' is not an estimation experiment.*task: train"):
+        check_experiment_overrides(["experiment=exp2_physics"])
+    check_experiment_overrides(["experiment=exp8_occupant_only", "n_samples=3"])  # fine
+    proc = _run_app(tmp_path, "experiment=exp1_labelled")
+    assert proc.returncode == 2 and "not an estimation experiment" in proc.stderr
+    assert not (tmp_path / "estimates.csv").exists()
+
+
+def test_missing_and_wrong_kind_checkpoints(files, checkpoints, tmp_path):
+    base = ["experiment=exp6_cnn_init", f"data.path={files['good']}"]
+    with pytest.raises(ConfigError, match=r"cnn_ckpt=.*missing\.ckpt: checkpoint file does not exist"):
+        validate(_cfg(base + [f"cnn_ckpt={tmp_path / 'missing.ckpt'}"]))
+    with pytest.raises(ConfigError, match="cnn_ckpt=.*CompletionUNet checkpoint, but cnn needs"):
+        validate(_cfg(base + [f"cnn_ckpt={checkpoints['unet']}"]))
+    with pytest.raises(ConfigError, match="unet_ckpt=.*DenoisingAutoencoder"):
+        validate(_cfg(["experiment=exp10_hybrid", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}",
+                       f"unet_ckpt={checkpoints['cae']}"]))
+    with pytest.raises(ConfigError, match="give cnn_ckpt=PATH"):
+        validate(_cfg(base))
+    proc = _run_app(tmp_path, *base, f"cnn_ckpt={tmp_path / 'missing.ckpt'}")
+    assert proc.returncode == 2 and "missing.ckpt" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_missing_channel_nan_and_window(files, tiny_dataset):
+    with pytest.raises(DatasetError, match=r"no_road\.h5.*lacks dataset 'road'"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={files['no_road']}"]))
+    cfg = _cfg(["experiment=exp5_random_init", f"data.path={files['nan']}"])
+    with pytest.raises(DatasetError, match=r"nan\.h5.*/test/accel.*non-finite.*\(3, 17, 0\)"):
+        build_inputs(cfg, validate(cfg))
+    with pytest.raises(DatasetError, match=r"n_steps = 600 steps but /test/accel stores 512"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "n_steps=600"]))
+    with pytest.raises(DatasetError, match="split 'val' not found"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "data.split=val"]))
+    with pytest.raises(DatasetError, match="does not exist"):
+        validate(_cfg(["experiment=exp5_random_init", "data.path=/nonexistent/file.h5"]))
+    with pytest.raises(ConfigError, match="noise_sigma"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "noise_sigma=-1"]))
+    with pytest.raises(DatasetError, match="no 'params'.*known_source=reference"):
+        validate(_cfg(["experiment=exp7_known_p3p5", f"data.path={files['no_params']}", "init.cnn=false"]))
+
+
+def test_cnn_window_longer_than_file(files, checkpoints):
+    # the CNN reads 128 steps; the file stores 160: fine. With n_steps beyond the file: an error naming both.
+    plan = validate(_cfg(["experiment=exp6_cnn_init", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}"]))
+    assert plan["n_read_steps"] == 128
+    with pytest.raises(DatasetError, match="n_steps = 200 steps but /test/accel stores 160"):
+        validate(_cfg(["experiment=exp6_cnn_init", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}",
+                       "n_steps=200"]))
+
+
+@pytest.mark.parametrize("name", ["exp5_random_init", "exp6_cnn_init", "exp7_known_p3p5", "exp8_occupant_only", "exp10_hybrid"])
+def test_experiments_compose(name):
+    cfg = _cfg([f"experiment={name}"])
+    assert cfg.task == "estimate" and cfg.experiment_name == name.split("_")[0]
+    assert len(cfg.stages) >= 1 and cfg.solver.method == "gauss_newton"

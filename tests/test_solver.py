@@ -1,0 +1,153 @@
+"""Batched Gauss-Newton / Levenberg-Marquardt: recovery, masks, singular cases, statuses."""
+
+import math
+
+import pytest
+import torch
+
+from hybridqcm.estimation.solver import (GaussNewton, LeastSquaresProblem, LevenbergMarquardt, SolverConfig,
+                                         SolverStatus, build_solver)
+from hybridqcm.estimation.synthetic import synthetic_samples
+
+H = 0.01
+
+
+@pytest.fixture(scope="module")
+def data():
+    return synthetic_samples(48, n_steps=100, seed=11)
+
+
+def _near_truth(params, scale=0.05, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return params * (1 + scale * torch.randn(params.shape, generator=g, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("cls", [GaussNewton, LevenbergMarquardt])
+def test_recovers_parameters_noise_free(data, cls):
+    problem = LeastSquaresProblem(data["accel"], data["road"], H)
+    result = cls(SolverConfig(max_iterations=15)).solve(problem, _near_truth(data["params"]))
+    err = (result.params - data["params"]).abs() / data["params"]
+    assert (err <= 1e-6).all(1).double().mean() >= 0.95
+    assert (result.status == SolverStatus.CONVERGED).double().mean() >= 0.95
+    assert result.iterations.double().mean() <= 10
+    # loss history: one row per iteration (+ the start), non-increasing per sample, finite
+    history = result.loss_history
+    assert torch.isfinite(history).all()
+    assert (history[1:] <= history[:-1] * (1 + 1e-12) + 1e-300).all()
+    assert result.singular_values.shape == (48, 10)
+    assert torch.isfinite(result.std).all() and (result.std >= 0).all()
+
+
+def test_known_parameters_bit_identical_and_masked(data):
+    known = torch.zeros(10, dtype=torch.bool)
+    known[[2, 4]] = True
+    init = _near_truth(data["params"])
+    init[:, [2, 4]] = data["params"][:, [2, 4]] * 1.001  # deliberately slightly off: must stay exactly so
+    problem = LeastSquaresProblem(data["accel"], data["road"], H, known=known)
+    result = GaussNewton(SolverConfig(max_iterations=5)).solve(problem, init)
+    assert torch.equal(result.params[:, [2, 4]], init[:, [2, 4]])
+    assert (result.std[:, [2, 4]] == 0).all()
+    assert (result.covariance[:, [2, 4]] == 0).all() and (result.covariance[:, :, [2, 4]] == 0).all()
+    assert result.singular_values.shape == (48, 8)
+
+
+def test_unobserved_channels_do_not_enter(data):
+    p = data["params"]
+    forcing = (p[:, 9] - p[:, 8])[:, None] * data["road"]
+    known = torch.zeros(10, dtype=torch.bool)
+    known[[2, 4]] = True
+    init = _near_truth(p)
+    init[:, [2, 4]] = p[:, [2, 4]]
+    garbage = data["accel"].clone()
+    garbage[..., 1:] = torch.randn(garbage[..., 1:].shape, dtype=torch.float64) * 1e3
+    garbage[0, 0, 2] = float("nan")  # even NaN in an unobserved channel is never read
+    results = []
+    for targets in (data["accel"], garbage):
+        problem = LeastSquaresProblem(targets, forcing, H, scaled_road=True, observed=(True, False, False), known=known)
+        results.append(GaussNewton(SolverConfig(max_iterations=20)).solve(problem, init))
+    assert torch.equal(results[0].params, results[1].params)
+    assert torch.equal(results[0].loss_history, results[1].loss_history)
+    err = (results[0].params - p).abs() / p
+    assert (err <= 0.01).all(1).double().mean() >= 0.9
+
+
+def test_zero_road_is_singular_not_nan(data):
+    problem = LeastSquaresProblem(torch.zeros(4, 50, 3, dtype=torch.float64), torch.zeros(4, 50, dtype=torch.float64), H)
+    init = data["params"][:4].clone()
+    result = GaussNewton().solve(problem, init)
+    assert (result.status == SolverStatus.SINGULAR).all()
+    for tensor in (result.params, result.loss, result.loss_history, result.std, result.covariance, result.singular_values):
+        assert not torch.isnan(tensor).any()
+    assert torch.equal(result.params, init)
+    assert torch.isinf(result.std).all()  # nothing is identifiable without input
+
+
+def test_rank_deficient_pseudo_inverse():
+    """Duplicate information (only a1 observed, p1..p6 cannot all be identified) gives a status, not NaN."""
+    data = synthetic_samples(4, n_steps=40, seed=5)
+    problem = LeastSquaresProblem(data["accel"], data["road"], H, observed=(False, False, True))
+    result = GaussNewton(SolverConfig(max_iterations=3)).solve(problem, data["params"] * 1.01)
+    assert not torch.isnan(result.params).any() and not torch.isnan(result.std).any()
+    assert set(result.status.tolist()) <= {s.value for s in SolverStatus}
+
+
+def test_linear_parametrization_keeps_parameters_positive(data):
+    g = torch.Generator().manual_seed(1)
+    from hybridqcm.physics import reference_params
+
+    init = reference_params().expand(16, 10) * (1 + 0.1 * torch.randn(16, 10, generator=g, dtype=torch.float64))
+    problem = LeastSquaresProblem(data["accel"][:16], data["road"][:16], H)
+    result = build_solver("gauss_newton", parametrization="linear", max_iterations=10).solve(problem, init)
+    assert (result.params > 0).all()
+
+
+def test_literal_armijo_rejects_full_steps(data):
+    """SPEC §8 read literally (c = 1) can never accept a Gauss-Newton step on a near-quadratic model."""
+    problem = LeastSquaresProblem(data["accel"][:8], data["road"][:8], H)
+    init = _near_truth(data["params"][:8], 0.01)
+    strict = GaussNewton(SolverConfig(max_iterations=5, armijo_c=1.0)).solve(problem, init)
+    default = GaussNewton(SolverConfig(max_iterations=5)).solve(problem, init)
+    assert (default.loss < strict.loss).all()
+
+
+def test_uncertainty_is_calibrated_under_noise():
+    data = synthetic_samples(64, n_steps=100, seed=21)
+    g = torch.Generator().manual_seed(2)
+    noise = 1e-3 * data["accel"].abs().mean((1,), keepdim=True) * torch.randn(data["accel"].shape, generator=g, dtype=torch.float64)
+    problem = LeastSquaresProblem(data["accel"] + noise, data["road"], H)
+    result = GaussNewton(SolverConfig(max_iterations=20)).solve(problem, _near_truth(data["params"], 0.02))
+    inside = ((result.params - data["params"]).abs() <= 1.96 * result.std).double().mean()
+    assert 0.85 <= inside <= 1.0
+    assert (result.residual_variance > 0).all()
+
+
+def test_bad_inputs():
+    data = synthetic_samples(2, n_steps=20, seed=1)
+    with pytest.raises(ValueError, match="targets"):
+        LeastSquaresProblem(data["accel"][..., :2], data["road"], H)
+    with pytest.raises(ValueError, match="all 10"):
+        LeastSquaresProblem(data["accel"], data["road"], H, known=torch.ones(10, dtype=torch.bool))
+    bad = data["accel"].clone()
+    bad[0, 3, 0] = math.nan
+    with pytest.raises(ValueError, match="NaN"):
+        LeastSquaresProblem(bad, data["road"], H)
+    with pytest.raises(ValueError, match="unknown solver method"):
+        build_solver("newton")
+    with pytest.raises(TypeError, match="unknown solver setting"):
+        GaussNewton(tolerance=1)
+
+
+def test_channel_weights(data):
+    """Unit weights change nothing; weights enter R and J alike (the noise-free optimum is unchanged)."""
+    init = _near_truth(data["params"][:8])
+    accel, road = data["accel"][:8], data["road"][:8]
+    base = GaussNewton(SolverConfig(max_iterations=4)).solve(LeastSquaresProblem(accel, road, H), init)
+    ones = GaussNewton(SolverConfig(max_iterations=4)).solve(
+        LeastSquaresProblem(accel, road, H, weights=torch.ones(8, 3, dtype=torch.float64)), init)
+    assert torch.equal(base.params, ones.params)
+    weights = torch.tensor([[10.0, 1.0, 0.1]], dtype=torch.float64).expand(8, 3)
+    weighted = GaussNewton(SolverConfig(max_iterations=15)).solve(LeastSquaresProblem(accel, road, H, weights=weights), init)
+    err = (weighted.params - data["params"][:8]).abs() / data["params"][:8]
+    assert (err <= 1e-6).all()
+    with pytest.raises(ValueError, match="weights"):
+        LeastSquaresProblem(accel, road, H, weights=torch.zeros(8, 3))
