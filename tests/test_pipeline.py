@@ -70,3 +70,21 @@ def test_demo_end_to_end_on_a_tiny_scale(tmp_path):
     # A second run finds every stage done and runs nothing.
     again = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     assert again.returncode == 0 and again.stdout.count("done already") == 5
+
+
+def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatch):
+    """--only runs a stage whose prerequisite finished earlier, even though that one is not selected."""
+    root = tmp_path / "r"
+    checkpoint = root / "exp2_physics" / "checkpoints" / "last.ckpt"
+    checkpoint.parent.mkdir(parents=True)
+    checkpoint.write_bytes(b"")
+    (root / "exp2_physics" / "test_metrics.json").write_text("{}")
+    for name in ("exp9_unet",):
+        (root / name / "checkpoints").mkdir(parents=True)
+        (root / name / "checkpoints" / "last.ckpt").write_bytes(b"")
+        (root / name / "test_metrics.json").write_text("{}")
+    calls = []
+    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    monkeypatch.setattr("hybridqcm.apps.results.print_summary", lambda path: None)
+    pipeline.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
+    assert len(calls) == 1 and "experiment=exp10_hybrid" in calls[0]

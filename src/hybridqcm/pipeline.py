@@ -171,7 +171,8 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
                  plan: bool = False, **options) -> int:
     root = root or f"outputs/{name}"
     dataset = dataset or ("data/demo.h5" if name == "demo" else "data/reference.h5")
-    stages = PIPELINES[name](root, dataset, **options)
+    stages = all_stages = PIPELINES[name](root, dataset, **options)
+    by_name = {s.name: s for s in all_stages}
     if only:
         unknown = sorted(set(only) - {s.name for s in stages})
         if unknown:
@@ -194,7 +195,7 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
             print(f"{header}: done already ({stage.run_dir}), skipped")
             records.setdefault(stage.name, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None})
             continue
-        missing = [n for n in stage.needs if not next((x for x in stages if x.name == n), stage).is_done()]
+        missing = [n for n in stage.needs if not by_name[n].is_done()]
         if missing:
             print(f"{header}: needs {missing}, which did not finish; skipped")
             continue

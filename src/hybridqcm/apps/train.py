@@ -1,0 +1,413 @@
+"""qcm-train: train and/or test one network of the project (Hydra app, lightning-hydra-template style).
+
+    qcm-train experiment=exp1_labelled                     # CPU recipe (streamed samples), ~10 min on 2 cores
+    qcm-train experiment=exp1_labelled_reference data.path=data/reference.h5   # source scale
+    qcm-train experiment=exp1_labelled train=false ckpt_path=CKPT data.path=FILE data.noise_sigma=0.05 [denoiser_ckpt=CKPT]
+    qcm-train -m experiment=exp2_physics data.noise_sigma=0,0.01,0.05,0.1     # one run folder per job + summary.csv
+    qcm-train experiment=exp1_labelled debug=fdr            # fast_dev_run
+
+Run folder (hydra.run.dir): checkpoints/{best-*.ckpt,last.ckpt}, tensorboard/, test_metrics.json and,
+for the parameter CNNs, predictions.csv, error_distribution.{csv,md}, sorted_predictions_<p>.png;
+for the CAE / U-Net, per_sample_mse.csv, mse_summary.{csv,md}, mse_hist_<channel>.png, examples.png.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import yaml
+
+from hybridqcm.apps.common import CONFIG_DIR, fail
+
+log = logging.getLogger("qcm-train")
+
+
+class ConfigError(ValueError):
+    """An invalid combination of settings, reported before any training."""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# small helpers
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(text)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def _write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fieldnames: Sequence[str] | None = None) -> None:
+    buffer = io.StringIO()
+    fieldnames = list(fieldnames or (rows[0].keys() if rows else []))
+    writer = csv.DictWriter(buffer, fieldnames=fieldnames, extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow(row)
+    _atomic_write_text(path, buffer.getvalue())
+
+
+def experiment_task(name: str, config_dir: Path = CONFIG_DIR) -> str | None:
+    """The `task:` an experiment config declares (None if it declares none); raises ConfigError if unknown."""
+    path = Path(config_dir) / "experiment" / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in (Path(config_dir) / "experiment").glob("*.yaml")
+                       if experiment_task_safe(p) == "train")
+        raise ConfigError(f"unknown experiment {name!r} (no {path}); training experiments: {', '.join(known)}")
+    return experiment_task_safe(path)
+
+
+def experiment_task_safe(path: Path) -> str | None:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError:
+        return None
+    return data.get("task") if isinstance(data, dict) else None
+
+
+def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
+    """Fail early (before Hydra composes anything) for unknown or non-training experiments."""
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key.lstrip("+~") != "experiment" or not value or value == "null":
+            continue
+        for name in value.split(","):
+            name = name.strip()
+            task = experiment_task(name, config_dir)
+            if task != "train":
+                raise ConfigError(f"experiment {name!r} has task: {task}, not task: train; qcm-train runs training "
+                                  f"experiments only (estimation experiments run with qcm-estimate)")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# building blocks
+def build_datamodule(data_cfg: Mapping, requirements: Mapping, train: bool):
+    """Instantiate the datamodule with the channels/window the model needs (config values are checked against them)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.to_container(data_cfg, resolve=True) if not isinstance(data_cfg, dict) else dict(data_cfg)
+    for key in ("inputs", "targets", "aux"):
+        given = cfg.get(key)
+        if given is None:
+            cfg[key] = list(requirements[key])
+        elif list(given) != list(requirements[key]):
+            raise ConfigError(f"data.{key} = {list(given)} but the model needs {list(requirements[key])}")
+    window = cfg.get("window")
+    if window is None:
+        cfg["window"] = int(requirements["window"])
+    elif int(window) < int(requirements["window"]):
+        raise ConfigError(f"data.window = {window} is shorter than the model's window {requirements['window']}")
+    cfg["targets_optional"] = bool(requirements.get("targets_optional")) or not train
+    return instantiate(cfg, _convert_="all")
+
+
+def load_model(cfg, train: bool):
+    """The model: instantiated from cfg.model, or loaded (and class-checked) from cfg.ckpt_path for evaluation."""
+    from hydra.utils import get_class, instantiate
+
+    model_cls = get_class(cfg.model._target_)
+    if cfg.get("ckpt_path"):
+        checked = model_cls.load_checked(str(cfg.ckpt_path))  # clear error for missing / foreign checkpoints
+        if not train:
+            return checked
+    return instantiate(cfg.model)
+
+
+def _instantiate_group(group: Mapping | None) -> list:
+    from hydra.utils import instantiate
+
+    if not group:
+        return []
+    return [instantiate(c) for c in group.values() if c is not None and "_target_" in c]
+
+
+def prepare(cfg) -> dict:
+    """Everything up to the trainer, with all user-input checks; any bad input raises ConfigError."""
+    try:
+        return _prepare(cfg)
+    except _user_errors() as error:
+        if isinstance(error, ConfigError):
+            raise
+        message = str(error)
+        cause = error.__cause__ or error.__context__
+        if type(error).__name__ == "InstantiationException" and cause is not None:
+            message = f"{message} ({type(cause).__name__}: {cause})" if str(cause) not in message else message
+        raise ConfigError(message) from error
+
+
+def _prepare(cfg) -> dict:
+    import torch
+
+    task = cfg.get("task", "train")
+    if task != "train":
+        raise ConfigError(f"task = {task!r}: qcm-train runs training experiments only (task: train); "
+                          f"use qcm-estimate for estimation experiments")
+    train, test = bool(cfg.get("train", True)), bool(cfg.get("test", True))
+    if not train and not cfg.get("ckpt_path"):
+        raise ConfigError("train=false needs ckpt_path=CKPT (the checkpoint to evaluate)")
+    if not train and not test:
+        raise ConfigError("train=false test=false leaves nothing to do")
+    if cfg.get("denoiser_ckpt") and train:
+        raise ConfigError("denoiser_ckpt applies at evaluation: use it with train=false ckpt_path=CKPT")
+    if cfg.get("float32_matmul_precision"):
+        torch.set_float32_matmul_precision(str(cfg.float32_matmul_precision))
+
+    model = load_model(cfg, train)
+    if cfg.get("denoiser_ckpt"):
+        from hybridqcm.models import DenoisingAutoencoder
+
+        if not hasattr(model, "attach_denoiser"):
+            raise ConfigError(f"denoiser_ckpt given, but {type(model).__name__} takes no denoiser (only the parameter CNNs do)")
+        model.attach_denoiser(DenoisingAutoencoder.load_checked(str(cfg.denoiser_ckpt)))
+    datamodule = build_datamodule(cfg.data, model.data_requirements(), train)
+    stages = (["fit"] if train else []) + (["test"] if test else [])
+    datamodule.check(stages)  # file/split/key/window errors now, not after training
+    return {"model": model, "datamodule": datamodule, "train": train, "test": test}
+
+
+def train(cfg) -> dict[str, float]:
+    """Train and/or test per `cfg`; returns the metrics (validation and test) as floats."""
+    import lightning as L
+    from hydra.utils import instantiate
+
+    L.seed_everything(int(cfg.get("seed", 0)), workers=True)
+    parts = prepare(cfg)
+    model, datamodule = parts["model"], parts["datamodule"]
+    out_dir = Path(cfg.paths.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    callbacks = _instantiate_group(cfg.get("callbacks"))
+    loggers = _instantiate_group(cfg.get("logger"))
+    trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+
+    metrics: dict[str, float] = {}
+    train_seconds = None
+    if parts["train"]:
+        start = time.perf_counter()
+        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        train_seconds = time.perf_counter() - start
+        metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
+        log.info("training took %.1f s (%d steps)", train_seconds, trainer.global_step)
+
+    if parts["test"]:
+        checkpoint = None
+        if parts["train"] and trainer.checkpoint_callback is not None and getattr(trainer.checkpoint_callback, "best_model_path", ""):
+            checkpoint = trainer.checkpoint_callback.best_model_path
+        results = trainer.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=False)
+        test_metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
+        metrics.update(test_metrics)
+        write_test_outputs(model, out_dir, trainer)
+        summary = {
+            "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],
+            "train_seconds": train_seconds, "steps": trainer.global_step, "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
+            "denoiser_ckpt": cfg.get("denoiser_ckpt"), "noise_sigma": getattr(datamodule, "noise_sigma", None),
+            "data_path": getattr(datamodule, "path", None) and str(datamodule.path),
+            "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
+            "device": str(model.device), "metrics": test_metrics,
+        }
+        _atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
+    return metrics
+
+
+# ---------------------------------------------------------------------------------------------------------
+# test artefacts
+def write_test_outputs(model, out_dir: Path, trainer=None) -> list[Path]:
+    """predictions.csv + error_distribution.* + sorted plots (CNNs) or MSE tables/plots (CAE, U-Net)."""
+    results = model.test_results or {}
+    writer = model._tensorboard() if trainer is not None else None
+    if hasattr(model, "estimate"):
+        return _write_estimator_outputs(model, results, out_dir, writer)
+    return _write_signal_outputs(model, results, out_dir, writer)
+
+
+def _write_estimator_outputs(model, results: Mapping, out_dir: Path, writer) -> list[Path]:
+    from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+    from hybridqcm.plots import close, plot_sorted_predictions
+
+    names = list(model.hparams.target_channels)
+    pred, index = results["pred"].numpy(), results["index"].numpy()
+    true = results["true"].numpy() if "true" in results else None
+    rows = []
+    for i in range(pred.shape[0]):
+        row = {"index": int(index[i])}
+        for j, name in enumerate(names):
+            if true is not None:
+                row[f"{name}_true"] = repr(float(true[i, j]))
+            row[f"{name}_pred"] = repr(float(pred[i, j]))
+        rows.append(row)
+    fields = ["index"] + [f"{n}_{k}" for n in names for k in (("true", "pred") if true is not None else ("pred",))]
+    written = [out_dir / "predictions.csv"]
+    _write_csv(written[0], rows, fields)
+    if true is not None:
+        table = error_distribution_rows(pred, true, names)
+        written += list(write_error_distribution(table, out_dir, title=f"{type(model).__name__}: test set ({len(pred)} samples)"))
+        for j, name in enumerate(names):
+            path = out_dir / f"sorted_predictions_{name}.png"
+            fig = plot_sorted_predictions(pred[:, j], true[:, j], name, path=path, title=f"{name}: test, sorted by true value")
+            if writer is not None:
+                writer.add_figure(f"test/sorted_{name}", fig)
+            close(fig)
+            written.append(path)
+    return written
+
+
+def _write_signal_outputs(model, results: Mapping, out_dir: Path, writer) -> list[Path]:
+    import numpy as np
+
+    from hybridqcm.plots import close, plot_histogram
+
+    names = list(model.data_requirements()["targets"])
+    written = []
+    if "mse" not in results:
+        return written
+    mse, rel = results["mse"].numpy(), results["rel_mse"].numpy()
+    base = results["input_mse"].numpy() if "input_mse" in results else None
+    rows = []
+    for i in range(mse.shape[0]):
+        row = {"index": int(results["index"][i])}
+        for j, name in enumerate(names):
+            row[f"mse_{name}"] = repr(float(mse[i, j]))
+            row[f"rel_mse_{name}"] = repr(float(rel[i, j]))
+            if base is not None:
+                row[f"noisy_input_mse_{name}"] = repr(float(base[i, j]))
+        rows.append(row)
+    written.append(out_dir / "per_sample_mse.csv")
+    _write_csv(written[-1], rows)
+    summary = []
+    for j, name in enumerate(names):
+        m = mse[:, j]
+        entry = {"channel": name, "n": int(m.size), "mean_mse": float(m.mean()), "median_mse": float(np.median(m)),
+                 "p95_mse": float(np.quantile(m, 0.95)), "max_mse": float(m.max()),
+                 "frac_below_1e-5": float((m < 1e-5).mean()), "frac_below_1e-4": float((m < 1e-4).mean()),
+                 "mean_rel_mse": float(rel[:, j].mean()), "max_rel_mse": float(rel[:, j].max())}
+        if base is not None:
+            entry["mean_noisy_input_mse"] = float(base[:, j].mean())
+        summary.append(entry)
+        path = out_dir / f"mse_hist_{name}.png"
+        fig = plot_histogram(m, path=path, title=f"{type(model).__name__}: per-sample MSE of {name} (test)",
+                             xlabel="MSE [(m/s²)²]")
+        if writer is not None:
+            writer.add_figure(f"test/mse_hist_{name}", fig)
+        close(fig)
+        written.append(path)
+    written.append(out_dir / "mse_summary.csv")
+    _write_csv(written[-1], summary)
+    lines = ["| " + " | ".join(summary[0].keys()) + " |", "|" + "---|" * len(summary[0])]
+    lines += ["| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in s.values()) + " |" for s in summary]
+    _atomic_write_text(out_dir / "mse_summary.md", "\n".join(lines) + "\n")
+    written.append(out_dir / "mse_summary.md")
+    if "examples" in results:
+        path = out_dir / "examples.png"
+        fig = model.example_figure(results["examples"], path=path)
+        if writer is not None:
+            writer.add_figure("test/examples", fig)
+        close(fig)
+        written.append(path)
+    return written
+
+
+# ---------------------------------------------------------------------------------------------------------
+# multirun summary
+def summarize_multirun(sweep_dir: str | Path) -> Path | None:
+    """Collect each job's error_distribution.csv / mse_summary.csv (+ its overrides) into sweep_dir/summary.{csv,md}."""
+    sweep_dir = Path(sweep_dir)
+    rows: list[dict] = []
+    for job in sorted((p for p in sweep_dir.iterdir() if p.is_dir()), key=lambda p: (len(p.name), p.name)):
+        overrides_file = job / ".hydra" / "overrides.yaml"
+        overrides = yaml.safe_load(overrides_file.read_text()) if overrides_file.exists() else []
+        for table in ("error_distribution.csv", "mse_summary.csv"):
+            if (job / table).exists():
+                with open(job / table, newline="") as handle:
+                    for row in csv.DictReader(handle):
+                        rows.append({"job": job.name, "overrides": " ".join(overrides or []), "table": table, **row})
+    if not rows:
+        return None
+    fields: list[str] = []
+    for row in rows:
+        fields += [k for k in row if k not in fields]
+    path = sweep_dir / "summary.csv"
+    _write_csv(path, rows, fields)
+    lines = ["| " + " | ".join(fields) + " |", "|" + "---|" * len(fields)]
+    lines += ["| " + " | ".join(str(r.get(f, "")) for f in fields) + " |" for r in rows]
+    _atomic_write_text(sweep_dir / "summary.md", "\n".join(lines) + "\n")
+    return path
+
+
+try:
+    from hydra.experimental.callback import Callback as _HydraCallback
+except ImportError:  # pragma: no cover
+    _HydraCallback = object
+
+
+class MultirunSummary(_HydraCallback):
+    """Hydra callback: after a multirun, write summary.csv/.md into the sweep folder."""
+
+    def on_multirun_end(self, config, **kwargs: Any) -> None:
+        try:
+            path = summarize_multirun(config.hydra.sweep.dir)
+        except Exception as error:  # noqa: BLE001 - a summary must never fail the sweep
+            log.warning("multirun summary failed: %s", error)
+            return
+        if path is not None:
+            log.info("multirun summary: %s", path)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# entry points
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from hydra.errors import InstantiationException
+
+    from hybridqcm.data.hdf5 import DatasetError
+    from hybridqcm.models.modules import CheckpointMismatch
+
+    return (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError, InstantiationException, ValueError, KeyError)
+
+
+def run(cfg) -> float | None:
+    """Hydra task function: train/test, return `optimized_metric` (for sweepers)."""
+    from hybridqcm.data.hdf5 import DatasetError
+    from hybridqcm.models.modules import CheckpointMismatch
+
+    try:
+        # Every input is validated in prepare(), which train() runs before any training step;
+        # such errors print as one line. Anything raised later keeps its traceback.
+        metrics = train(cfg)
+    except (ConfigError, DatasetError, CheckpointMismatch) as error:
+        fail(error)
+    metric = cfg.get("optimized_metric")
+    if metric and metric in metrics:
+        return float(metrics[metric])
+    if metric and cfg.get("train", True):
+        log.warning("optimized_metric %s not among the metrics %s", metric, sorted(metrics))
+    return None
+
+
+def _hydra_main():
+    import hydra
+
+    return hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train")(run)()
+
+
+def main() -> None:
+    if len(sys.argv) >= 3 and sys.argv[1] == "summarize":  # qcm-train summarize SWEEP_DIR
+        path = summarize_multirun(sys.argv[2])
+        print(path or f"no error_distribution.csv / mse_summary.csv under {sys.argv[2]}")
+        return
+    try:
+        check_experiment_overrides(sys.argv[1:])
+    except ConfigError as error:
+        fail(error)
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

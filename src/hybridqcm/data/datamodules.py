@@ -1,0 +1,478 @@
+"""Lightning datamodules: a fixed HDF5 dataset (SPEC §5) or an endless stream of fresh simulations.
+
+Both yield batches as dicts, in physical units (the models normalise inputs themselves, so a
+checkpoint accepts raw data at inference):
+
+    x       float32 [B, C_in, N]   input channels, with multiplicative noise a (1 + eta) if sigma > 0
+    y       float32 [B, C_out, N]  target time channels (clean)   or  float64 [B, P] target parameters
+    aux     float [B, C_aux, N]    clean auxiliary channels, e.g. a3 v3 v2 q3 q2 for the physics residual
+                                   (float64 when streamed, float32 from HDF5 as stored)
+    params  float64 [B, 10]        all parameters, where the data has them (for metrics)
+    index   int64   [B]            sample index within its split (for predictions.csv)
+
+Noise: training batches draw fresh eta every time; validation/test noise is drawn once from a
+seeded generator, so a metric at sigma > 0 is reproducible.
+
+Normalisation statistics (per channel mean/std of inputs and targets over the training split)
+are computed in `setup` and kept in `stats` (and in the datamodule's state_dict, hence in
+checkpoints). The models compute their own normalisation buffers from `stats_batch()`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import numpy as np
+import torch
+from lightning import LightningDataModule
+from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
+
+from hybridqcm.data.channels import (ChannelError, is_param, required_keys, select_channels, select_params,
+                                     validate_channels)
+from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
+
+log = logging.getLogger(__name__)
+
+KMH = 1 / 3.6
+
+
+def _identity_collate(batch):
+    return batch
+
+
+def apply_noise(x: torch.Tensor, sigma: float | torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Multiplicative measurement noise x (1 + eta), eta ~ N(0, sigma^2) per point.
+
+    sigma: a float or a per-sample tensor [B] (broadcast over channels and time).
+    """
+    if isinstance(sigma, (int, float)) and sigma == 0:
+        return x
+    eta = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device) if generator is not None \
+        else torch.randn_like(x)
+    if isinstance(sigma, torch.Tensor):
+        sigma = sigma.to(x).reshape(-1, *([1] * (x.ndim - 1)))
+    return x * (1 + sigma * eta)
+
+
+def _check_sigma(sigma: float, where: str) -> float:
+    sigma = float(sigma)
+    if not math.isfinite(sigma) or sigma < 0:
+        raise ValueError(f"{where}: noise_sigma must be a finite number >= 0, got {sigma}")
+    return sigma
+
+
+class ChannelSpec:
+    """Which channels a task reads: inputs (time), targets (time or parameters), clean auxiliaries."""
+
+    def __init__(self, inputs: Sequence[str], targets: Sequence[str] | None = None, aux: Sequence[str] | None = None,
+                 targets_optional: bool = False) -> None:
+        self.inputs = validate_channels(inputs, "inputs")
+        if not self.inputs or is_param(self.inputs[0]):
+            raise ChannelError(f"inputs: need at least one time channel, got {self.inputs}")
+        self.targets = validate_channels(targets, "targets")
+        self.aux = validate_channels(aux, "aux")
+        if self.aux and is_param(self.aux[0]):
+            raise ChannelError(f"aux: must be time channels, got {self.aux}")
+        self.targets_optional = bool(targets_optional)
+
+    @property
+    def targets_are_params(self) -> bool:
+        return bool(self.targets) and is_param(self.targets[0])
+
+    def keys(self, available: Sequence[str] | None = None) -> tuple[set[str], set[str]]:
+        """(needed keys, optional keys to read if present)."""
+        needed = required_keys(self.inputs) | required_keys(self.aux)
+        target_keys = required_keys(self.targets)
+        optional = {"params", "profile_id"}
+        if self.targets_optional:
+            optional |= target_keys
+        else:
+            needed |= target_keys
+        return needed, optional - needed
+
+    def build(self, arrays: Mapping, index: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Tensors for a sample set (no noise): x [M,C,N] f32, y, aux [M,A,N] (source dtype), params, index."""
+        out = {"x": torch.as_tensor(select_channels(arrays, self.inputs)).float(), "index": index}
+        if self.targets and all(k in arrays for k in required_keys(self.targets)):
+            if self.targets_are_params:
+                out["y"] = torch.as_tensor(select_params(arrays, self.targets)).double()
+            else:
+                out["y"] = torch.as_tensor(select_channels(arrays, self.targets)).float()
+        if self.aux:
+            # Kept in the source's precision: float32 from HDF5 (as stored; halves memory), float64 from the simulator.
+            out["aux"] = torch.as_tensor(select_channels(arrays, self.aux))
+        if "params" in arrays:
+            out["params"] = torch.as_tensor(np.asarray(arrays["params"]) if not isinstance(arrays["params"], torch.Tensor)
+                                            else arrays["params"]).double()
+        return out
+
+
+def channel_stats(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Per-channel mean/std of x (and y) over samples and time; of log-parameters for parameter targets."""
+    stats = {}
+    x = tensors["x"].double()
+    stats["input_mean"] = x.mean((0, 2))
+    stats["input_std"] = x.std((0, 2)).clamp_min(1e-12)
+    if "y" in tensors:
+        y = tensors["y"].double()
+        if y.ndim == 2:  # parameters: statistics of log p (all p > 0)
+            stats["target_log_mean"] = y.log().mean(0)
+            stats["target_log_std"] = y.log().std(0).clamp_min(1e-12)
+        else:
+            stats["target_mean"] = y.mean((0, 2))
+            stats["target_std"] = y.std((0, 2)).clamp_min(1e-12)
+    return stats
+
+
+class TensorBatches(Dataset):
+    """In-memory samples; fetched a batch at a time (`__getitems__`), noise applied per batch."""
+
+    def __init__(self, tensors: Mapping[str, torch.Tensor], noise_sigma: float = 0.0, fixed_noise_seed: int | None = None) -> None:
+        self.tensors = dict(tensors)
+        self.noise_sigma = float(noise_sigma)
+        self.n = int(self.tensors["x"].shape[0])
+        self.noisy_x = None
+        if self.noise_sigma > 0 and fixed_noise_seed is not None:
+            generator = torch.Generator().manual_seed(int(fixed_noise_seed))
+            self.noisy_x = apply_noise(self.tensors["x"], self.noise_sigma, generator)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitems__(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
+        idx = torch.as_tensor(indices, dtype=torch.long)
+        batch = {k: v[idx] for k, v in self.tensors.items()}
+        if self.noisy_x is not None:
+            batch["x"] = self.noisy_x[idx]
+        elif self.noise_sigma > 0:
+            batch["x"] = apply_noise(batch["x"], self.noise_sigma)
+        return batch
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v[0] for k, v in self.__getitems__([i]).items()}
+
+
+class _BaseDataModule(LightningDataModule):
+    """Shared channel handling, statistics and loaders."""
+
+    def __init__(self, inputs: Sequence[str] = ("a3", "a2"), targets: Sequence[str] | None = ("p1", "p2"),
+                 aux: Sequence[str] | None = None, window: int = 500, noise_sigma: float = 0.0,
+                 batch_size: int = 256, eval_batch_size: int | None = None, num_workers: int = 0,
+                 pin_memory: bool = False, seed: int = 0, targets_optional: bool = False, stats_samples: int = 2048) -> None:
+        super().__init__()
+        self.spec = ChannelSpec(inputs, targets, aux, targets_optional)
+        self.window = int(window)
+        if self.window < 1:
+            raise ValueError(f"{type(self).__name__}: window must be >= 1, got {window}")
+        self.noise_sigma = _check_sigma(noise_sigma, type(self).__name__)
+        if int(batch_size) < 1:
+            raise ValueError(f"{type(self).__name__}: batch_size must be >= 1, got {batch_size}")
+        self.batch_size = int(batch_size)
+        self.eval_batch_size = int(eval_batch_size or max(batch_size, 512))
+        self.num_workers = int(num_workers)
+        self.pin_memory = bool(pin_memory)
+        self.seed = int(seed)
+        self.stats_samples = int(stats_samples)
+        self.stats: dict[str, torch.Tensor] = {}
+        self.data_train: Dataset | None = None
+        self.data_val: Dataset | None = None
+        self.data_test: Dataset | None = None
+
+    # -- to be provided -------------------------------------------------------------------------
+    def stats_batch(self, n: int | None = None) -> dict[str, torch.Tensor]:
+        """Up to n clean training samples (a batch dict) for model normalisation statistics."""
+        raise NotImplementedError
+
+    # -- loaders ------------------------------------------------------------------------------------
+    def _loader(self, dataset: Dataset | None, shuffle: bool, batch_size: int) -> DataLoader:
+        if dataset is None:
+            raise RuntimeError(f"{type(self).__name__}: call setup() before asking for a dataloader")
+        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, collate_fn=_identity_collate,
+                          num_workers=self.num_workers, pin_memory=self.pin_memory,
+                          persistent_workers=False)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.data_val, False, self.eval_batch_size)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.data_test, False, self.eval_batch_size)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self.test_dataloader()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"stats": {k: v.clone() for k, v in self.stats.items()}, "inputs": self.spec.inputs,
+                "targets": self.spec.targets, "window": self.window}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.stats = dict(state_dict.get("stats", {}))
+
+
+class HDF5DataModule(_BaseDataModule):
+    """A SPEC §5 HDF5 file: train/val carved from `train_split`, test from `test_split`.
+
+    The validation part is whole road profiles (when the file has profile_id) chosen by `seed`,
+    so validation never sees a road the network trained on. `limit_*` cap sample counts for
+    quick runs (prefixes; the file's splits are shuffled by class at generation).
+    """
+
+    def __init__(self, path: str, train_split: str = "train", test_split: str = "test", val_fraction: float = 0.1,
+                 limit_train: int | None = None, limit_test: int | None = None, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.path = Path(str(path))
+        self.train_split, self.test_split = train_split, test_split
+        if not 0 <= float(val_fraction) < 1:
+            raise ValueError(f"HDF5DataModule: val_fraction must be in [0, 1), got {val_fraction}")
+        self.val_fraction = float(val_fraction)
+        self.limit_train = None if limit_train is None else int(limit_train)
+        self.limit_test = None if limit_test is None else int(limit_test)
+        self._train_tensors: dict[str, torch.Tensor] | None = None
+
+    def check(self, stages: Sequence[str] = ("fit", "test")) -> dict:
+        """Validate file, splits, keys and window without reading the data; returns dataset_info."""
+        info = dataset_info(self.path)
+        needed, _ = self.spec.keys()
+        splits = ([self.train_split] if "fit" in stages else []) + ([self.test_split] if "test" in stages else [])
+        for split in splits:
+            if split not in info["splits"]:
+                raise DatasetError(f"{self.path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
+            have = info["splits"][split]["keys"]
+            missing = sorted(needed - set(have))
+            if missing:
+                raise DatasetError(f"{self.path}: /{split} lacks dataset(s) {missing} needed for channels "
+                                   f"inputs={self.spec.inputs} targets={self.spec.targets} aux={self.spec.aux}; it has {have}")
+            stored = info["splits"][split]["n_steps"]
+            if stored is not None and self.window > stored:
+                raise DatasetError(f"{self.path}: window = {self.window} is longer than the {stored} steps stored in /{split}")
+        return info
+
+    def _read(self, split: str, limit: int | None, info: dict) -> dict[str, torch.Tensor]:
+        needed, optional = self.spec.keys()
+        have = set(info["splits"][split]["keys"])
+        keys = sorted(needed | (optional & have))
+        n = info["splits"][split]["n_samples"]
+        index = slice(0, min(n, limit)) if limit is not None else None
+        arrays = read_split(self.path, split, keys, n_steps=self.window, index=index)
+        m = arrays[keys[0]].shape[0]
+        tensors = self.spec.build(arrays, torch.arange(m))
+        if "profile_id" in arrays:
+            tensors["profile_id"] = torch.as_tensor(arrays["profile_id"]).long()
+        return tensors
+
+    def _carve(self, tensors: dict[str, torch.Tensor]) -> tuple[dict, dict]:
+        m = tensors["x"].shape[0]
+        generator = torch.Generator().manual_seed(self.seed)
+        if self.val_fraction == 0:
+            return tensors, {k: v[:0] for k, v in tensors.items()}
+        if "profile_id" in tensors:
+            profiles = tensors["profile_id"].unique()
+            n_val = max(1, round(self.val_fraction * len(profiles))) if len(profiles) > 1 else 0
+            chosen = profiles[torch.randperm(len(profiles), generator=generator)[:n_val]]
+            is_val = torch.isin(tensors["profile_id"], chosen)
+        else:
+            is_val = torch.zeros(m, dtype=torch.bool)
+            is_val[torch.randperm(m, generator=generator)[:max(1, round(self.val_fraction * m))]] = True
+        if is_val.all() or not is_val.any():  # too few profiles: fall back to samples
+            is_val = torch.zeros(m, dtype=torch.bool)
+            is_val[torch.randperm(m, generator=generator)[:max(1, round(self.val_fraction * m))]] = True
+        return ({k: v[~is_val] for k, v in tensors.items()}, {k: v[is_val] for k, v in tensors.items()})
+
+    def setup(self, stage: str | None = None) -> None:
+        stages = ("fit", "test") if stage is None else ("fit",) if stage in ("fit", "validate") else ("test",)
+        info = self.check(stages)
+        if "fit" in stages and self.data_train is None:
+            train, val = self._carve(self._read(self.train_split, self.limit_train, info))
+            self._train_tensors = train
+            self.stats = channel_stats(train)
+            self.data_train = TensorBatches(train, self.noise_sigma)
+            self.data_val = TensorBatches(val, self.noise_sigma, fixed_noise_seed=self.seed + 1)
+            log.info("HDF5DataModule %s: %d train / %d val samples, window %d, sigma %g",
+                     self.path, len(self.data_train), len(self.data_val), self.window, self.noise_sigma)
+        if "test" in stages and self.data_test is None:
+            test = self._read(self.test_split, self.limit_test, info)
+            self.data_test = TensorBatches(test, self.noise_sigma, fixed_noise_seed=self.seed + 2)
+            log.info("HDF5DataModule %s: %d test samples", self.path, len(self.data_test))
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.data_train, True, self.batch_size)
+
+    def stats_batch(self, n: int | None = None) -> dict[str, torch.Tensor]:
+        if self._train_tensors is None:
+            self.setup("fit")
+        n = n or self.stats_samples
+        return {k: v[:n] for k, v in self._train_tensors.items()}
+
+
+class SimulatedStream(IterableDataset):
+    """Endless fresh samples, simulated a batch at a time.
+
+    Every (rank, worker, pass) has its own seed, so workers and distributed ranks never repeat
+    each other's samples: seed = SeedSequence(seed, rank, worker, pass). `pass` is the
+    DataLoader's per-iterator base seed inside workers (it changes every epoch) or a counter of
+    iterations when there are no workers. One pass yields `batches_per_epoch` batches in total,
+    split across ranks and workers.
+    """
+
+    def __init__(self, simulator: "StreamSimulator", spec: ChannelSpec, batch_size: int, batches_per_epoch: int,
+                 noise_sigma: float, seed: int) -> None:
+        self.simulator, self.spec = simulator, spec
+        self.batch_size, self.batches_per_epoch = int(batch_size), int(batches_per_epoch)
+        self.noise_sigma, self.seed = float(noise_sigma), int(seed)
+        self._passes = 0
+
+    @staticmethod
+    def _rank() -> tuple[int, int]:
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            return torch.distributed.get_rank(), torch.distributed.get_world_size()
+        return 0, 1
+
+    def stream_seed(self) -> tuple[int, int, int]:
+        """(seed for this worker's generator, number of shards, shard index)."""
+        rank, world = self._rank()
+        info = get_worker_info()
+        if info is None:
+            worker, n_workers, salt = 0, 1, self._passes
+            self._passes += 1
+        else:
+            worker, n_workers, salt = info.id, info.num_workers, (info.seed - info.id) % (2 ** 62)
+        sequence = np.random.SeedSequence([self.seed, rank, worker, salt])
+        return int(sequence.generate_state(1, np.uint64)[0] % (2 ** 63 - 1)), world * n_workers, rank * n_workers + worker
+
+    def __len__(self) -> int:
+        return self.batches_per_epoch
+
+    def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
+        seed, shards, shard = self.stream_seed()
+        generator = torch.Generator().manual_seed(seed)
+        n_batches = len(range(shard, self.batches_per_epoch, shards))
+        for _ in range(n_batches):
+            arrays = self.simulator(self.batch_size, generator)
+            batch = self.spec.build(arrays, torch.full((self.batch_size,), -1, dtype=torch.long))
+            batch["x"] = apply_noise(batch["x"], self.noise_sigma, generator)
+            yield batch
+
+
+class StreamSimulator:
+    """Callable (n, generator) -> arrays dict of n fresh samples (picklable, for DataLoader workers)."""
+
+    def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, n_steps: int = 500,
+                 h: float = 0.01, speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", n_waves: int = 1000) -> None:
+        from hybridqcm.physics import RoadProfile, build_prior, road_class_index
+
+        prior = dict(prior or {"name": "thesis"})
+        name = prior.pop("name", "thesis")
+        if "mass_range" in prior:
+            prior["mass_range"] = tuple(prior["mass_range"])
+        self.prior = build_prior(name, h=h, **prior)
+        road_classes = dict(road_classes or {"A": 200, "B": 140, "C": 60})
+        weights = [float(w) for w in road_classes.values()]
+        if any(w < 0 for w in weights) or sum(weights) <= 0:
+            raise ValueError(f"road_classes weights must be >= 0 with a positive sum, got {road_classes}")
+        self.class_index = torch.tensor([road_class_index(c) for c in road_classes], dtype=torch.long)
+        self.class_weights = torch.tensor(weights, dtype=torch.float64)
+        self.road = RoadProfile(n_waves=n_waves)
+        self.n_steps, self.h, self.speed_mps, self.integrator = int(n_steps), float(h), float(speed_kmh) * KMH, integrator
+
+    def __call__(self, n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        from hybridqcm.data.simulate import simulate_samples
+
+        pick = torch.multinomial(self.class_weights, n, replacement=True, generator=generator)
+        classes = self.class_index[pick]
+        arrays = simulate_samples(self.prior, self.road, classes, self.n_steps, self.h, self.speed_mps, generator,
+                                  1, self.integrator)
+        arrays["profile_id"] = arrays.pop("profile")
+        return arrays
+
+
+class StreamingDataModule(_BaseDataModule):
+    """Unlimited fresh training samples; fixed validation (and test) sets simulated once with their own seeds.
+
+    An "epoch" is `samples_per_epoch` streamed samples. The test set is simulated with
+    `test_seed` unless `path` names an HDF5 file (then its `test_split` is used, capped at
+    `limit_test` samples), so `data.path=FILE` means "test on that file" for both
+    datamodules.
+    """
+
+    def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, h: float = 0.01,
+                 speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", samples_per_epoch: int = 51200,
+                 val_samples: int = 2000, test_samples: int = 2000, val_seed: int = 1_000_001, test_seed: int = 2_000_002,
+                 path: str | None = None, test_split: str = "test", limit_test: int | None = None, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.simulator = StreamSimulator(prior, road_classes, self.window, h, speed_kmh, integrator)
+        if int(samples_per_epoch) < 1 or int(val_samples) < 0 or int(test_samples) < 0:
+            raise ValueError(f"StreamingDataModule: need samples_per_epoch >= 1 and val/test_samples >= 0, got "
+                             f"{samples_per_epoch}, {val_samples}, {test_samples}")
+        self.samples_per_epoch = int(samples_per_epoch)
+        self.val_samples, self.test_samples = int(val_samples), int(test_samples)
+        self.val_seed, self.test_seed = int(val_seed), int(test_seed)
+        self.path, self.test_split = (str(path) if path else None), test_split
+        self.limit_test = None if limit_test is None else int(limit_test)
+        if self.seed in (self.val_seed, self.test_seed):
+            raise ValueError(f"StreamingDataModule: seed {self.seed} must differ from val_seed/test_seed")
+        self._val_tensors: dict[str, torch.Tensor] | None = None
+        self._stats_tensors: dict[str, torch.Tensor] | None = None
+
+    def check(self, stages: Sequence[str] = ("fit", "test")) -> dict | None:
+        """Validate the test file (if any) against channels, window and the simulator's step size."""
+        if not self.path or "test" not in stages:
+            return None
+        hdf5 = self._hdf5_test()
+        info = hdf5.check(("test",))
+        h = info["attrs"].get("h")
+        if h is not None and abs(float(h) - self.simulator.h) > 1e-12:
+            raise DatasetError(f"{self.path}: attribute h = {h} differs from the stream's h = {self.simulator.h}; "
+                               f"set data.h={h} so training and test data share the time step")
+        return info
+
+    def _hdf5_test(self) -> "HDF5DataModule":
+        return HDF5DataModule(self.path, test_split=self.test_split, inputs=self.spec.inputs, targets=self.spec.targets,
+                              aux=self.spec.aux, window=self.window, noise_sigma=self.noise_sigma, seed=self.seed,
+                              limit_test=self.limit_test, targets_optional=self.spec.targets_optional)
+
+    def _fixed_set(self, n: int, seed: int, chunk: int = 1000) -> dict[str, torch.Tensor]:
+        generator = torch.Generator().manual_seed(seed)
+        parts = []
+        for start in range(0, n, chunk):
+            arrays = self.simulator(min(chunk, n - start), generator)
+            parts.append(self.spec.build(arrays, torch.arange(start, start + arrays["accel"].shape[0])))
+        if not parts:
+            arrays = self.simulator(1, generator)
+            return {k: v[:0] for k, v in self.spec.build(arrays, torch.arange(1)).items()}
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def setup(self, stage: str | None = None) -> None:
+        stages = ("fit", "test") if stage is None else ("fit",) if stage in ("fit", "validate") else ("test",)
+        if "fit" in stages and self.data_train is None:
+            self._val_tensors = self._fixed_set(self.val_samples, self.val_seed)
+            self.stats = channel_stats(self.stats_batch())
+            self.data_val = TensorBatches(self._val_tensors, self.noise_sigma, fixed_noise_seed=self.val_seed + 1)
+            self.data_train = SimulatedStream(self.simulator, self.spec, self.batch_size,
+                                              max(1, self.samples_per_epoch // self.batch_size), self.noise_sigma, self.seed)
+        if "test" in stages and self.data_test is None:
+            if self.path:
+                self.check(("test",))
+                hdf5 = self._hdf5_test()
+                hdf5.setup("test")
+                self.data_test = hdf5.data_test
+            else:
+                self.data_test = TensorBatches(self._fixed_set(self.test_samples, self.test_seed), self.noise_sigma,
+                                               fixed_noise_seed=self.test_seed + 1)
+
+    def train_dataloader(self) -> DataLoader:
+        if self.data_train is None:
+            raise RuntimeError("StreamingDataModule: call setup('fit') first")
+        # The stream yields whole batches; batch_size=None turns off re-batching.
+        return DataLoader(self.data_train, batch_size=None, num_workers=self.num_workers, pin_memory=self.pin_memory)
+
+    def stats_batch(self, n: int | None = None) -> dict[str, torch.Tensor]:
+        n = n or self.stats_samples
+        # Training statistics = the prior's; a seeded draw distinct from val/test/stream seeds.
+        if self._stats_tensors is None or self._stats_tensors["x"].shape[0] < n:
+            self._stats_tensors = self._fixed_set(n, self.seed + 7919)
+        return {k: v[:n] for k, v in self._stats_tensors.items()}
+
+
+__all__ = ["HDF5DataModule", "StreamingDataModule", "SimulatedStream", "StreamSimulator", "TensorBatches",
+           "ChannelSpec", "apply_noise", "channel_stats"]

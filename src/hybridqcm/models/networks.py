@@ -1,0 +1,169 @@
+"""Plain nn.Modules of SPEC §6 (input as channels x time, [B, C, N]); sizes configurable.
+
+Strided convolutions use TensorFlow-style "same" padding (output length ceil(N / stride)), which
+is what reproduces the source's weight counts: ParameterCNN 1 361 332 (flatten 100 x 125 at
+N = 500) and DenoisingCAE 1 010 302 with output length N.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU, "leaky_relu": nn.LeakyReLU}
+
+
+def activation(name: str) -> nn.Module:
+    if name not in ACTIVATIONS:
+        raise ValueError(f"unknown activation {name!r}; choose one of {sorted(ACTIVATIONS)}")
+    return ACTIVATIONS[name]()
+
+
+def same_length(n: int, stride: int) -> int:
+    return math.ceil(n / stride)
+
+
+class SameConv1d(nn.Conv1d):
+    """Conv1d with "same" padding for any stride: [B, C, N] -> [B, C', ceil(N / stride)]."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        n, k, s = x.shape[-1], self.kernel_size[0], self.stride[0]
+        total = max((same_length(n, s) - 1) * s + k - n, 0)
+        return super().forward(F.pad(x, (total // 2, total - total // 2)))
+
+
+class SameConvTranspose1d(nn.ConvTranspose1d):
+    """Transposed conv, output cropped to N * stride ("same"): [B, C, N] -> [B, C', N * stride]."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        n, k, s = x.shape[-1], self.kernel_size[0], self.stride[0]
+        y = super().forward(x)  # length (n - 1) s + k
+        excess = y.shape[-1] - n * s
+        left = excess // 2
+        return y[..., left:left + n * s] if excess > 0 else F.pad(y, (0, -excess))
+
+
+class ParameterCNN(nn.Module):
+    """(a3, a2) [B, 2, window] -> 2 outputs (normalised parameters).
+
+    Reference: Conv1d(2->100, k50, s2) -> Conv1d(100->100, k10, s2) -> flatten -> 100 -> 10 -> 2.
+    """
+
+    def __init__(self, in_channels: int = 2, window: int = 500, channels: Sequence[int] = (100, 100),
+                 kernels: Sequence[int] = (50, 10), strides: Sequence[int] = (2, 2), hidden: Sequence[int] = (100, 10),
+                 out_features: int = 2, activation_name: str = "relu", dropout: float = 0.0) -> None:
+        super().__init__()
+        if not len(channels) == len(kernels) == len(strides):
+            raise ValueError(f"ParameterCNN: channels {channels}, kernels {kernels}, strides {strides} must have equal lengths")
+        layers: list[nn.Module] = []
+        c, n = in_channels, int(window)
+        for c_out, k, s in zip(channels, kernels, strides):
+            layers += [SameConv1d(c, c_out, k, stride=s), activation(activation_name)]
+            c, n = c_out, same_length(n, s)
+        self.features = nn.Sequential(*layers)
+        dense: list[nn.Module] = [nn.Flatten()]
+        width = c * n
+        for h in hidden:
+            dense += [nn.Linear(width, h), activation(activation_name)] + ([nn.Dropout(dropout)] if dropout > 0 else [])
+            width = h
+        dense.append(nn.Linear(width, out_features))
+        self.head = nn.Sequential(*dense)
+        self.window, self.in_channels, self.flat_features = int(window), in_channels, c * n
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.shape[1:] != (self.in_channels, self.window):
+            raise ValueError(f"ParameterCNN expects [B, {self.in_channels}, {self.window}], got {tuple(x.shape)}")
+        return self.head(self.features(x))
+
+
+class DenoisingCAE(nn.Module):
+    """Convolutional autoencoder [B, C, N] -> [B, C, N] (any N).
+
+    Reference: Conv(2->50, k50, s2) -> Conv(50->100, k50, s2) -> ConvT(100->100, k50, s2) ->
+    ConvT(100->50, k50, s2) -> ConvT(50->2, k50, s1), linear output.
+    """
+
+    def __init__(self, in_channels: int = 2, channels: Sequence[int] = (50, 100), kernel_size: int = 50,
+                 activation_name: str = "relu", residual: bool = False) -> None:
+        super().__init__()
+        enc: list[nn.Module] = []
+        c = in_channels
+        for c_out in channels:
+            enc += [SameConv1d(c, c_out, kernel_size, stride=2), activation(activation_name)]
+            c = c_out
+        dec: list[nn.Module] = []
+        for c_out in list(channels[::-1][:1]) + list(channels[::-1][1:]):
+            dec += [SameConvTranspose1d(c, c_out, kernel_size, stride=2), activation(activation_name)]
+            c = c_out
+        dec.append(SameConvTranspose1d(c, in_channels, kernel_size, stride=1))
+        self.encoder, self.decoder = nn.Sequential(*enc), nn.Sequential(*dec)
+        self.depth, self.residual = len(channels), residual
+
+    def forward(self, x: Tensor) -> Tensor:
+        n = x.shape[-1]
+        multiple = 2 ** self.depth
+        pad = (-n) % multiple
+        z = F.pad(x, (0, pad)) if pad else x
+        y = self.decoder(self.encoder(z))[..., :n]
+        return x + y if self.residual else y
+
+
+class _DoubleConv(nn.Sequential):
+    def __init__(self, c_in: int, c_out: int, k: int, batchnorm: bool, act: str) -> None:
+        layers: list[nn.Module] = []
+        for a, b in ((c_in, c_out), (c_out, c_out)):
+            layers += [nn.Conv1d(a, b, k, padding=k // 2, bias=not batchnorm)]
+            layers += [nn.BatchNorm1d(b)] if batchnorm else []
+            layers += [activation(act)]
+        super().__init__(*layers)
+
+
+class UNet1d(nn.Module):
+    """1-D U-Net [B, C_in, N] -> [B, C_out, N] (any N; padded to a multiple of 2^(levels-1)).
+
+    Filters 4-8-16-32 with 2x max-pooling along time, batch-norm, transposed-conv upsampling
+    and skip concatenations; 29 166 weights with kernel 9 (SPEC: 30 653 for the 2-D original).
+    """
+
+    def __init__(self, in_channels: int = 2, out_channels: int = 2, filters: Sequence[int] = (4, 8, 16, 32),
+                 kernel_size: int = 9, batchnorm: bool = True, activation_name: str = "relu") -> None:
+        super().__init__()
+        if kernel_size % 2 == 0:
+            raise ValueError(f"UNet1d: kernel_size must be odd (symmetric padding), got {kernel_size}")
+        self.down = nn.ModuleList()
+        c = in_channels
+        for f in filters:
+            self.down.append(_DoubleConv(c, f, kernel_size, batchnorm, activation_name))
+            c = f
+        self.up = nn.ModuleList()
+        self.merge = nn.ModuleList()
+        for f in reversed(filters[:-1]):
+            self.up.append(nn.ConvTranspose1d(c, f, 2, stride=2))
+            self.merge.append(_DoubleConv(2 * f, f, kernel_size, batchnorm, activation_name))
+            c = f
+        self.out = nn.Conv1d(c, out_channels, 1)
+        self.levels = len(filters)
+
+    def forward(self, x: Tensor) -> Tensor:
+        n = x.shape[-1]
+        pad = (-n) % (2 ** (self.levels - 1))
+        z = F.pad(x, (0, pad), mode="replicate") if pad else x
+        skips = []
+        for i, block in enumerate(self.down):
+            z = block(z)
+            if i < self.levels - 1:
+                skips.append(z)
+                z = F.max_pool1d(z, 2)
+        for up, merge in zip(self.up, self.merge):
+            z = merge(torch.cat([up(z), skips.pop()], 1))
+        return self.out(z)[..., :n]
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+__all__ = ["ParameterCNN", "DenoisingCAE", "UNet1d", "SameConv1d", "SameConvTranspose1d", "count_parameters"]
