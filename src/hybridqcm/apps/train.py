@@ -202,10 +202,14 @@ def train(cfg) -> dict[str, float]:
         checkpoint = None
         if parts["train"] and trainer.checkpoint_callback is not None and getattr(trainer.checkpoint_callback, "best_model_path", ""):
             checkpoint = trainer.checkpoint_callback.best_model_path
-        results = trainer.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=False)
+        tester = trainer
+        if trainer.world_size > 1:
+            # Spawned ranks keep their test outputs to themselves: test once, in this process, on one device.
+            tester = instantiate(cfg.trainer, devices=1, num_nodes=1, strategy="auto", callbacks=[], logger=loggers or False)
+        results = tester.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=False)
         test_metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
         metrics.update(test_metrics)
-        write_test_outputs(model, out_dir, trainer)
+        write_test_outputs(model, out_dir, tester)
         summary = {
             "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],
             "train_seconds": train_seconds, "steps": trainer.global_step, "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
