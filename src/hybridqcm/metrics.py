@@ -7,8 +7,6 @@ Column names match ../shared/reference/thesis_tables.csv so rows can be set side
 from __future__ import annotations
 
 import csv
-import os
-import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -16,6 +14,8 @@ import numpy as np
 import torch
 from torch import Tensor
 from torchmetrics import Metric
+
+from hybridqcm.atomic import atomic_write_text
 
 THRESHOLDS = (0.01, 0.05, 0.10, 0.25)
 COLUMNS = ("param", "n", "max_err", "mean_err", "std_err", "within_1pct", "within_5pct", "within_10pct",
@@ -85,15 +85,6 @@ class ErrorDistribution(Metric):
                 if k not in ("param", "n", "non_finite")}
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
-
-
 def rows_to_markdown(rows: Sequence[dict], title: str | None = None) -> str:
     header = ["param", "max", "mean", "std", "≤1 %", "≤5 %", "≤10 %", "≤25 %", ">25 %"]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -116,8 +107,8 @@ def write_error_distribution(rows: Sequence[dict], directory: str | Path, stem: 
     writer.writeheader()
     for r in rows:
         writer.writerow({**{k: r.get(k) for k in COLUMNS}, "non_finite": r.get("non_finite", 0)})
-    _atomic_write_text(csv_path, buffer.getvalue())
-    _atomic_write_text(md_path, rows_to_markdown(rows, title))
+    atomic_write_text(csv_path, buffer.getvalue())
+    atomic_write_text(md_path, rows_to_markdown(rows, title))
     return csv_path, md_path
 
 

@@ -48,7 +48,7 @@ def _train(name, experiment, dataset, root, minutes, table=None, thesis=None, se
 
 def _evaluate(name, experiment, dataset, root, checkpoint_stage, sigma, table, thesis, setting, denoiser_stage=None,
               done_when=("error_distribution.csv",)):
-    extra = [f"train=false", f"ckpt_path={root}/{checkpoint_stage}/checkpoints/last.ckpt", f"data.noise_sigma={sigma}"]
+    extra = ["train=false", f"ckpt_path={root}/{checkpoint_stage}/checkpoints/last.ckpt", f"data.noise_sigma={sigma}"]
     if denoiser_stage:
         extra.append(f"denoiser_ckpt={root}/{denoiser_stage}/checkpoints/last.ckpt")
     return Stage(name, "qcm-train", [f"experiment={experiment}", f"data.path={dataset}", *extra], f"{root}/{name}",

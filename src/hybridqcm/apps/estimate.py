@@ -10,8 +10,6 @@ reported in one line naming the file, key and value, before any work is done.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 import sys
@@ -21,77 +19,18 @@ from typing import Mapping, Sequence
 
 import numpy as np
 import torch
-import yaml
 
-from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
+from hybridqcm.apps import common
+from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail, print_table
+from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 
 PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
 CHANNELS = ("a3", "a2", "a1")
 
 
-class ConfigError(ValueError):
-    """A configuration value that cannot work; the message names the key and value."""
-
-
-# --------------------------------------------------------------------------------------------------
-# experiment pre-check (before Hydra composes: a training experiment would fail there obscurely)
-def experiment_task(name: str, config_dir: Path = CONFIG_DIR) -> str | None:
-    path = Path(config_dir) / "experiment" / f"{name}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"unknown experiment {name!r} (no {path}); estimation experiments: "
-                          f"{', '.join(estimation_experiments(config_dir))}")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML ({error})") from None
-    return data.get("task") if isinstance(data, dict) else None
-
-
-def estimation_experiments(config_dir: Path = CONFIG_DIR) -> list[str]:
-    names = []
-    for path in sorted((Path(config_dir) / "experiment").glob("*.yaml")):
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError:
-            continue
-        if isinstance(data, dict) and data.get("task") == "estimate":
-            names.append(path.stem)
-    return names
-
-
 def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
-    for arg in args:
-        key, _, value = arg.partition("=")
-        if key.lstrip("+~") != "experiment" or not value or value == "null":
-            continue
-        for name in value.split(","):
-            name = name.strip()
-            task = experiment_task(name, config_dir)
-            if task != "estimate":
-                raise ConfigError(f"experiment {name!r} is not an estimation experiment (its config says task: {task}); "
-                                  f"qcm-estimate runs {', '.join(estimation_experiments(config_dir))} — "
-                                  f"train networks with qcm-train")
-
-
-# --------------------------------------------------------------------------------------------------
-def _atomic_write_text(path: Path, text: str) -> None:
-    import os
-    import tempfile
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
-
-
-def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence]) -> None:
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(header)
-    writer.writerows(rows)
-    _atomic_write_text(path, buffer.getvalue())
+    """Fail early (before Hydra composes: a training experiment would fail there obscurely)."""
+    common.check_experiment_overrides(args, "estimate", config_dir)
 
 
 def _param_index(names: Sequence[str], key: str) -> list[int]:
@@ -354,11 +293,11 @@ def run(cfg) -> dict:
     for i in range(params.shape[0]):
         rows.append([int(collected.index[i]), *[repr(float(x)) for x in params[i]], status[i],
                      *[repr(float(x)) for x in std[i]], repr(float(m3[i])), repr(float(m3_std[i]))])
-    _write_csv(run_dir / "estimates.csv", header, rows)
+    atomic_write_csv(run_dir / "estimates.csv", header, rows)
     status_rows = [[int(collected.index[i]), status[i], int(result.iterations[i]), repr(float(result.loss[i])),
                     repr(float(collected.relative_loss[i])), int(collected.restarts[i]),
                     repr(float(result.condition_number[i]))] for i in range(params.shape[0])]
-    _write_csv(run_dir / "status.csv", ["index", "status", "iterations", "loss", "relative_loss", "restarts",
+    atomic_write_csv(run_dir / "status.csv", ["index", "status", "iterations", "loss", "relative_loss", "restarts",
                                         "condition_number"], status_rows)
 
     free = [j for j in range(10) if j not in plan["known"]]
@@ -391,7 +330,7 @@ def run(cfg) -> dict:
         true_m3 = K3 / true[:, 1]
         inside = ((m3 - true_m3).abs() <= 1.96 * m3_std).double()
         cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()), float(m3_std.median() / true_m3.median())])
-        _write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
+        atomic_write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
         summary["m3_mean_rel_err"] = float(((m3 - true_m3).abs() / true_m3).mean())
         if cfg.plots:
             from hybridqcm.plots import close, plot_sorted_predictions
@@ -402,7 +341,7 @@ def run(cfg) -> dict:
             close(plot_sorted_predictions(m3.numpy(), true_m3.numpy(), "m3 [kg]", run_dir / "plots" / "sorted_m3.png",
                                           title=f"{cfg.experiment_name}: occupant mass"))
     summary["seconds_total"] = time.perf_counter() - t_start
-    _atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
 
     print_table(f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()])
     if table_rows is not None:

@@ -16,35 +16,22 @@ import csv
 import io
 import json
 import logging
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import yaml
 
-from hybridqcm.apps.common import CONFIG_DIR, fail
+from hybridqcm.apps import common
+from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail
+from hybridqcm.atomic import atomic_write_text
 
 log = logging.getLogger("qcm-train")
 
 
-class ConfigError(ValueError):
-    """An invalid combination of settings, reported before any training."""
-
-
 # ---------------------------------------------------------------------------------------------------------
 # small helpers
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
-
-
 def _write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fieldnames: Sequence[str] | None = None) -> None:
     buffer = io.StringIO()
     fieldnames = list(fieldnames or (rows[0].keys() if rows else []))
@@ -52,39 +39,12 @@ def _write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fieldnames: Sequen
     writer.writeheader()
     for row in rows:
         writer.writerow(row)
-    _atomic_write_text(path, buffer.getvalue())
-
-
-def experiment_task(name: str, config_dir: Path = CONFIG_DIR) -> str | None:
-    """The `task:` an experiment config declares (None if it declares none); raises ConfigError if unknown."""
-    path = Path(config_dir) / "experiment" / f"{name}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in (Path(config_dir) / "experiment").glob("*.yaml")
-                       if experiment_task_safe(p) == "train")
-        raise ConfigError(f"unknown experiment {name!r} (no {path}); training experiments: {', '.join(known)}")
-    return experiment_task_safe(path)
-
-
-def experiment_task_safe(path: Path) -> str | None:
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError:
-        return None
-    return data.get("task") if isinstance(data, dict) else None
+    atomic_write_text(path, buffer.getvalue())
 
 
 def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
     """Fail early (before Hydra composes anything) for unknown or non-training experiments."""
-    for arg in args:
-        key, _, value = arg.partition("=")
-        if key.lstrip("+~") != "experiment" or not value or value == "null":
-            continue
-        for name in value.split(","):
-            name = name.strip()
-            task = experiment_task(name, config_dir)
-            if task != "train":
-                raise ConfigError(f"experiment {name!r} has task: {task}, not task: train; qcm-train runs training "
-                                  f"experiments only (estimation experiments run with qcm-estimate)")
+    common.check_experiment_overrides(args, "train", config_dir)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -218,7 +178,7 @@ def train(cfg) -> dict[str, float]:
             "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
             "device": str(model.device), "metrics": test_metrics,
         }
-        _atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
+        atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
     return metrics
 
 
@@ -307,7 +267,7 @@ def _write_signal_outputs(model, results: Mapping, out_dir: Path, writer) -> lis
     _write_csv(written[-1], summary)
     lines = ["| " + " | ".join(summary[0].keys()) + " |", "|" + "---|" * len(summary[0])]
     lines += ["| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in s.values()) + " |" for s in summary]
-    _atomic_write_text(out_dir / "mse_summary.md", "\n".join(lines) + "\n")
+    atomic_write_text(out_dir / "mse_summary.md", "\n".join(lines) + "\n")
     written.append(out_dir / "mse_summary.md")
     if "examples" in results:
         path = out_dir / "examples.png"
@@ -342,7 +302,7 @@ def summarize_multirun(sweep_dir: str | Path) -> Path | None:
     _write_csv(path, rows, fields)
     lines = ["| " + " | ".join(fields) + " |", "|" + "---|" * len(fields)]
     lines += ["| " + " | ".join(str(r.get(f, "")) for f in fields) + " |" for r in rows]
-    _atomic_write_text(sweep_dir / "summary.md", "\n".join(lines) + "\n")
+    atomic_write_text(sweep_dir / "summary.md", "\n".join(lines) + "\n")
     return path
 
 

@@ -72,7 +72,7 @@ def solver_variants(path: str, n: int, seed: int = 0) -> list[dict]:
     """exp 5 (10 p, random init, one 30-iteration stage, no restarts) under solver variants."""
     import h5py
 
-    from hybridqcm.estimation.solver import LeastSquaresProblem, SolverStatus, build_solver
+    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
     from hybridqcm.physics import reference_params
 
     with h5py.File(path, "r") as f:

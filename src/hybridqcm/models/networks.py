@@ -39,7 +39,7 @@ class SameConvTranspose1d(nn.ConvTranspose1d):
     """Transposed conv, output cropped to N * stride ("same"): [B, C, N] -> [B, C', N * stride]."""
 
     def forward(self, x: Tensor) -> Tensor:
-        n, k, s = x.shape[-1], self.kernel_size[0], self.stride[0]
+        n, s = x.shape[-1], self.stride[0]
         y = super().forward(x)  # length (n - 1) s + k
         excess = y.shape[-1] - n * s
         left = excess // 2
