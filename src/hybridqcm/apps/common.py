@@ -70,3 +70,14 @@ def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path 
                                   f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
                                   f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
                                   f"the others run with {other}")
+
+
+def run_hydra_app(config_name: str, task: str, entry) -> None:
+    """Console-script body: reject unknown / other-app experiments in one line, then hand over to Hydra."""
+    import hydra
+
+    try:
+        check_experiment_overrides(sys.argv[1:], task)
+    except ConfigError as error:
+        fail(error)
+    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(entry)()

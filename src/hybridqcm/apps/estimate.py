@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -366,18 +365,8 @@ def _hydra_entry(cfg) -> None:
         fail(error)
 
 
-def _hydra_main():
-    import hydra
-
-    return hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="estimate")(_hydra_entry)()
-
-
 def main() -> None:
-    try:
-        check_experiment_overrides(sys.argv[1:])
-    except ConfigError as error:
-        fail(error)
-    _hydra_main()
+    common.run_hydra_app("estimate", "estimate", _hydra_entry)
 
 
 if __name__ == "__main__":

@@ -355,22 +355,12 @@ def run(cfg) -> float | None:
     return None
 
 
-def _hydra_main():
-    import hydra
-
-    return hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train")(run)()
-
-
 def main() -> None:
     if len(sys.argv) >= 3 and sys.argv[1] == "summarize":  # qcm-train summarize SWEEP_DIR
         path = summarize_multirun(sys.argv[2])
         print(path or f"no error_distribution.csv / mse_summary.csv under {sys.argv[2]}")
         return
-    try:
-        check_experiment_overrides(sys.argv[1:])
-    except ConfigError as error:
-        fail(error)
-    _hydra_main()
+    common.run_hydra_app("train", "train", run)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
 import torch
@@ -39,15 +38,13 @@ class CheckpointKindError(ValueError):
 
 def checkpoint_class(path: str | os.PathLike, kind: str, config_key: str | None = None) -> str:
     """Name of the model class stored in ``path``; raises CheckpointKindError unless it fits ``kind``."""
+    from hybridqcm.models.modules import CheckpointMismatch, stored_model_class
+
     key = f"{config_key}=" if config_key else ""
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointKindError(f"{key}{path}: checkpoint file does not exist")
     try:
-        raw = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
-        raise CheckpointKindError(f"{key}{path}: not a readable torch checkpoint ({type(error).__name__}: {error})") from None
-    stored = raw.get("hybridqcm_class") if isinstance(raw, dict) else None
+        stored = stored_model_class(str(path))
+    except (FileNotFoundError, CheckpointMismatch) as error:
+        raise CheckpointKindError(f"{key}{error}") from None
     allowed = KIND_CLASSES[kind]
     if stored not in allowed:
         raise CheckpointKindError(

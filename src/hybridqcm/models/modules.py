@@ -115,6 +115,21 @@ class CheckpointMismatch(ValueError):
     """A checkpoint of another model class, or one that does not fit the requested use."""
 
 
+def stored_model_class(path: str) -> str | None:
+    """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint).
+
+    Raises FileNotFoundError for a missing file and CheckpointMismatch for an unreadable one."""
+    import os
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: checkpoint file does not exist")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
+        raise CheckpointMismatch(f"{path}: not a readable torch checkpoint ({type(error).__name__}: {error})") from None
+    return raw.get("hybridqcm_class") if isinstance(raw, dict) else None
+
+
 class QCMModule(LightningModule):
     """Shared plumbing: configurable net/optimizer, normalisation buffers, lr schedule, data requirements."""
 
@@ -229,15 +244,7 @@ class QCMModule(LightningModule):
     @classmethod
     def load_checked(cls, path: str, map_location: str = "cpu") -> "QCMModule":
         """load_from_checkpoint with a clear error for a missing file or a checkpoint of another class."""
-        import os
-
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"checkpoint {path} does not exist")
-        try:
-            raw = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
-            raise CheckpointMismatch(f"checkpoint {path} is not a readable torch checkpoint ({error})") from None
-        stored = raw.get("hybridqcm_class") if isinstance(raw, dict) else None
+        stored = stored_model_class(path)
         if stored != cls.__name__:
             raise CheckpointMismatch(f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}")
         return cls.load_from_checkpoint(path, map_location=map_location)
