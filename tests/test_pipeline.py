@@ -88,3 +88,14 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
     monkeypatch.setattr("hybridqcm.apps.results.print_summary", lambda path: None)
     pipeline.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert len(calls) == 1 and "experiment=exp10_hybrid" in calls[0]
+
+
+def test_manifest_records_merge_across_runs(tmp_path):
+    """Two pipelines recording different stages of one root keep both records; a re-run updates in place."""
+    root = str(tmp_path)
+    pipeline._record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
+    pipeline._record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
+    pipeline._record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)  # a skip keeps the timing
+    pipeline._record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
+    stages = pipeline.load_manifest(tmp_path / "manifest.json")["stages"]
+    assert {s["name"]: s["seconds"] for s in stages} == {"a": 1.0, "b": 3.0}

@@ -159,10 +159,15 @@ def load_manifest(path: str | Path) -> dict:
     return manifest
 
 
-def _write_manifest(root: str, pipeline: str, dataset: str, records: dict) -> None:
+def _record_stage(root: str, pipeline: str, dataset: str, record: dict | None, replace: bool = True) -> None:
+    """Merge one stage's record into the manifest on disk (read, update, atomic rename), so two
+    pipelines running `--only` different stages of the same root do not drop each other's records."""
     path = _manifest_path(root)
+    records = {r["name"]: r for r in load_manifest(path)["stages"]} if path.exists() else {}
+    if record is not None and (replace or record["name"] not in records):
+        records[record["name"]] = record
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
+    tmp = path.with_suffix(f".json.{os.getpid()}.tmp")
     tmp.write_text(json.dumps({"pipeline": pipeline, "dataset": dataset, "stages": list(records.values())}, indent=2))
     tmp.replace(path)
 
@@ -185,15 +190,12 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
             state = "done" if s.is_done() else f"~{s.minutes:g} min"
             print(f"  {s.name:28s} {state:>10s}  {shlex.join(s.command())}")
         return 0
-    previous = {}
-    if _manifest_path(root).exists():
-        previous = {r["name"]: r for r in load_manifest(_manifest_path(root))["stages"]}
-    records = dict(previous)
     for index, stage in enumerate(stages, 1):
         header = f"[{index}/{len(stages)}] {stage.name}"
         if stage.is_done():
             print(f"{header}: done already ({stage.run_dir}), skipped")
-            records.setdefault(stage.name, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None})
+            _record_stage(root, name, dataset, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None},
+                          replace=False)
             continue
         missing = [n for n in stage.needs if not by_name[n].is_done()]
         if missing:
@@ -205,12 +207,10 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
         seconds = time.perf_counter() - start
         if result.returncode != 0:
             print(f"{header}: FAILED (exit {result.returncode}) after {seconds:.0f} s; see {stage.run_dir}", file=sys.stderr)
-            _write_manifest(root, name, dataset, records)
             return result.returncode
-        records[stage.name] = {**asdict(stage), "command": shlex.join(stage.command()), "seconds": round(seconds, 1)}
-        _write_manifest(root, name, dataset, records)
+        _record_stage(root, name, dataset, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": round(seconds, 1)})
         print(f"{header}: finished in {seconds:.0f} s -> {stage.run_dir}")
-    _write_manifest(root, name, dataset, records)
+    _record_stage(root, name, dataset, None)
     from hybridqcm.apps.results import print_summary
 
     print_summary(_manifest_path(root))
