@@ -92,10 +92,28 @@ def _markdown_comparison(rows: list[dict]) -> str:
             lines.append(f"| {r['param']} | {_pct(s['mean_err'])} → — | | | | ✗ not estimated |")
             continue
         mark = "✓" if r["beat"] else "✗ (" + ", ".join(r["short"]) + ")"
+        if not r["beat"] and o.get("n"):  # say how many samples the verdict hangs on
+            over = round(o["over_25pct"] * o["n"])
+            mark += f": {over} of {int(o['n'])} samples above 25 %"
         lines.append(f"| {r['param']} | {_pct(s['mean_err'])} → **{_pct(o['mean_err'])}** | {_pct(s['within_10pct'])} → "
                      f"**{_pct(o['within_10pct'])}** | {_pct(s['over_25pct'])} → **{_pct(o['over_25pct'])}** | "
                      f"{_pct(s['max_err'])} → **{_pct(o['max_err'])}** | {mark} |")
     return "\n".join(lines) + "\n"
+
+
+def _in_pipeline_order(manifest: dict) -> list[dict]:
+    """The manifest's stages in the order the pipeline defines them (records are merged as runs finish)."""
+    from hybridqcm.pipeline import PIPELINES
+
+    builder = PIPELINES.get(manifest.get("pipeline"))
+    order = {stage.name: i for i, stage in enumerate(builder())} if builder else {}
+    return sorted(manifest["stages"], key=lambda stage: order.get(stage["name"], len(order)))
+
+
+def _display(command: str) -> str:
+    """The command as a user types it: the console script's name instead of its path in the venv."""
+    head, _, rest = command.partition(" ")
+    return f"{Path(head).name} {rest}".strip()
 
 
 def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tuple[str, int, int]:
@@ -112,14 +130,22 @@ def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tupl
     for manifest_path in manifests:
         manifest = load_manifest(manifest_path)
         parts += [f"## Pipeline `{manifest['pipeline']}` — dataset `{manifest.get('dataset')}`", ""]
-        for stage in manifest["stages"]:
+        for stage in _in_pipeline_order(manifest):
             if stage["app"] == "qcm-simulate":
-                parts += [f"### {stage['name']}", "", f"`{stage['command']}`", ""]
+                parts += [f"### {stage['name']}", "", f"`{_display(stage['command'])}`", ""]
                 continue
             title = f"### {stage['name']}" + (f" — source table {stage['table']}: {stage['setting']}" if stage.get("table") else f" — {stage['setting']}")
             seconds = stage.get("seconds")
-            parts += [title, "", f"Command: `{stage['command']}`" + (f"  \nWall time: {seconds:.0f} s on this machine" if seconds else ""), ""]
+            parts += [title, "", f"Command: `{_display(stage['command'])}`" + (f"  \nWall time: {seconds:.0f} s on this machine" if seconds else ""), ""]
             run_dir = Path(stage["run_dir"])
+            metrics_path = run_dir / "test_metrics.json"
+            if metrics_path.exists():
+                import json
+
+                metrics = json.loads(metrics_path.read_text())
+                if metrics.get("train_seconds"):
+                    parts += [f"Training: {metrics['train_seconds']:.0f} s, {metrics.get('steps')} optimiser steps "
+                              f"(tested on {metrics.get('n_test')} samples of {metrics.get('data_path') or 'freshly simulated data'})", ""]
             if stage.get("table"):
                 rows = compare_stage(stage, thesis)
                 beaten += sum(r["beat"] for r in rows)
@@ -132,7 +158,7 @@ def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tupl
             for extra in ("mse_summary.md", "calibration.md", "timing.md"):
                 if (run_dir / extra).exists():
                     parts += [(run_dir / extra).read_text(), ""]
-            if copy_plots:
+            if copy_plots and stage.get("table"):
                 plots = sorted(run_dir.glob("sorted_*.png")) + sorted(run_dir.glob("plots/sorted_*.png"))
                 if plots:
                     target = output.parent / "results" / manifest["pipeline"] / stage["name"]
