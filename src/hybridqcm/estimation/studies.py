@@ -19,20 +19,26 @@ import numpy as np
 import torch
 
 
+
+def _reference_samples(path, n: int, seed: int):
+    """First n test samples (N = 100, float64) and the exp-5 random start p_ref (1 + 0.1 δ); returns
+    (accel, road, true params, the generator after that draw, init)."""
+    from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.physics import reference_params
+
+    data = read_split(path, "test", ("accel", "road", "params"), n_steps=100, index=slice(0, n))
+    accel, road, true = (torch.from_numpy(data[k].astype(np.float64)) for k in ("accel", "road", "params"))
+    g = torch.Generator().manual_seed(seed)
+    init = reference_params().expand(true.shape[0], 10) * (1 + 0.1 * torch.randn(true.shape[0], 10, generator=g, dtype=torch.float64))
+    return accel, road, true, g, init
+
 def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dict]:
-    import h5py
 
     from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage
     from hybridqcm.estimation.solver import build_solver
-    from hybridqcm.physics import reference_params
 
-    with h5py.File(path, "r") as f:
-        accel = torch.from_numpy(f["test/accel"][:n, :100].astype(np.float64))
-        road = torch.from_numpy(f["test/road"][:n, :100].astype(np.float64))
-        true = torch.from_numpy(f["test/params"][:n])
+    accel, road, true, g, init = _reference_samples(path, n, seed)
     n = true.shape[0]
-    g = torch.Generator().manual_seed(seed)
-    init = reference_params().expand(n, 10) * (1 + 0.1 * torch.randn(n, 10, generator=g, dtype=torch.float64))
     init[:, [2, 4]] = true[:, [2, 4]]
     init[:, :2] = true[:, :2] * (1 + 0.08 * torch.randn(n, 2, generator=g, dtype=torch.float64))
     noise = torch.randn(n, 2, 100, generator=g, dtype=torch.float64).reshape(-1, 1, 100)
@@ -50,7 +56,7 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
 
     designs = {
         "source: CNN init + 10 GN iterations on the completed system": ([stage("c", "all", 10)], 0),
-        "ours (exp10_hybrid): guarded completed stage 10, a3 60, 5 restarts with mass ladder": (
+        "guarded completed stage 10, a3 60, 5 restarts (earlier exp10 design; exp10 now skips the completed pass)": (
             [GaussNewtonStage("completed", build_solver("gauss_newton", max_iterations=10), "all", None, True),
              stage("a3", "observed", 60)], 5),
     }
@@ -70,18 +76,11 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
 
 def solver_variants(path: str, n: int, seed: int = 0) -> list[dict]:
     """exp 5 (10 p, random init, one 30-iteration stage, no restarts) under solver variants."""
-    import h5py
 
     from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
-    from hybridqcm.physics import reference_params
 
-    with h5py.File(path, "r") as f:
-        accel = torch.from_numpy(f["test/accel"][:n, :100].astype(np.float64))
-        road = torch.from_numpy(f["test/road"][:n, :100].astype(np.float64))
-        true = torch.from_numpy(f["test/params"][:n])
+    accel, road, true, g, init = _reference_samples(path, n, seed)
     n = true.shape[0]
-    g = torch.Generator().manual_seed(seed)
-    init = reference_params().expand(n, 10) * (1 + 0.1 * torch.randn(n, 10, generator=g, dtype=torch.float64))
     problem = LeastSquaresProblem(accel, road, 0.01)
     variants = {
         "unconstrained (default)": {},
