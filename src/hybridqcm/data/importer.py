@@ -250,7 +250,7 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
         for fields in reader:
             if not fields or all(not f.strip() for f in fields):
                 continue  # blank line
-            row = reader.line_num - 1  # the header was line 1
+            row = reader.line_num  # lines read after the header: the data row; the line is row + 1
             if len(fields) < len(header):
                 missing = header[len(fields)]
                 if missing in index:
