@@ -30,7 +30,7 @@ import csv
 import json
 import os
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -69,7 +69,6 @@ class ImportedRecordings:
     rows: list[int]                      # data rows per recording
     window: int | None = None
     stride: int | None = None
-    attrs: dict = field(default_factory=dict)
 
     @property
     def n_samples(self) -> int:
@@ -92,7 +91,7 @@ def _unit_factor(path: Path, column: str, channel: str, unit, key: str) -> float
     return UNITS[key]
 
 
-def _sniff_delimiter(path: Path, header_line: str) -> str:
+def _sniff_delimiter(header_line: str) -> str:
     found = [d for d in DELIMITERS if d in header_line]
     if len(found) > 1:
         # the delimiter is the one that splits the header into the most fields
@@ -235,7 +234,7 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
         first = handle.readline()
         if not first.strip():
             raise RecordingError(f"{path}: line 1 is empty; the first line must be the header (e.g. t,a3,a2)")
-        sep = delimiter or _sniff_delimiter(path, first)
+        sep = delimiter or _sniff_delimiter(first)
         header = [name.strip() for name in next(csv.reader([first], delimiter=sep))]
         time_name, mapping = _resolve_columns(path, header, columns, time_column, recording_column)
         factors = {c: _unit_factor(path, mapping[c], c, column_units.get(c, units),
