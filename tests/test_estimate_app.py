@@ -69,8 +69,10 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
     assert len(rows) == 16
     header = list(rows[0])
     assert header[:12] == ["index", *[f"p{i}" for i in range(1, 11)], "status"]
-    assert header[12:] == [*[f"std_p{i}" for i in range(1, 11)], "m3", "m3_std"]
-    assert {r["status"] for r in rows} <= {"converged", "max_iterations", "singular", "diverged", "stalled"}
+    assert header[12:] == [*[f"std_p{i}" for i in range(1, 11)], "m3", "m3_std", "m3_low", "m3_high"]
+    assert {r["status"] for r in rows} <= {"converged", "max_iterations", "singular", "diverged", "stalled", "misfit"}
+    for r in rows:  # the m3 interval is the image of p2's 95 % interval under m3 = K3/p2
+        assert float(r["m3_low"]) <= float(r["m3"]) <= float(r["m3_high"])
     table = _rows(tmp_path / "error_distribution.csv")
     assert [r["param"] for r in table] == [f"p{i}" for i in range(1, 11)]
     assert (tmp_path / "error_distribution.md").exists()

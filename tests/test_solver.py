@@ -151,3 +151,72 @@ def test_channel_weights(data):
     assert (err <= 1e-6).all()
     with pytest.raises(ValueError, match="weights"):
         LeastSquaresProblem(accel, road, H, weights=torch.zeros(8, 3))
+
+
+def test_wrong_model_is_misfit_not_converged():
+    """The Euler model fitted to the continuous-time response of the same vehicles (an RK4 integration
+    at h/20, sampled every h) cannot fit it: every such sample must end `misfit`, never `converged`;
+    the same vehicles' Euler data with white noise of 1 % of the channel RMS must not be called misfit."""
+    from hybridqcm.physics import simulate
+
+    data = synthetic_samples(24, n_steps=100, seed=31)
+    fine = 20
+    road_fine = torch.nn.functional.interpolate(data["road"][:, None], scale_factor=fine, mode="linear",
+                                                align_corners=False)[:, 0]
+    continuous = simulate(data["params"], road_fine, H / fine, method="rk4").accel[:, ::fine]
+    road = road_fine[:, ::fine]
+    solver = GaussNewton(SolverConfig(max_iterations=20))
+    wrong = solver.solve(LeastSquaresProblem(continuous, road, H), _near_truth(data["params"], 0.01))
+    misfit = wrong.status == SolverStatus.MISFIT
+    assert (misfit | (wrong.status == SolverStatus.DIVERGED)).all() and misfit.sum() >= 6
+    assert (wrong.relative_residual[misfit] > 0.005).all() and (wrong.whiteness[misfit] > 1).all()
+
+    g = torch.Generator().manual_seed(3)
+    rms = data["accel"].square().mean(1, keepdim=True).sqrt()
+    noisy = data["accel"] + 0.01 * rms * torch.randn(data["accel"].shape, generator=g, dtype=torch.float64)
+    right = solver.solve(LeastSquaresProblem(noisy, data["road"], H), _near_truth(data["params"], 0.01))
+    assert (right.status != SolverStatus.MISFIT).all()
+    evaluated = right.status != SolverStatus.DIVERGED  # p3/p5 may leave the domain under noise
+    assert evaluated.sum() >= 20 and (right.whiteness[evaluated] < 1).all()
+
+
+def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
+    """x0 enters the outputs linearly: with p known, the MAP estimate of x0 under a Gaussian prior and
+    its Laplace covariance are the closed-form ridge solution (JᵀJ/σ² + Λ)⁻¹(JᵀY/σ² + Λμ)."""
+    from hybridqcm.estimation.response import ResponseModel
+
+    class Linear(ResponseModel):  # y = J θ, J fixed [T, 1, n]: a known-solution test problem
+        theta_names, output_names, n_params = ("a", "b", "c"), ("y",), 0
+
+        def __init__(self, design):
+            self.design = design
+
+        def outputs(self, theta, inputs):
+            return torch.einsum("ton,bn->bto", self.design, theta)
+
+        def sensitivities(self, theta, inputs):
+            jac = self.design.expand(theta.shape[0], *self.design.shape)
+            return torch.cat([self.outputs(theta, inputs).unsqueeze(-1), jac], -1)
+
+    g = torch.Generator().manual_seed(0)
+    design = torch.randn(40, 1, 3, generator=g, dtype=torch.float64)
+    truth = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    data = torch.einsum("ton,bn->bto", design, truth) + 0.1 * torch.randn(5, 40, 1, generator=g, dtype=torch.float64)
+    mean = torch.zeros(5, 3, dtype=torch.float64)
+    precision = torch.tensor([[4.0, 0.0, 100.0]], dtype=torch.float64).expand(5, 3)
+    weights = torch.full((5, 1), 10.0, dtype=torch.float64)  # 1/σ
+    problem = LeastSquaresProblem(data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,),
+                                  weights=weights, model=Linear(design), prior_mean=mean, prior_precision=precision)
+    result = GaussNewton(SolverConfig(max_iterations=5, misfit_lags=0)).solve(problem, torch.ones(5, 3, dtype=torch.float64))
+    J = design[:, 0, :] * 10.0
+    for b in range(5):
+        information = J.T @ J + torch.diag(precision[b])
+        expected = torch.linalg.solve(information, J.T @ (data[b, :, 0] * 10.0) + precision[b] * mean[b])
+        assert torch.allclose(result.params[b], expected, rtol=1e-9, atol=1e-12)
+        ridge_free = torch.linalg.solve(J.T @ J, J.T @ (data[b, :, 0] * 10.0))
+        assert abs(result.params[b, 2]) < abs(ridge_free[2])  # the strong prior shrinks c towards 0
+        posterior = torch.linalg.inv(J.T @ J / result.residual_variance[b] + torch.diag(precision[b]))
+        assert torch.allclose(result.std[b], posterior.diagonal().sqrt(), rtol=1e-9)
+    with pytest.raises(ValueError, match="prior"):
+        LeastSquaresProblem(data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,), model=Linear(design),
+                            prior_mean=mean)

@@ -25,6 +25,36 @@ from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 
 PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
 CHANNELS = ("a3", "a2", "a1")
+MODELS = ("auto", "exact", "euler")
+INITIAL_STATES = ("auto", "unknown", "rest")
+
+
+def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
+    """(model, initial_state) for this file: ``auto`` follows the file's ``physics`` attribute.
+
+    Files from our Euler generator starting at rest (schema 1, or schema 2 with physics=euler and
+    no warm-up) keep the source protocol; everything else — continuous-time simulations, windows
+    cut mid-drive, files from other producers and real loggers — gets the exact model with the
+    initial state estimated.
+    """
+    model, initial = str(cfg.model), str(cfg.initial_state)
+    if model not in MODELS:
+        raise ConfigError(f"model={model!r}: choose one of {list(MODELS)}")
+    if initial not in INITIAL_STATES:
+        raise ConfigError(f"initial_state={initial!r}: choose one of {list(INITIAL_STATES)}")
+    physics = info.get("physics")
+    file_initial = info.get("initial_state")
+    if physics is None:  # a reader without schema-2 support: schema 1 is the Euler protocol
+        schema = str(info["attrs"].get("schema", ""))
+        physics = "euler" if schema.endswith("/1") else "continuous"
+        file_initial = "rest" if physics == "euler" else "unknown"
+    if model == "auto":
+        model = "euler" if physics == "euler" and file_initial == "rest" else "exact"
+    if initial == "auto":
+        initial = "rest" if model == "euler" else "unknown"
+    if model == "euler" and initial != "rest":
+        raise ConfigError("model=euler starts from rest (the source protocol): use model=exact for initial_state=unknown")
+    return model, initial
 
 
 def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
@@ -88,6 +118,22 @@ def validate(cfg) -> dict:
     known = _param_index(cfg.known, "known")
     if len(known) == 10:
         raise ConfigError("known lists all 10 parameters: nothing left to estimate")
+    base = cfg.get("base_excitation")
+    n_params = 10
+    if base is not None:
+        from hybridqcm.estimation.hybrid import BASE_EXCITATION
+
+        if base not in BASE_EXCITATION:
+            raise ConfigError(f"base_excitation={base!r}: choose one of {sorted(BASE_EXCITATION)} or null (road-driven)")
+        driver, outputs, n_params = BASE_EXCITATION[base]
+        missing = [c for c in (driver, *outputs) if c not in observed]
+        if missing:
+            raise ConfigError(f"base_excitation={base} is driven by the measured {driver} and fits {list(outputs)}: "
+                              f"observed={observed} lacks {missing}")
+        if any(j >= n_params for j in known):
+            raise ConfigError(f"known={list(cfg.known)}: the {base} model holds only p1..p{n_params}")
+        if str(cfg.model) == "euler":
+            raise ConfigError(f"base_excitation={base} uses the exact continuous-time model: model=euler is not available")
     if cfg.known_source not in ("file", "reference"):
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if int(cfg.batch_size) < 1:
@@ -146,7 +192,7 @@ def validate(cfg) -> dict:
     if split not in info["splits"]:
         raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
     keys = info["splits"][split]["keys"]
-    for key in ("accel", "road"):
+    for key in ("accel",) + (("road",) if base is None else ()):
         if key not in keys:
             raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
     has_params = "params" in keys
@@ -172,9 +218,15 @@ def validate(cfg) -> dict:
         what = "n_steps" if needed == n_steps else f"the CNN window ({needed})"
         raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
     n_samples = n_total if cfg.n_samples is None else min(int(cfg.n_samples), n_total)
+    model, initial_state = resolve_model(cfg, info)
+    if base is not None and model == "euler":  # auto on an Euler file: the road-free models are continuous-time
+        model, initial_state = "exact", ("unknown" if str(cfg.initial_state) == "auto" else initial_state)
+    if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
+        raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
             "stages": stages, "n_read_steps": needed, "n_samples": n_samples, "h": h_file or 0.01,
-            "completes": completes, "windows": windows}
+            "completes": completes, "windows": windows, "model": model, "initial_state": initial_state,
+            "base_excitation": base, "n_params": n_params}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -183,10 +235,18 @@ def build_inputs(cfg, plan: Mapping) -> dict:
     from hybridqcm.data.hdf5 import read_split
     from hybridqcm.physics.parameters import PhysicalConstants
 
-    keys = ["accel", "road"] + (["params"] if plan["has_params"] else [])
+    road_free = plan["base_excitation"] is not None
+    keys = ["accel"] + ([] if road_free else ["road"]) + (["params"] if plan["has_params"] else [])
     arrays = read_split(plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(0, plan["n_samples"]))
     accel = torch.from_numpy(np.asarray(arrays["accel"], dtype=np.float64))
-    road = torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64))
+    for c in plan["observed"]:  # unrecorded channels may be NaN in a file; the ones used may not
+        column = accel[:, :, CHANNELS.index(c)]
+        if not bool(torch.isfinite(column).all()):
+            bad = int((~torch.isfinite(column)).any(1).nonzero()[0])
+            raise ConfigError(f"{plan['path']}: /{plan['split']}/accel channel {c} has NaN/inf (sample {bad}); "
+                              f"it is in observed={plan['observed']}")
+    road = (torch.zeros(accel.shape[:2], dtype=torch.float64) if road_free
+            else torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64)))
     m = accel.shape[0]
     vehicle = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()})
     p_ref = vehicle.to_params()
@@ -242,6 +302,7 @@ def run(cfg) -> dict:
     from hydra.core.hydra_config import HydraConfig
 
     from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage, HybridEstimator
+    from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
     from hybridqcm.estimation.solver import STATUS_LABELS, build_solver
     from hybridqcm.metrics import error_distribution_rows, write_error_distribution
 
@@ -250,7 +311,8 @@ def run(cfg) -> dict:
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     run_dir.mkdir(parents=True, exist_ok=True)
     inputs = build_inputs(cfg, plan)
-    known_mask = torch.zeros(10, dtype=torch.bool)
+    n_params = plan["n_params"]
+    known_mask = torch.zeros(n_params, dtype=torch.bool)
     known_mask[plan["known"]] = True
 
     module = HybridEstimator(
@@ -258,13 +320,26 @@ def run(cfg) -> dict:
         observed=plan["observed"], n_steps=int(cfg.n_steps), h=plan["h"], cnn_init=bool(cfg.init.cnn),
         equation_error_init=bool(cfg.init.equation_error), known=[PARAM_NAMES[j] for j in plan["known"]],
         pu_known=bool(cfg.pu_known), cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
+        base_excitation=plan["base_excitation"],
     )
     stages = [GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"],
                                s["guard"]) for s in plan["stages"]]
     sigma = float(cfg.noise_sigma)
     # Restart threshold on L/(½Σa²): noise-free fits end near 1e-15; with noise the floor is ~σ².
     threshold = float(cfg.restarts.threshold) if sigma == 0 else max(float(cfg.restarts.threshold), 4.0 * sigma**2)
+    if plan["base_excitation"] is None:
+        response = quarter_car_response(plan["model"], plan["h"], bool(cfg.pu_known), plan["initial_state"],
+                                        str(cfg.hold), int(cfg.substeps))
+    else:
+        response = base_excitation_response(plan["base_excitation"], plan["h"], plan["initial_state"],
+                                            str(cfg.hold), int(cfg.substeps))
+    if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
+        threshold = math.inf
+    reweight = cfg.residual_weighting
+    if str(reweight) == "auto":
+        reweight = plan["model"] == "exact"
     refinement = GaussNewtonRefinement(stages, known=known_mask, pu_known=bool(cfg.pu_known), h=plan["h"],
+                                       response=response, reweight=reweight,
                                        log_dir=run_dir / "tb" if cfg.tensorboard else None,
                                        restarts=int(cfg.restarts.count), restart_threshold=threshold,
                                        restart_sigma=float(cfg.restarts.sigma), seed=int(cfg.seed),
@@ -280,32 +355,47 @@ def run(cfg) -> dict:
     solve_seconds = time.perf_counter() - t_solve
     collected = refinement.collect()
     result = collected.result
-    params, std = result.params, result.std
+    # θ = (p1..pP, x0...): the model's parameters first, then the estimated initial state (if any).
+    param_names = list(response.theta_names[:n_params])
+    params, std = result.params[:, :n_params], result.std[:, :n_params]
+    state_names = list(response.theta_names[n_params:])
+    x0, x0_std = result.params[:, n_params:], result.std[:, n_params:]
     status = [STATUS_LABELS[int(s)] for s in result.status]
     K3 = float(cfg.K3)
     m3 = K3 / params[:, 1]
     m3_std = K3 / params[:, 1].square() * std[:, 1]
+    # The 95 % interval of m3 is the image of p2's (m3 = K3/p2 is monotone): skewed, unlike m3 ± 1.96σ.
+    p2_low, p2_high = params[:, 1] - 1.96 * std[:, 1], params[:, 1] + 1.96 * std[:, 1]
+    m3_low = K3 / p2_high
+    m3_high = torch.where(p2_low > 0, K3 / p2_low.clamp_min(1e-300), torch.full_like(p2_low, math.inf))
 
-    # estimates.csv: index, p1..p10, status, std_p1..std_p10, m3, m3_std (known parameters echoed, std 0)
-    header = ["index", *PARAM_NAMES, "status", *[f"std_{n}" for n in PARAM_NAMES], "m3", "m3_std"]
+    # estimates.csv: index, parameters, status, their std, m3 with std and 95 % interval, x0 and its std
+    header = ["index", *param_names, "status", *[f"std_{n}" for n in param_names], "m3", "m3_std", "m3_low", "m3_high",
+              *state_names, *[f"std_{n}" for n in state_names]]
     rows = []
     for i in range(params.shape[0]):
         rows.append([int(collected.index[i]), *[repr(float(x)) for x in params[i]], status[i],
-                     *[repr(float(x)) for x in std[i]], repr(float(m3[i])), repr(float(m3_std[i]))])
+                     *[repr(float(x)) for x in std[i]], repr(float(m3[i])), repr(float(m3_std[i])),
+                     repr(float(m3_low[i])), repr(float(m3_high[i])),
+                     *[repr(float(x)) for x in x0[i]], *[repr(float(x)) for x in x0_std[i]]])
     atomic_write_csv(run_dir / "estimates.csv", header, rows)
     status_rows = [[int(collected.index[i]), status[i], int(result.iterations[i]), repr(float(result.loss[i])),
                     repr(float(collected.relative_loss[i])), int(collected.restarts[i]),
                     repr(float(result.condition_number[i]))] for i in range(params.shape[0])]
+    for row, rel, white in zip(status_rows, result.relative_residual, result.whiteness):
+        row += [repr(float(rel)), repr(float(white))]
     atomic_write_csv(run_dir / "status.csv", ["index", "status", "iterations", "loss", "relative_loss", "restarts",
-                                        "condition_number"], status_rows)
+                                        "condition_number", "relative_residual", "whiteness"], status_rows)
 
-    free = [j for j in range(10) if j not in plan["known"]]
-    free_names = [PARAM_NAMES[j] for j in free]
+    free = [j for j in range(n_params) if j not in plan["known"]]
+    free_names = [param_names[j] for j in free]
     table_rows = None
     summary = {
         "experiment": cfg.experiment_name, "data": str(plan["path"]), "split": plan["split"],
         "n_samples": int(params.shape[0]), "n_steps": int(cfg.n_steps), "noise_sigma": float(cfg.noise_sigma),
         "seed": int(cfg.seed), "observed": plan["observed"], "known": [PARAM_NAMES[j] for j in plan["known"]],
+        "model": plan["model"], "initial_state": plan["initial_state"], "base_excitation": plan["base_excitation"],
+        "hold": str(cfg.hold) if plan["model"] == "exact" else None,
         "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
         "stages": collected.stage_status, "stage_mean_loss": collected.stage_loss,
         "iterations_mean": float(result.iterations.double().mean()),
@@ -313,24 +403,35 @@ def run(cfg) -> dict:
         "seconds_solve": solve_seconds,
     }
     if inputs["true"] is not None:
-        true = inputs["true"]
+        true = inputs["true"][:, :n_params]
         table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
         title = f"{cfg.experiment_name}: {params.shape[0]} samples, N = {cfg.n_steps}, noise σ = {cfg.noise_sigma}"
         write_error_distribution(table_rows, run_dir, title=title)
         err = ((params - true).abs() / true)[:, free]
         summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
         summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
-        # calibration: fraction of true values inside the 95 % interval p̂ ± 1.96 σ
+        # calibration: fraction of true values inside the 95 % interval p̂ ± 1.96 σ; an infinite
+        # interval (diverged, not identifiable) covers nothing: it is a failure, not a success.
         cal_rows = []
         for j, name in zip(free, free_names):
-            inside = ((params[:, j] - true[:, j]).abs() <= 1.96 * std[:, j]).double()
-            finite = torch.isfinite(std[:, j])
+            finite = torch.isfinite(std[:, j]) & torch.isfinite(params[:, j])
+            inside = (((params[:, j] - true[:, j]).abs() <= 1.96 * std[:, j]) & finite).double()
             cal_rows.append([name, int(params.shape[0]), float(inside.mean()), float(std[:, j][finite].median() / true[:, j][finite].median()) if bool(finite.any()) else math.inf])
         true_m3 = K3 / true[:, 1]
-        inside = ((m3 - true_m3).abs() <= 1.96 * m3_std).double()
-        cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()), float(m3_std.median() / true_m3.median())])
+        m3_finite = torch.isfinite(m3_high) & torch.isfinite(m3_low)
+        inside = ((true_m3 >= m3_low) & (true_m3 <= m3_high) & m3_finite).double()
+        m3_width = (m3_high - m3_low) / true_m3
+        cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()),
+                         float(m3_std[m3_finite].median() / true_m3[m3_finite].median()) if bool(m3_finite.any()) else math.inf])
         atomic_write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
-        summary["m3_mean_rel_err"] = float(((m3 - true_m3).abs() / true_m3).mean())
+        m3_err = (m3 - true_m3).abs() / true_m3
+        summary["m3_mean_rel_err"] = float(m3_err.mean())
+        summary["m3_p95_rel_err"] = float(m3_err.quantile(0.95))
+        summary["m3_within_0.5pct"] = float((m3_err <= 0.005).double().mean())
+        summary["m3_within_1pct"] = float((m3_err <= 0.01).double().mean())
+        summary["m3_within_5pct"] = float((m3_err <= 0.05).double().mean())
+        summary["m3_coverage_95"] = float(inside.mean())
+        summary["m3_interval_median_rel_width"] = float(m3_width[m3_finite].median()) if bool(m3_finite.any()) else math.inf
         if cfg.plots:
             from hybridqcm.plots import close, plot_sorted_predictions
 

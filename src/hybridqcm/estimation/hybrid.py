@@ -21,10 +21,14 @@ import torch
 from lightning.pytorch import Callback, LightningModule
 from torch import Tensor
 
+from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus
 
 CHANNELS = ("a3", "a2", "a1")
+# Road-free (base-excitation) models: the measured channel that drives the model, the channels it
+# predicts, and how many of p1.. it holds (SPEC §9; physics.linear_models).
+BASE_EXCITATION = {"seat": ("a2", ("a3",), 2), "sprung": ("a1", ("a3", "a2"), 6)}
 KIND_CLASSES = {
     "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
     "unet": ("CompletionUNet",),
@@ -130,8 +134,11 @@ class HybridEstimator(LightningModule):
     def __init__(self, cnn_ckpt: str | None = None, unet_ckpt: str | None = None, cae_ckpt: str | None = None,
                  observed: Sequence[str] = CHANNELS, n_steps: int = 100, h: float = 0.01,
                  cnn_init: bool = True, equation_error_init: bool = False, known: Sequence[str] = (),
-                 pu_known: bool = True, cnn_a2_from_data: bool = False):
+                 pu_known: bool = True, cnn_a2_from_data: bool = False, base_excitation: str | None = None):
         super().__init__()
+        if base_excitation is not None and base_excitation not in BASE_EXCITATION:
+            raise ValueError(f"base_excitation={base_excitation!r}: choose one of {sorted(BASE_EXCITATION)} (or none)")
+        self.base_excitation = base_excitation
         self.observed = tuple(observed)
         unknown = [c for c in self.observed if c not in CHANNELS]
         if unknown or not self.observed:
@@ -179,7 +186,7 @@ class HybridEstimator(LightningModule):
     @torch.no_grad()
     def prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
         accel = batch["accel"].double().clone()
-        road = batch["road"].double()
+        road = batch["road"].double() if batch.get("road") is not None else torch.zeros(accel.shape[:2], dtype=torch.float64)
         pu = batch["pu"].double()
         init = batch["init"].double().clone()
         if accel.shape[1] < self.required_steps():
@@ -217,6 +224,13 @@ class HybridEstimator(LightningModule):
             # whose error is unknown: they get the same rule, which only balances their scale).
             rms = accel.square().mean(1).sqrt().clamp_min(1e-12)  # [batch, 3]
             prepared["weights"] = 1.0 / (batch["noise_sigma"].double()[:, None] * rms)
+        if self.base_excitation is not None:
+            # The measured driving channel becomes the model's input, the rest its targets.
+            driver, outputs, n_params = BASE_EXCITATION[self.base_excitation]
+            columns = [CHANNELS.index(c) for c in outputs]
+            prepared.update(targets=accel[:, :, columns], road=accel[:, :, CHANNELS.index(driver)], init=init[:, :n_params])
+            if "weights" in prepared:
+                prepared["weights"] = prepared["weights"][:, columns]
         return prepared
 
     def forward(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
@@ -266,25 +280,43 @@ class GaussNewtonRefinement(Callback):
 
     known [10] bool: parameters held fixed; pu_known: the wheel forcing p_u u is data (scaled road,
     p9/p10 only through S), else it depends on p9, p10 through p_u = p10 - p9.
+    response: the model GN fits (default: the Euler recursion with ``h`` and ``pu_known``); with an
+    unknown initial state its θ is (p1..p10, x0), x0 started at rest and estimated with p.
     Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
     """
 
     def __init__(self, stages: Sequence[GaussNewtonStage], known: Tensor | None = None, pu_known: bool = False,
                  h: float = 0.01, log_dir: str | os.PathLike | None = None, restarts: int = 0,
                  restart_threshold: float = 1e-10, restart_sigma: float = 0.1, seed: int = 0,
-                 observed: Sequence[str] = CHANNELS, restart_mass_factors: Sequence[float] = ()):
+                 observed: Sequence[str] = CHANNELS, restart_mass_factors: Sequence[float] = (),
+                 response: ResponseModel | None = None, reweight: bool = False):
         super().__init__()
         if not stages:
             raise ValueError("GaussNewtonRefinement needs at least one stage")
         self.stages = list(stages)
-        self.known = torch.zeros(N_PARAMS, dtype=torch.bool) if known is None else torch.as_tensor(known, dtype=torch.bool)
         self.pu_known = bool(pu_known)
         self.h = float(h)
+        self.response = response if response is not None else EulerResponse(self.h, self.pu_known)
+        n_params = self.response.n_params
+        known_p = torch.zeros(n_params, dtype=torch.bool) if known is None else torch.as_tensor(known, dtype=torch.bool)
+        if known_p.shape != (n_params,):
+            raise ValueError(f"known must be a [{n_params}] mask over {self.response.theta_names[:n_params]}")
+        # θ = (p, x0): initial states are never known.
+        self.known = torch.cat([known_p, torch.zeros(self.response.n_theta - n_params, dtype=torch.bool)])
+        # The quarter car's outputs are (a3, a2, a1) and its input the road; a base-excitation
+        # model (road-free) has its own outputs, all of them measured.
+        self.quarter_car = tuple(self.response.output_names) == CHANNELS
+        # Noise-aware weighting when nobody knows the noise: before the last stage each channel's
+        # residual is weighted by 1/σ̂_c, σ̂_c its RMS residual at the previous stage's estimate.
+        self.reweight = bool(reweight)
         self.log_dir = log_dir
         self.observed = tuple(observed)  # used when refine() is called without a HybridEstimator
-        # Multi-start: samples whose final loss stays above restart_threshold x ½Σa² (relative
-        # residual; noise-free fits end near 1e-15, local minima at >= 1e-8) run all stages again
-        # from init (1 + restart_sigma δ'); the lower loss wins. Seeded, so runs repeat exactly.
+        # Multi-start: samples left `misfit` (structured residual: a local minimum) or diverged,
+        # and — for the Euler model on its own data — samples whose final loss stays above
+        # restart_threshold x ½Σa² (noise-free fits end near 1e-15, local minima at >= 1e-8), run
+        # all stages again from init (1 + restart_sigma δ'); the lower loss wins. Seeded, so runs
+        # repeat exactly. (With the exact model the noise-free floor is the hold's model error, so
+        # a loss threshold means nothing there: pass restart_threshold=inf.)
         self.restarts = int(restarts)
         self.restart_threshold = float(restart_threshold)
         self.restart_sigma = float(restart_sigma)
@@ -295,7 +327,9 @@ class GaussNewtonRefinement(Callback):
         self.restart_mass_factors = [float(f) for f in restart_mass_factors]
         self._batches: list[dict] = []
 
-    def _channels(self, stage: GaussNewtonStage, module: HybridEstimator) -> tuple[bool, bool, bool]:
+    def _channels(self, stage: GaussNewtonStage, module: HybridEstimator) -> tuple[bool, ...]:
+        if not self.quarter_car:
+            return (True,) * len(self.response.output_names)
         available = module.gn_channels() if isinstance(module, HybridEstimator) else (True, True, True)
         if stage.channels == "all":
             return available
@@ -313,21 +347,23 @@ class GaussNewtonRefinement(Callback):
         """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
         guess directly, in case the completed channels were what misled the first attempt);
         returns (per-stage results, last result, params, relative loss)."""
-        params = init
+        params = self._theta(init)
         road = outputs["road"].double()
-        if self.pu_known:
+        if self.pu_known and self.quarter_car:
             road = outputs["pu"].double()[:, None] * road
         per_stage = {}
         result = None
+        weights = outputs.get("weights")
         skip_guarded = restart and not all(stage.guard for stage in self.stages)
-        for stage in self.stages:
-            if skip_guarded and stage.guard:
-                continue
+        stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
+        for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
+            if self.reweight and number == len(stages) - 1 and number > 0:
+                weights = self._residual_weights(outputs["targets"].double(), road, params, observed)
             window = outputs["targets"].shape[1] if stage.n_steps is None else min(int(stage.n_steps), outputs["targets"].shape[1])
             problem = LeastSquaresProblem(outputs["targets"][:, :window].double(), road[:, :window], self.h,
                                           scaled_road=self.pu_known, observed=observed, known=self.known,
-                                          weights=outputs.get("weights"))
+                                          weights=weights, model=self.response)
             result = stage.solver.solve(problem, params)
             per_stage[stage.name] = result
             # A stage that diverged keeps its input for the next stage rather than garbage.
@@ -341,19 +377,35 @@ class GaussNewtonRefinement(Callback):
             params = torch.where(keep_input[:, None], params, result.params)
         channels = [i for i, o in enumerate(problem.observed) if o]
         weighted = outputs["targets"].double()
-        if outputs.get("weights") is not None:
-            weighted = weighted * outputs["weights"].double()[:, None, :]
+        if weights is not None:
+            weighted = weighted * weights.double()[:, None, :]
         energy = 0.5 * weighted[:, :, channels].square().sum((1, 2))
         relative = result.loss / energy.clamp_min(1e-300)
         relative = torch.where(result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative)
         return per_stage, result, params, relative
 
+    def _theta(self, init: Tensor) -> Tensor:
+        """θ0 [batch, n_theta] from p0 [batch, 10]: initial states (if estimated) start at rest."""
+        extra = self.response.n_theta - self.response.n_params
+        return torch.cat([init.double(), init.new_zeros(init.shape[0], extra, dtype=torch.float64)], 1) if extra else init
+
+    def _residual_weights(self, targets: Tensor, road: Tensor, params: Tensor, observed) -> Tensor:
+        """[batch, n_out] weights 1/σ̂_c from each observed channel's RMS residual at ``params`` over the
+        window (floored at 1e-6 of the channel's RMS, so an exact fit cannot give infinite weight);
+        unobserved channels get 1."""
+        channels = [i for i, o in enumerate(observed) if o]
+        residual = self.response.outputs(params.double(), road)[:, :, channels] - targets[:, :, channels]
+        sigma = residual.square().mean(1).sqrt()
+        floor = 1e-6 * targets[:, :, channels].square().mean(1).sqrt().clamp_min(1e-300)
+        sigma = torch.where(torch.isfinite(sigma), torch.maximum(sigma, floor), floor)
+        weights = torch.ones(targets.shape[0], targets.shape[2], dtype=torch.float64)
+        weights[:, channels] = 1.0 / sigma
+        return weights
+
     def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured) -> Tensor:
         """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite)."""
-        from .sensitivity import euler_accelerations
-
         channels = [i for i, m in enumerate(measured) if m]
-        accel = euler_accelerations(params.double(), road, self.h, self.pu_known)[:, :, channels]
+        accel = self.response.outputs(params.double(), road)[:, :, channels]
         residual = accel - outputs["targets"].double()[:, :, channels]
         if outputs.get("weights") is not None:
             residual = residual * outputs["weights"].double()[:, None, channels]
@@ -366,23 +418,25 @@ class GaussNewtonRefinement(Callback):
         per_stage, result, params, relative = self._run_stages(outputs, init, module)
         restarted = torch.zeros(init.shape[0], dtype=torch.int64)
         for attempt in range(self.restarts):
-            retry = (relative > self.restart_threshold).nonzero().squeeze(1)
+            failed = (result.status == SolverStatus.MISFIT) | (result.status == SolverStatus.DIVERGED)
+            retry = ((relative > self.restart_threshold) | failed).nonzero().squeeze(1)
             if retry.numel() == 0:
                 break
             sub = {k: (v[retry] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
                    for k, v in outputs.items()}
-            delta = torch.randn(retry.numel(), N_PARAMS, generator=self.generator, dtype=torch.float64)
+            delta = torch.randn(retry.numel(), init.shape[1], generator=self.generator, dtype=torch.float64)
             new_init = init[retry] * (1.0 + self.restart_sigma * delta)
             if attempt < len(self.restart_mass_factors):
                 new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[attempt]
-            new_init = torch.where(self.known | (new_init <= 0), init[retry], new_init)
+            new_init = torch.where(self.known[: init.shape[1]] | (new_init <= 0), init[retry], new_init)
             _, sub_result, sub_params, sub_relative = self._run_stages(sub, new_init, module, restart=True)
             better = sub_relative < relative[retry]
             take = retry[better]
             restarted[retry] += 1
             params[take] = sub_params[better]
             relative[take] = sub_relative[better]
-            for name in ("status", "iterations", "loss", "std", "covariance", "singular_values", "residual_variance"):
+            for name in ("status", "iterations", "loss", "std", "covariance", "singular_values", "residual_variance",
+                         "relative_residual", "whiteness"):
                 getattr(result, name)[take] = getattr(sub_result, name)[better]
             result.params[take] = sub_result.params[better]
         record = {"index": outputs["index"].cpu(), "init": init.cpu(), "stages": per_stage,
@@ -433,6 +487,8 @@ class GaussNewtonRefinement(Callback):
             singular_values=torch.cat([torch.nn.functional.pad(f.singular_values, (0, n_free_max - f.singular_values.shape[1])) for f in final]),
             residual_variance=torch.cat([f.residual_variance for f in final]),
             seconds=[s for f in final for s in f.seconds],
+            relative_residual=torch.cat([f.relative_residual for f in final]),
+            whiteness=torch.cat([f.whiteness for f in final]),
         )
         stage_loss, stage_status = {}, {}
         for stage in self.stages:

@@ -6,11 +6,21 @@ status and the final uncertainty report. A concrete method supplies only its ste
 column-scaled normal equations (:class:`GaussNewton`, :class:`LevenbergMarquardt`), in the
 spirit of theseus' optimizer/linear-solver split.
 
-Loss per sample: L(p) = ½ Σ_k Σ_{i observed} (y_{k,i}(p) − a_{k,i})², y from the Euler model of
-:mod:`hybridqcm.estimation.sensitivity`. Armijo test: L(p − αg) ≤ L(p) − c α gᵀJᵀR with a
+Loss per sample: L(θ) = ½ Σ_k Σ_{i observed} w_i² (y_{k,i}(θ) − a_{k,i})², y from a
+:class:`~hybridqcm.estimation.response.ResponseModel` — the source's Euler recursion (θ = p) or
+the exact discretisation of the continuous-time model (θ = p and the initial state x0). Armijo test: L(p − αg) ≤ L(p) − c α gᵀJᵀR with a
 sufficient-decrease constant c (default 1e-4). Note that the literal c = 1 of SPEC §8 rejects
 every full Gauss-Newton step on a quadratic model (there L(p − g) = L(p) − ½ gᵀJᵀR), which is one
 reason the source needed so many iterations; c is configurable so the literal form can be run.
+
+Honest status: a least-squares fit always ends somewhere, so "the iteration stopped" is not
+"the answer is right". After the loop the residual of every sample is tested for whiteness
+(Ljung-Box statistic over the first ``misfit_lags`` lags, per observed channel): a model that fits
+leaves residuals that look like sensor noise, a wrong model or a local minimum leaves structure.
+A sample whose residual is structured *and* larger than ``misfit_floor`` of the channel's RMS is
+`misfit`, whatever the iteration said; no noise level needs to be known. Serially correlated
+residuals also widen the standard deviations by the AR(1) factor (1 + ρ)/(1 − ρ), the usual
+effective-sample-size correction, where ρ is their lag-1 autocorrelation.
 """
 
 from __future__ import annotations
@@ -22,9 +32,10 @@ from enum import IntEnum
 from typing import Callable, Optional, Sequence
 
 import torch
+from scipy.stats import chi2
 from torch import Tensor
 
-from .sensitivity import N_PARAMS, euler_accelerations, euler_sensitivities
+from .response import EulerResponse, ResponseModel
 
 
 class SolverStatus(IntEnum):
@@ -35,6 +46,7 @@ class SolverStatus(IntEnum):
     SINGULAR = 2  # the column-scaled Jacobian is rank deficient at the estimate (not identifiable)
     DIVERGED = 3  # non-finite model at the start, or the estimate left the domain p > 0
     STALLED = 4  # no Armijo step found although the gradient test was not met
+    MISFIT = 5  # stopped, but the residual is structured and above the floor: the model does not fit
 
     @property
     def label(self) -> str:
@@ -74,6 +86,11 @@ class SolverConfig:
     # parameters (p3, p5) otherwise take huge early steps that Armijo accepts (the other
     # parameters reduce the loss) and land near zero, where they get stuck.
     max_relative_step: Optional[float] = None
+    # Misfit test (module docstring): structured residual (Ljung-Box over misfit_lags lags above the
+    # chi² quantile at misfit_alpha) larger than misfit_floor x the channel RMS. 0 lags: no test.
+    misfit_floor: float = 0.005
+    misfit_lags: int = 5
+    misfit_alpha: float = 1e-4
     lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
     lm_min_damping: float = 1e-12
     lm_max_damping: float = 1e8
@@ -81,46 +98,73 @@ class SolverConfig:
 
 @dataclass
 class LeastSquaresProblem:
-    """Observed accelerations of a batch and what is known about it.
+    """Observed outputs of a batch, what drives them and what is known.
 
-    targets   [batch, time, 3] accelerations (a3, a2, a1); unobserved channels are never read
-    road      [batch, time] u in metres, or p_u·u when ``scaled_road``
-    observed  which of (a3, a2, a1) enter the residual
-    known     [10] bool, parameters held fixed at their initial value (masked out of J)
+    targets   [batch, time, n_out] measured outputs (a3, a2, a1 for the quarter car); unobserved
+              channels are never read
+    inputs    what drives the model, [batch, time] or [batch, time, n_in] (the road u in metres,
+              or p_u·u when ``scaled_road``, for the default Euler model)
+    observed  which of the n_out outputs enter the residual
+    known     [n_theta] bool, entries of θ held fixed at their initial value (masked out of J)
+    model     the :class:`ResponseModel`; None = the Euler recursion with ``h`` and ``scaled_road``
     """
 
     targets: Tensor
-    road: Tensor
+    inputs: Tensor
     h: float = 0.01
     scaled_road: bool = False
     observed: Sequence[bool] = (True, True, True)
     known: Optional[Tensor] = None
-    # [batch, 3] per-channel residual weights (noise-aware weighting: 1/σ_c of each channel's
+    # [batch, n_out] per-channel residual weights (noise-aware weighting: 1/σ_c of each channel's
     # measurement noise); None = 1. Rows of R and J are multiplied by them.
     weights: Optional[Tensor] = None
+    model: Optional[ResponseModel] = None
+    # Gaussian prior on θ (MAP estimation, e.g. a network's prediction and variance): loss
+    # + ½ Σ_j λ_j (θ_j − μ_j)², mean [batch, n_theta], precision λ [batch, n_theta] (0 = no prior
+    # on that entry), in the units of the *weighted* residual (weights = 1/σ_noise make it a
+    # posterior). None = maximum likelihood.
+    prior_mean: Optional[Tensor] = None
+    prior_precision: Optional[Tensor] = None
 
     def __post_init__(self):
-        if self.targets.ndim != 3 or self.targets.shape[-1] != 3:
-            raise ValueError(f"targets must be [batch, time, 3], got {tuple(self.targets.shape)}")
-        if tuple(self.road.shape) != tuple(self.targets.shape[:2]):
-            raise ValueError(f"road {tuple(self.road.shape)} must be [batch, time] = {tuple(self.targets.shape[:2])}")
+        if self.model is None:
+            self.model = EulerResponse(self.h, self.scaled_road)
+        n_out, n_theta = len(self.model.output_names), self.model.n_theta
+        if self.targets.ndim != 3 or self.targets.shape[-1] != n_out:
+            raise ValueError(f"targets must be [batch, time, {n_out}], got {tuple(self.targets.shape)}")
+        if tuple(self.inputs.shape[:2]) != tuple(self.targets.shape[:2]) or self.inputs.ndim not in (2, 3):
+            raise ValueError(f"inputs {tuple(self.inputs.shape)} must be [batch, time(, n_in)] with "
+                             f"[batch, time] = {tuple(self.targets.shape[:2])}")
         self.observed = tuple(bool(o) for o in self.observed)
-        if len(self.observed) != 3 or not any(self.observed):
-            raise ValueError(f"observed must name 3 channel flags with at least one True, got {self.observed}")
-        known = torch.zeros(N_PARAMS, dtype=torch.bool) if self.known is None else torch.as_tensor(self.known, dtype=torch.bool).cpu()
-        if known.shape != (N_PARAMS,):
-            raise ValueError(f"known must be a [10] bool mask, got shape {tuple(known.shape)}")
+        if len(self.observed) != n_out or not any(self.observed):
+            raise ValueError(f"observed must name {n_out} channel flags with at least one True, got {self.observed}")
+        known = torch.zeros(n_theta, dtype=torch.bool) if self.known is None else torch.as_tensor(self.known, dtype=torch.bool).cpu()
+        if known.shape != (n_theta,):
+            raise ValueError(f"known must be a [{n_theta}] bool mask ({', '.join(self.model.theta_names)}), "
+                             f"got shape {tuple(known.shape)}")
         if bool(known.all()):
-            raise ValueError("all 10 parameters are known: nothing to estimate")
+            raise ValueError(f"all {n_theta} unknowns are known: nothing to estimate")
         self.known = known
         if not torch.isfinite(self.targets[..., list(self.observed_index)]).all():
             raise ValueError("observed targets contain NaN/inf")
-        if not torch.isfinite(self.road).all():
-            raise ValueError("road contains NaN/inf")
+        if not torch.isfinite(self.inputs).all():
+            raise ValueError("inputs (road) contain NaN/inf")
+        if (self.prior_mean is None) != (self.prior_precision is None):
+            raise ValueError("a prior needs both prior_mean and prior_precision")
+        if self.prior_mean is not None:
+            self.prior_mean = torch.as_tensor(self.prior_mean, dtype=torch.float64)
+            self.prior_precision = torch.as_tensor(self.prior_precision, dtype=torch.float64)
+            shape = (self.targets.shape[0], n_theta)
+            if tuple(self.prior_mean.shape) != shape or tuple(self.prior_precision.shape) != shape:
+                raise ValueError(f"prior_mean and prior_precision must be [batch, n_theta] = {list(shape)}, got "
+                                 f"{list(self.prior_mean.shape)} and {list(self.prior_precision.shape)}")
+            if not (torch.isfinite(self.prior_mean).all() and torch.isfinite(self.prior_precision).all()
+                    and (self.prior_precision >= 0).all()):
+                raise ValueError("prior_mean must be finite and prior_precision finite and >= 0")
         if self.weights is not None:
             self.weights = torch.as_tensor(self.weights, dtype=torch.float64)
-            if tuple(self.weights.shape) != (self.targets.shape[0], 3):
-                raise ValueError(f"weights must be [batch, 3], got {tuple(self.weights.shape)}")
+            if tuple(self.weights.shape) != (self.targets.shape[0], n_out):
+                raise ValueError(f"weights must be [batch, {n_out}], got {tuple(self.weights.shape)}")
             w = self.weights[:, self.observed_index]
             if not (torch.isfinite(w).all() and (w > 0).all()):
                 raise ValueError("weights of observed channels must be finite and > 0")
@@ -130,8 +174,17 @@ class LeastSquaresProblem:
         return [i for i, o in enumerate(self.observed) if o]
 
     @property
+    def road(self) -> Tensor:
+        """The inputs under their historical name (the road of the quarter car)."""
+        return self.inputs
+
+    @property
+    def n_theta(self) -> int:
+        return self.model.n_theta
+
+    @property
     def free_index(self) -> list[int]:
-        return [i for i in range(N_PARAMS) if not bool(self.known[i])]
+        return [i for i in range(self.n_theta) if not bool(self.known[i])]
 
     @property
     def n_residuals(self) -> int:
@@ -142,10 +195,10 @@ class LeastSquaresProblem:
 class SolverResult:
     """Everything per sample; never NaN (non-identifiable standard deviations are +inf).
 
-    params [batch, 10], status [batch] (SolverStatus values), iterations [batch],
-    loss [batch] (final ½ RSS), loss_history [max_iterations + 1, batch] (finished samples carry
-    their last loss), std [batch, 10] (0 for known parameters), covariance [batch, 10, 10]
-    (σ̂² (JᵀJ)⁺, zero rows/cols for known), singular_values [batch, n_free] of the column-scaled J
+    params = θ [batch, n_theta] (p1..p10 for the Euler model), status [batch] (SolverStatus values),
+    iterations [batch], loss [batch] (final ½ RSS), loss_history [max_iterations + 1, batch]
+    (finished samples carry their last loss), std [batch, n_theta] (0 for known entries),
+    covariance [batch, n_theta, n_theta] (σ̂² (JᵀJ)⁺ times the AR(1) inflation, zero rows/cols for known), singular_values [batch, n_free] of the column-scaled J
     (descending), residual_variance [batch] σ̂², seconds: wall time per iteration.
     """
 
@@ -159,6 +212,10 @@ class SolverResult:
     singular_values: Tensor
     residual_variance: Tensor
     seconds: list = field(default_factory=list)
+    # [batch] max over observed channels of ‖R_c‖/‖a_c‖, and of the Ljung-Box statistic over its
+    # χ² threshold (> 1: the residual is not white); inf where not evaluated (diverged).
+    relative_residual: Optional[Tensor] = None
+    whiteness: Optional[Tensor] = None
 
     def status_counts(self) -> dict[str, int]:
         return {s.label: int((self.status == s.value).sum()) for s in SolverStatus}
@@ -197,7 +254,7 @@ class NonlinearLeastSquares:
 
     # --- the loop -----------------------------------------------------------------------
     def solve(self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None) -> SolverResult:
-        """Minimise every sample's loss from ``initial_params`` [batch, 10] (known entries kept)."""
+        """Minimise every sample's loss from ``initial_params`` = θ0 [batch, n_theta] (known entries kept)."""
         threads = torch.get_num_threads()
         if self.config.num_threads:
             torch.set_num_threads(int(self.config.num_threads))
@@ -211,16 +268,21 @@ class NonlinearLeastSquares:
         cfg = self.config
         dtype = torch.float64
         params = initial_params.detach().to(dtype).clone()
-        if params.ndim != 2 or params.shape != (problem.targets.shape[0], N_PARAMS):
-            raise ValueError(f"initial params must be [batch, 10] = [{problem.targets.shape[0]}, 10], got {tuple(params.shape)}")
+        n_theta = problem.n_theta
+        if params.ndim != 2 or params.shape != (problem.targets.shape[0], n_theta):
+            raise ValueError(f"initial params must be [batch, n_theta] = [{problem.targets.shape[0]}, {n_theta}], "
+                             f"got {tuple(params.shape)}")
         if not torch.isfinite(params).all():
             raise ValueError("initial params contain NaN/inf")
         batch = params.shape[0]
         free = torch.tensor(problem.free_index)
+        # Which free entries are physical parameters (> 0, steps judged relative to them); the
+        # others (initial states) have any sign.
+        self._positive = problem.model.positive[free]
         obs = problem.observed_index
         # [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
         targets = problem.targets.to(dtype)[:, :, obs].contiguous()
-        road = problem.road.to(dtype)
+        road = problem.inputs.to(dtype)
         self._weights = None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()  # [batch, n_obs]
         weighted_targets = targets if self._weights is None else targets * self._weights[:, None, :]
         data_energy = 0.5 * weighted_targets.square().sum(dim=(1, 2))  # [batch]
@@ -230,7 +292,7 @@ class NonlinearLeastSquares:
         iterations = torch.zeros(batch, dtype=torch.int64)
         loss = torch.full((batch,), math.inf, dtype=dtype)
         active = torch.ones(batch, dtype=torch.bool)
-        bad_start = (params[:, free] <= 0).any(dim=1)
+        bad_start = (params[:, free][:, self._positive] <= 0).any(dim=1)
         status[bad_start] = SolverStatus.DIVERGED
         active &= ~bad_start
         history = []
@@ -274,7 +336,7 @@ class NonlinearLeastSquares:
             step = self.direction(fisher_scaled, gradient_scaled, index) / safe_scale
             step = torch.where(scale > 0, step, torch.zeros_like(step))
             predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
-            full_rel_step = (step / params[index][:, free]).abs().amax(1)
+            full_rel_step = self._relative_step(step, params[index][:, free])
             stationary = (full_rel_step <= cfg.step_tol) | (predicted <= cfg.decrease_tol * loss_now)
 
             accepted_alpha, new_loss = self._line_search(problem, params, targets, road, index, free, step, loss_now, predicted)
@@ -308,14 +370,30 @@ class NonlinearLeastSquares:
                 callback(iteration + 1, loss, int(active.sum()))
 
         # An unconstrained path may end outside the physical domain: report it, keep the numbers.
-        outside = (params[:, free] <= 0).any(1)
+        outside = (params[:, free][:, self._positive] <= 0).any(1)
         status[outside] = SolverStatus.DIVERGED
         history_t = torch.stack(history)
         history_t = torch.where(torch.isfinite(history_t), history_t, torch.zeros_like(history_t))
         return self._finish(problem, params, targets, road, free, status, iterations, loss, history_t, seconds)
 
     # --- pieces -------------------------------------------------------------------------
-    def _normal_equations(self, problem, params, targets, road, index):
+    def _prior_terms(self, problem, free_params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        """Precision λ [b, n_free] and deviation θ − μ [b, n_free] of the prior at ``free_params``."""
+        free = torch.tensor(problem.free_index)
+        precision = problem.prior_precision[index][:, free]
+        return precision, free_params - problem.prior_mean[index][:, free]
+
+    def _normal_equations(self, problem, params, targets, road, index, with_prior: bool = True):
+        """With the prior (MAP): F + diag λ, JᵀR + λ (θ − μ), L + ½ Σ λ (θ − μ)²."""
+        fisher, gradient, loss = self._data_normal_equations(problem, params, targets, road, index)
+        if with_prior and problem.prior_mean is not None:
+            precision, deviation = self._prior_terms(problem, params[index][:, torch.tensor(problem.free_index)], index)
+            fisher = fisher + torch.diag_embed(precision)
+            gradient = gradient + precision * deviation
+            loss = loss + 0.5 * (precision * deviation.square()).sum(1)
+        return fisher, gradient, loss
+
+    def _data_normal_equations(self, problem, params, targets, road, index):
         """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``.
 
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
@@ -324,18 +402,19 @@ class NonlinearLeastSquares:
         free_cols = torch.tensor(problem.free_index) + 1  # column 0 of the tangents is the primal
         cols = torch.cat([torch.zeros(1, dtype=torch.long), free_cols])
         obs = problem.observed_index
+        width = problem.n_theta + 1
         fishers, grads, losses = [], [], []
         for chunk in index.split(self.config.chunk_size):
-            out = euler_sensitivities(params[chunk], road[chunk], problem.h, problem.scaled_road)  # [b, T, 3, 11]
-            if len(obs) < 3:
+            out = problem.model.sensitivities(params[chunk], road[chunk])  # [b, T, n_out, 1 + n_theta]
+            if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0]:obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
             out[..., 0] -= targets[chunk]  # residual R in column 0
             if self._weights is not None:
                 out *= self._weights[chunk][:, None, :, None]
             b = chunk.numel()
-            augmented = out.view(b, -1, N_PARAMS + 1) if out.is_contiguous() else out.reshape(b, -1, N_PARAMS + 1)
-            gram = torch.bmm(augmented.transpose(1, 2), augmented)  # [b, 11, 11]
-            if len(cols) < N_PARAMS + 1:
+            augmented = out.view(b, -1, width) if out.is_contiguous() else out.reshape(b, -1, width)
+            gram = torch.bmm(augmented.transpose(1, 2), augmented)  # [b, width, width]
+            if len(cols) < width:
                 gram = gram[:, cols][:, :, cols]
             losses.append(0.5 * gram[:, 0, 0])
             grads.append(gram[:, 1:, 0])
@@ -343,10 +422,19 @@ class NonlinearLeastSquares:
         return torch.cat(fishers), torch.cat(grads), torch.cat(losses)
 
     def _apply_step(self, free_params: Tensor, scaled_step: Tensor) -> Tensor:
-        """p - αδ, or p exp(-αδ/p) in the log parametrization (same first-order step)."""
+        """θ - αδ, or p exp(-αδ/p) for the physical parameters in the log parametrization (same first-order step)."""
+        new = free_params - scaled_step
         if self.config.parametrization == "log":
-            return free_params * torch.exp(-scaled_step / free_params)
-        return free_params - scaled_step
+            logged = free_params * torch.exp(-scaled_step / free_params)
+            new = torch.where(self._positive, logged, new)
+        return new
+
+    def _relative_step(self, step: Tensor, free_params: Tensor) -> Tensor:
+        """max_j |δ_j| / p_j over the physical parameters [b] (inf when only initial states are free:
+        then the decrease test alone decides)."""
+        if not bool(self._positive.any()):
+            return torch.full((step.shape[0],), math.inf, dtype=step.dtype)
+        return (step[:, self._positive] / free_params[:, self._positive]).abs().amax(1)
 
     def _line_search(self, problem, params, targets, road, index, free, step, loss_now, predicted):
         """Per-sample Armijo backtracking; returns (α [b] with 0 = none found, new loss [b])."""
@@ -354,7 +442,7 @@ class NonlinearLeastSquares:
         b = index.numel()
         alpha = torch.full((b,), cfg.initial_step, dtype=params.dtype)
         if cfg.max_relative_step:
-            relative = (step / params[index][:, free]).abs().amax(1)
+            relative = self._relative_step(step, params[index][:, free])
             alpha = torch.minimum(alpha, cfg.max_relative_step / relative.clamp_min(1e-300))
         accepted_alpha = torch.zeros(b, dtype=params.dtype)
         new_loss = loss_now.clone()
@@ -365,7 +453,8 @@ class NonlinearLeastSquares:
                 break
             trial = params[index[pos]].clone()
             trial[:, free] = self._apply_step(trial[:, free], alpha[pos].unsqueeze(1) * step[pos])
-            positive = (trial[:, free] > 0).all(1) if cfg.parametrization != "unconstrained" else torch.ones(pos.numel(), dtype=torch.bool)
+            positive = ((trial[:, free][:, self._positive] > 0).all(1) if cfg.parametrization != "unconstrained"
+                        else torch.ones(pos.numel(), dtype=torch.bool))
             trial_loss = torch.full((pos.numel(),), math.inf, dtype=params.dtype)
             if bool(positive.any()):
                 # Evaluate only positive trials; the others count as Armijo failures.
@@ -384,27 +473,33 @@ class NonlinearLeastSquares:
         for start in range(0, index.numel(), self.config.chunk_size * 2):
             sl = slice(start, start + self.config.chunk_size * 2)
             chunk = index[sl]
-            accel = euler_accelerations(trial_params[sl], road[chunk], problem.h, problem.scaled_road)
+            accel = problem.model.outputs(trial_params[sl], road[chunk])
             residual = accel[:, :, obs] - targets[chunk]
             if self._weights is not None:
                 residual = residual * self._weights[chunk][:, None, :]
             loss = 0.5 * residual.square().sum((1, 2))
             losses.append(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf)))
-        return torch.cat(losses)
+        loss = torch.cat(losses)
+        if problem.prior_mean is not None:
+            precision, deviation = self._prior_terms(problem, trial_params[:, torch.tensor(problem.free_index)], index)
+            loss = loss + 0.5 * (precision * deviation.square()).sum(1)
+        return loss
 
     def _finish(self, problem, params, targets, road, free, status, iterations, loss, history, seconds) -> SolverResult:
         """Uncertainty and conditioning at the final estimate (one more Jacobian pass)."""
         cfg = self.config
-        batch, n_free = params.shape[0], free.numel()
-        covariance = torch.zeros(batch, N_PARAMS, N_PARAMS, dtype=params.dtype)
-        std = torch.zeros(batch, N_PARAMS, dtype=params.dtype)
+        batch, n_free, n_theta = params.shape[0], free.numel(), problem.n_theta
+        covariance = torch.zeros(batch, n_theta, n_theta, dtype=params.dtype)
+        std = torch.zeros(batch, n_theta, dtype=params.dtype)
+        relative_residual = torch.full((batch,), math.inf, dtype=params.dtype)
+        whiteness = torch.full((batch,), math.inf, dtype=params.dtype)
         singular_values = torch.zeros(batch, n_free, dtype=params.dtype)
         residual_variance = torch.zeros(batch, dtype=params.dtype)
         index = (status != SolverStatus.DIVERGED).nonzero().squeeze(1)
         std[status == SolverStatus.DIVERGED] = math.inf
         std[:, problem.known] = 0.0
         if index.numel():
-            fisher, _, final_loss = self._normal_equations(problem, params, targets, road, index)
+            fisher, _, final_loss = self._normal_equations(problem, params, targets, road, index, with_prior=False)
             ok = torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(final_loss)
             fisher = torch.where(ok[:, None, None], fisher, torch.zeros_like(fisher))
             final_loss = torch.where(ok, final_loss, loss[index])
@@ -424,23 +519,86 @@ class NonlinearLeastSquares:
             dof = max(problem.n_residuals - n_free, 1)
             sigma2 = 2.0 * final_loss / dof
             residual_variance[index] = sigma2
-            cov_free = sigma2[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            misfit, relative_residual[index], whiteness[index], inflation = self._residual_tests(problem, params, targets, road, index)
+            cov_free = (inflation * sigma2)[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
             # A parameter with any weight on a zero-eigenvalue direction has unbounded variance.
             null_weight = (eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2)  # [b, n_free]
             unidentified = (null_weight > 1e-6) | (scale == 0)
+            if problem.prior_mean is not None:
+                # Laplace posterior: (data information + prior precision)⁻¹; the prior identifies
+                # what the data alone cannot.
+                precision, _ = self._prior_terms(problem, params[index][:, free], index)
+                information = fisher / (inflation * sigma2).clamp_min(1e-300)[:, None, None] + torch.diag_embed(precision)
+                cov_free, singular_posterior = _pseudo_inverse(information, cfg.rcond)
+                unidentified = singular_posterior
             std_free = torch.where(unidentified, torch.full_like(scale, math.inf), cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt())
             rows = index.unsqueeze(1)
             std[rows, free.unsqueeze(0)] = std_free
-            cov_full = torch.zeros(index.numel(), N_PARAMS, N_PARAMS, dtype=params.dtype)
+            cov_full = torch.zeros(index.numel(), n_theta, n_theta, dtype=params.dtype)
             cov_full[:, free.unsqueeze(1), free.unsqueeze(0)] = cov_free
             covariance[index] = cov_full
             rank_deficient = (~keep).any(1) | (scale == 0).any(1) | ~ok
+            if problem.prior_mean is not None:
+                rank_deficient = unidentified.any(1) | ~ok
             status[index[rank_deficient]] = SolverStatus.SINGULAR
+            status[index[misfit]] = SolverStatus.MISFIT  # a wrong answer is never `converged`
         return SolverResult(
             params=params, status=status, iterations=iterations, loss=loss, loss_history=history,
             std=std, covariance=covariance, singular_values=singular_values,
             residual_variance=residual_variance, seconds=seconds,
+            relative_residual=relative_residual, whiteness=whiteness,
         )
+
+    def _residual_tests(self, problem, params, targets, inputs, index) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Misfit test and covariance inflation from the final residuals of the samples ``index``.
+
+        Per observed channel c: relative RMS r_c = ‖R_c‖/‖a_c‖ and the Ljung-Box statistic
+        Q_c = N(N+2) Σ_{k≤K} ρ_k²/(N−k) of the residual's autocorrelations ρ_k (about the origin,
+        so an unexplained offset counts as structure). Returns (misfit [b] bool, max_c r_c [b],
+        max_c Q_c / χ²_K(1−α) [b] (> 1: not white), covariance inflation [b]).
+        """
+        cfg = self.config
+        misfits, rel, white, inflation = [], [], [], []
+        n_steps = targets.shape[1]
+        lags = min(int(cfg.misfit_lags), n_steps - 2)
+        threshold = float(chi2.ppf(1.0 - cfg.misfit_alpha, lags)) if lags > 0 else math.inf
+        for start in range(0, index.numel(), self.config.chunk_size * 2):
+            chunk = index[start:start + self.config.chunk_size * 2]
+            residual = problem.model.outputs(params[chunk], inputs[chunk])[:, :, problem.observed_index] - targets[chunk]
+            energy = residual.square().sum(1)  # [b, n_obs]
+            relative = (energy / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
+            q = torch.zeros_like(energy)
+            rho1 = torch.zeros_like(energy)
+            for k in range(1, lags + 1):
+                rho = (residual[:, k:] * residual[:, :-k]).sum(1) / energy.clamp_min(1e-300)
+                q += rho.square() / (n_steps - k)
+                if k == 1:
+                    rho1 = rho
+            q *= n_steps * (n_steps + 2)
+            structured = (q > threshold) & (relative > cfg.misfit_floor)
+            misfits.append(structured.any(1))
+            rel.append(relative.amax(1))
+            white.append((q / threshold).amax(1) if lags > 0 else torch.zeros(chunk.numel(), dtype=q.dtype))
+            # AR(1) effective-sample-size factor where the lag-1 correlation is significant.
+            rho = rho1.mean(1)
+            significant = rho > 2.0 / math.sqrt(n_steps)
+            rho = rho.clamp(0.0, 0.98)
+            inflation.append(torch.where(significant, (1 + rho) / (1 - rho), torch.ones_like(rho)))
+        return torch.cat(misfits), torch.cat(rel), torch.cat(white), torch.cat(inflation)
+
+
+def _pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
+    """(M⁺ [b, n, n], unidentified [b, n] bool) of a symmetric PSD matrix, with column scaling and an
+    eigenvalue cutoff rcond² (an entry with weight on a dropped direction is unidentified)."""
+    scale = matrix.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+    safe = torch.where(scale > 0, scale, torch.ones_like(scale))
+    scaled = matrix / (safe.unsqueeze(2) * safe.unsqueeze(1))
+    eigval, eigvec = torch.linalg.eigh(scaled)
+    keep = (eigval > (rcond**2) * eigval[:, -1:].clamp_min(1e-300)) & (eigval > 0)
+    inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+    pinv = (eigvec * inv.unsqueeze(1)) @ eigvec.transpose(1, 2) / (safe.unsqueeze(2) * safe.unsqueeze(1))
+    unidentified = ((eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2) > 1e-6) | (scale == 0)
+    return pinv, unidentified
 
 
 def _pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Tensor, Tensor]:

@@ -1,0 +1,136 @@
+"""What the solver fits: a response model θ -> y with its Jacobian, for a batch of samples.
+
+The solver (:mod:`hybridqcm.estimation.solver`) only ever asks a model for
+
+    outputs(theta [b, n_theta], inputs) -> y [b, time, n_out]
+    sensitivities(theta, inputs)        -> [b, time, n_out, 1 + n_theta]   (prediction | ∂y/∂θ)
+
+so the Euler recursion of the source study and the exact discretisation of a continuous-time
+linear model are interchangeable behind it. θ holds the physical parameters first (they must
+stay > 0: ``positive``) and, for the exact model with an unknown initial state, the state x0 at
+the first sample after them (any sign). ``inputs`` is whatever the model is driven by, indexed
+by sample along its first axis and by time along its second: the road [b, time] for the Euler
+model, the input signals [b, time, n_in] for a linear model.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
+from hybridqcm.physics.parameters import PARAM_NAMES
+
+from .exact import exact_outputs, exact_sensitivities
+from .sensitivity import euler_accelerations, euler_sensitivities
+
+CHANNELS = ("a3", "a2", "a1")
+INITIAL_STATES = ("unknown", "rest")
+HOLDS = ("spline", "foh", "zoh")
+
+
+class ResponseModel:
+    """Base: names of θ and of the outputs, which θ entries must stay positive, and the two calls."""
+
+    theta_names: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    n_params: int = 0  # leading entries of θ that are physical parameters (> 0)
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.theta_names)
+
+    @property
+    def positive(self) -> Tensor:
+        """[n_theta] bool: entries that must stay > 0 (a final estimate outside is `diverged`)."""
+        mask = torch.zeros(self.n_theta, dtype=torch.bool)
+        mask[: self.n_params] = True
+        return mask
+
+    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        raise NotImplementedError
+
+
+class EulerResponse(ResponseModel):
+    """The source's semi-explicit Euler recursion from rest (SPEC §4): θ = p1..p10, inputs = road [b, time]
+    (u in metres, or p_u u when ``scaled_road``), outputs (a3, a2, a1)."""
+
+    theta_names = PARAM_NAMES
+    output_names = CHANNELS
+    n_params = 10
+
+    def __init__(self, h: float = 0.01, scaled_road: bool = False) -> None:
+        self.h, self.scaled_road = float(h), bool(scaled_road)
+
+    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        return euler_accelerations(theta, inputs, self.h, self.scaled_road)
+
+    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        return euler_sensitivities(theta, inputs, self.h, self.scaled_road)
+
+
+class ExactResponse(ResponseModel):
+    """Exact discretisation of a continuous-time linear model (SPEC §9), x0 unknown or at rest.
+
+    θ = (p_1..p_P, x0_1..x0_n) with ``initial_state="unknown"``, θ = p with ``"rest"``;
+    inputs [b, time, n_in] sampled every h; the input between samples follows ``hold``.
+    """
+
+    def __init__(self, model: LinearModel, h: float = 0.01, hold: str = "spline", substeps: int = 4,
+                 initial_state: str = "unknown") -> None:
+        if initial_state not in INITIAL_STATES:
+            raise ValueError(f"initial_state={initial_state!r}: choose one of {list(INITIAL_STATES)}")
+        if hold not in HOLDS:
+            raise ValueError(f"hold={hold!r}: choose one of {list(HOLDS)}")
+        if not h > 0:
+            raise ValueError(f"h must be > 0, got {h}")
+        self.model, self.h, self.hold, self.substeps = model, float(h), hold, int(substeps)
+        self.with_x0 = initial_state == "unknown"
+        self.n_params = len(model.param_names)
+        self.theta_names = tuple(model.param_names) + (tuple(f"x0_{s}" for s in model.state_names) if self.with_x0 else ())
+        self.output_names = tuple(model.output_names)
+
+    def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
+        return theta[:, : self.n_params], (theta[:, self.n_params:] if self.with_x0 else None)
+
+    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        params, x0 = self._split(theta)
+        return exact_outputs(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps)
+
+    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+        params, x0 = self._split(theta)
+        return exact_sensitivities(self.model, params, x0 if x0 is not None else None, _as_3d(inputs), self.h,
+                                   self.hold, self.substeps, with_x0=self.with_x0)
+
+
+def _as_3d(inputs: Tensor) -> Tensor:
+    """[b, time] -> [b, time, 1] (a single input such as the road)."""
+    return inputs.unsqueeze(-1) if inputs.ndim == 2 else inputs
+
+
+def quarter_car_response(model: str, h: float, scaled_road: bool, initial_state: str = "unknown",
+                         hold: str = "spline", substeps: int = 4) -> ResponseModel:
+    """The road-driven quarter car as the solver's model: ``model="euler"`` (source protocol, from rest)
+    or ``"exact"`` (continuous-time physics)."""
+    if model == "euler":
+        if initial_state != "rest":
+            raise ValueError("the Euler model starts from rest (initial_state=rest); use model=exact for an unknown x0")
+        return EulerResponse(h, scaled_road)
+    if model == "exact":
+        return ExactResponse(QuarterCarRoad(scaled_road=scaled_road), h, hold, substeps, initial_state)
+    raise ValueError(f"model={model!r}: choose exact or euler")
+
+
+BASE_MODELS = {"seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}
+
+
+def base_excitation_response(name: str, h: float, initial_state: str = "unknown", hold: str = "spline",
+                             substeps: int = 4) -> ResponseModel:
+    """A road-free model driven by a measured acceleration (SPEC §9): ``seat`` (a2 -> a3; p1, p2) or
+    ``sprung`` (a1 -> a3, a2; p1..p6), always continuous-time (exact discretisation)."""
+    if name not in BASE_MODELS:
+        raise ValueError(f"base excitation model {name!r}: choose one of {sorted(BASE_MODELS)}")
+    return ExactResponse(BASE_MODELS[name](), h, hold, substeps, initial_state)
