@@ -1,0 +1,78 @@
+"""Exact-discretisation layer vs the Euler layer on the same batch (the Gauss-Newton model cost).
+
+    PYTHONPATH=src .venv/bin/python bench/bench_exact.py [--samples 17000] [--steps 100] [--chunk 512]
+        [--threads 1] [--hold spline] [--substeps 4] [--repeats 3]
+
+Synthetic quarter-car samples (thesis prior, ISO 8608 roads); every layer runs over the whole
+batch in chunks of --chunk samples with torch.set_num_threads(--threads), as the solver does.
+Printed: seconds per full pass (best of --repeats) for exact_sensitivities (p and x0 columns,
+[b, T, 3, 17]) / exact_outputs and euler_sensitivities ([b, T, 3, 11]) / euler_accelerations,
+and the exact/Euler ratios.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+
+def _best(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=17000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--chunk", type=int, default=512)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--hold", default="spline")
+    parser.add_argument("--substeps", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
+    from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
+    from hybridqcm.estimation.synthetic import synthetic_samples
+    from hybridqcm.physics.linear_models import QuarterCarRoad
+
+    data = synthetic_samples(args.samples, n_steps=args.steps, seed=0)
+    params, road = data["params"].to(torch.float64), data["road"].to(torch.float64)
+    x0 = torch.zeros(args.samples, 6, dtype=torch.float64)
+    model = QuarterCarRoad()
+    chunks = [(params[i:i + args.chunk], road[i:i + args.chunk], x0[i:i + args.chunk])
+              for i in range(0, args.samples, args.chunk)]
+    h = 0.01
+
+    def run(kind: str):
+        def go():
+            for p, u, x in chunks:
+                if kind == "exact_sens":
+                    exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps)
+                elif kind == "exact_out":
+                    exact_outputs(model, p, x, u[..., None], h, args.hold, args.substeps)
+                elif kind == "euler_sens":
+                    euler_sensitivities(p, u, h)
+                else:
+                    euler_accelerations(p, u, h)
+        return go
+
+    run("exact_sens")()  # warm-up (spline matrix cache, allocator)
+    t = {kind: _best(run(kind), args.repeats) for kind in ("exact_sens", "exact_out", "euler_sens", "euler_acc")}
+    print(f"{args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
+          f"hold={args.hold} substeps={args.substeps}")
+    print(f"  exact_sensitivities [b,T,3,17] {t['exact_sens']:.3f} s   "
+          f"euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   ratio {t['exact_sens'] / t['euler_sens']:.2f}")
+    print(f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "
+          f"euler_accelerations [b,T,3]    {t['euler_acc']:.3f} s   ratio {t['exact_out'] / t['euler_acc']:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,378 @@
+"""Exact discretisation of a continuous-time linear model, with forward-mode sensitivities.
+
+Model (physics.linear_models.LinearModel): dx/dt = A x + B w(t), y = C x + E w, all matrices
+functions of p. On the sampling grid t_k = k h (k = 0..T-1), with the input sampled as w_k::
+
+    x_{k+1} = Phi x_k + G_k,      y_k = C x_k + E w_k,      Phi = exp(A h)
+
+where G_k is the exact response over [t_k, t_{k+1}] to the *held* input:
+
+* ``"zoh"``:  w held at w_k:                          G_k = Gamma w_k
+* ``"foh"``:  w linear between w_k and w_{k+1}:       G_k = Gamma0 w_k + Gamma1 w_{k+1}
+* ``"spline"`` (default): w is the not-a-knot cubic spline through the samples (natural for
+  T = 3, linear for T = 2), sampled at m = ``substeps`` sub-steps per interval (a fixed linear
+  map [(T-1) m + 1, T] for a uniform grid, built once), and first-order hold is applied on
+  every sub-step tau = h/m. The m sub-steps fold into one step: with (phi, g0, g1) the FOH
+  maps of tau and s_{k,j} = w(t_k + j tau),
+
+      x_{k+1} = phi^m x_k + sum_{j=0..m} Lambda_j s_{k,j},
+      Lambda_j = [j < m] phi^(m-1-j) g0 + [j >= 1] phi^(m-j) g1,
+
+  so the time recursion costs the same as FOH.
+
+Van Loan: for the normalised interval sigma in [0, 1], (x, w, Delta) with Delta = w_1 - w_0
+obeys d/dsigma (x, w, Delta) = M (x, w, Delta), M = [[A tau, B tau, 0], [0, 0, I], [0, 0, 0]], so
+exp(M) = [[phi, F1, F2], [0, I, I], [0, 0, I]] and x(1) = phi x_0 + F1 w_0 + F2 (w_1 - w_0):
+g0 = F1 - F2, g1 = F2 (ZOH: Gamma = F1). ONE exponential per sample gives all three.
+
+Derivatives. With dM_j = dM/dp_j, d exp(M)[dM_j] is the Fréchet derivative, the top-right block
+of exp([[M, dM_j], [0, M]]). We compute exactly the same quantity more cheaply by carrying the
+tangents through a scaling-and-squaring Taylor evaluation of exp (forward mode: every product
+S T becomes (S T, dS T + S dT)); tests compare it with torch.linalg.matrix_exp and its autograd.
+The combination of sub-steps is differentiated by the product rule.
+
+Sensitivities. Outputs are linear in x0, so dy_k/dx0 = C Phi^k (powers by doubling, no
+recursion). For p: dx_{k+1} = Phi dx_k + U_k with U_k = dPhi x_k + sum_j dLambda_j s_{k,j} and
+dy_k = C dx_k + dC x_k + dE w_k. Everything that is not sequential (U_k, dC x_k + dE w_k) is one
+batched matmul over all k after the primal pass; the sequential part is a 6x6 matvec per step on
+a [n, P, batch] block, batch innermost, written as n broadcast multiply-adds (no per-sample bmm).
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+from torch import Tensor
+
+from hybridqcm.physics.linear_models import LinearModel
+
+HOLDS = ("spline", "foh", "zoh")
+_DTYPE = torch.float64
+# Taylor degree 14 on ||X||_1 <= 0.5: truncation error <= 0.5^15/15! * e^0.5 < 1e-16 relative.
+_TAYLOR_THETA = 0.5
+_TAYLOR_DEGREE = 14
+
+
+# ----------------------------------------------------------------------------- validation
+def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, substeps: int) -> Tensor:
+    """Validate and return inputs as [b, T, m] (a [b, T] input is accepted for one-input models)."""
+    if not isinstance(model, LinearModel):
+        raise ValueError(f"exact: model must be a LinearModel, got {type(model).__name__}")
+    if hold not in HOLDS:
+        raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"exact: substeps must be an integer >= 1, got {substeps!r}")
+    if not (isinstance(h, (int, float)) and math.isfinite(h) and h > 0):
+        raise ValueError(f"exact: step h must be a finite number > 0, got {h!r}")
+    n_params, n, m = model.n_params, model.n_state, model.n_input
+    if params.ndim != 2 or params.shape[1] != n_params:
+        raise ValueError(f"exact: params must be [batch, {n_params}] for {model.name}, got {tuple(params.shape)}")
+    batch = params.shape[0]
+    if inputs.ndim == 2 and m == 1:
+        inputs = inputs.unsqueeze(-1)
+    if inputs.ndim != 3 or inputs.shape[0] != batch or inputs.shape[2] != m or inputs.shape[1] < 1:
+        raise ValueError(f"exact: inputs must be [batch={batch}, time>=1, {m}] for {model.name}, "
+                         f"got {tuple(inputs.shape)}")
+    if x0 is not None and (x0.ndim != 2 or x0.shape != (batch, n)):
+        raise ValueError(f"exact: x0 must be [batch={batch}, {n}] ({', '.join(model.state_names)}) or None, "
+                         f"got {tuple(x0.shape)}")
+    return inputs
+
+
+# ----------------------------------------------------------------------------- input hold
+@lru_cache(maxsize=32)
+def _spline_matrix_cached(n_samples: int, substeps: int) -> Tensor:
+    T, m = n_samples, substeps
+    eye = torch.eye(T, dtype=_DTYPE)
+    if T < 3:  # one interval at most: the spline is the straight line
+        second = torch.zeros(T, T, dtype=_DTYPE)
+    else:
+        # second derivatives M (in units of 1/h^2): interior M_{i-1} + 4 M_i + M_{i+1} = 6 (y_{i-1} - 2 y_i + y_{i+1})
+        lhs = torch.zeros(T, T, dtype=_DTYPE)
+        rhs = torch.zeros(T, T, dtype=_DTYPE)
+        for i in range(1, T - 1):
+            lhs[i, i - 1:i + 2] = torch.tensor([1.0, 4.0, 1.0], dtype=_DTYPE)
+            rhs[i] = 6 * (eye[i - 1] - 2 * eye[i] + eye[i + 1])
+        if T >= 4:  # not-a-knot: third derivative continuous at t_1 and t_{T-2}
+            lhs[0, :3] = torch.tensor([1.0, -2.0, 1.0], dtype=_DTYPE)
+            lhs[-1, -3:] = torch.tensor([1.0, -2.0, 1.0], dtype=_DTYPE)
+        else:  # T = 3: not-a-knot is degenerate there; natural ends M_0 = M_2 = 0
+            lhs[0, 0] = lhs[-1, -1] = 1.0
+        second = torch.linalg.solve(lhs, rhs)  # [T, T]: M = second @ y
+    theta = torch.arange(m, dtype=_DTYPE) / m  # sub-sample positions in an interval (the last comes next)
+    a, c = 1 - theta, theta
+    w_lin = torch.stack([a, c], -1)  # weights of y_i, y_{i+1}
+    w_cub = torch.stack([(a**3 - a) / 6, (c**3 - c) / 6], -1)  # weights of M_i, M_{i+1}
+    rows = []
+    for i in range(T - 1):
+        rows.append(w_lin[:, :1] * eye[i] + w_lin[:, 1:] * eye[i + 1]
+                    + w_cub[:, :1] * second[i] + w_cub[:, 1:] * second[i + 1])
+    rows.append(eye[T - 1:T])
+    return torch.cat(rows)
+
+
+def spline_matrix(n_samples: int, substeps: int) -> Tensor:
+    """[(T-1) m + 1, T] map from T uniform samples to the not-a-knot cubic spline at m sub-steps
+    per interval (row k m + j is t_k + j h/m); natural spline for T = 3, linear for T <= 2."""
+    return _spline_matrix_cached(int(n_samples), int(substeps))
+
+
+def _sub_samples(inputs: Tensor, hold: str, substeps: int) -> tuple[Tensor, int]:
+    """inputs [b, T, m] -> s [b, T-1, (m_sub+1) * m] with s[:, k, j*m + c] = w_c(t_k + j h/m_sub)."""
+    batch, T, n_in = inputs.shape
+    m_sub = substeps if hold == "spline" else 1
+    if hold == "spline" and T > 2:
+        up = spline_matrix(T, m_sub).to(inputs.device)
+        fine = torch.matmul(up, inputs)  # [b, (T-1) m + 1, n_in], one GEMM for the batch
+    else:
+        fine = inputs if m_sub == 1 else _linear_upsample(inputs, m_sub)
+    windows = fine.unfold(1, m_sub + 1, m_sub)  # [b, T-1, n_in, m_sub+1]
+    return windows.permute(0, 1, 3, 2).reshape(batch, T - 1, (m_sub + 1) * n_in), m_sub
+
+
+def _linear_upsample(inputs: Tensor, m_sub: int) -> Tensor:
+    theta = torch.arange(m_sub, dtype=inputs.dtype, device=inputs.device) / m_sub
+    left, right = inputs[:, :-1, None], inputs[:, 1:, None]
+    inner = (left + theta[None, None, :, None] * (right - left)).flatten(1, 2)
+    return torch.cat([inner, inputs[:, -1:]], 1)
+
+
+# ----------------------------------------------------------------------------- matrix exponential
+def _squarings(M: Tensor) -> int:
+    norm = float(M.abs().sum(-2).amax()) if M.numel() else 0.0
+    return max(0, math.ceil(math.log2(norm / _TAYLOR_THETA))) if norm > _TAYLOR_THETA else 0
+
+
+def expm_with_tangents(M: Tensor, dM: Tensor) -> tuple[Tensor, Tensor]:
+    """exp(M) [b, N, N] and its Fréchet derivatives in the P directions dM [b, P, N, N] -> [b, P, N, N].
+
+    Scaling and squaring: X = M / 2^s with ||X||_1 <= 1/2, degree-14 Taylor by Horner, then s
+    squarings, each product carried with its tangent. Tangents are held as [b, N, P, N] so that
+    both S @ dT ([b, N, N] @ [b, N, P N]) and dS @ T ([b, N P, N] @ [b, N, N]) are plain bmm's.
+    """
+    batch, N, _ = M.shape
+    n_dir = dM.shape[1]
+    s = _squarings(M)
+    X = M * 2.0**-s
+    dX = (dM * 2.0**-s).permute(0, 2, 1, 3).contiguous()  # [b, N, P, N]
+    dX_rows = dX.view(batch, N * n_dir, N)
+    eye = torch.eye(N, dtype=M.dtype, device=M.device)
+    S = eye + X / _TAYLOR_DEGREE
+    dS = dX / _TAYLOR_DEGREE
+    for k in range(_TAYLOR_DEGREE - 1, 0, -1):  # S <- I + X S / k
+        dS = torch.baddbmm(torch.bmm(dX_rows, S).view(batch, N, n_dir * N), X,
+                           dS.view(batch, N, n_dir * N)).div_(k)
+        S = torch.baddbmm(eye, X, S, alpha=1.0 / k)
+    for _ in range(s):
+        dS = torch.baddbmm(torch.bmm(dS.view(batch, N * n_dir, N), S).view(batch, N, n_dir * N), S,
+                           dS.view(batch, N, n_dir * N))
+        S = torch.bmm(S, S)
+    return S, dS.view(batch, N, n_dir, N).permute(0, 2, 1, 3)
+
+
+def expm_taylor(M: Tensor) -> Tensor:
+    """exp(M) [b, N, N] by the same scaling-and-squaring Taylor scheme (no tangents)."""
+    s = _squarings(M)
+    X = M * 2.0**-s
+    eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+    S = eye + X / _TAYLOR_DEGREE
+    for k in range(_TAYLOR_DEGREE - 1, 0, -1):
+        S = torch.baddbmm(eye, X, S, alpha=1.0 / k)
+    for _ in range(s):
+        S = torch.bmm(S, S)
+    return S
+
+
+# ----------------------------------------------------------------------------- discrete maps
+def _van_loan(A: Tensor, B: Tensor, tau: float) -> Tensor:
+    batch, n, m = B.shape
+    M = torch.zeros(batch, n + 2 * m, n + 2 * m, dtype=A.dtype, device=A.device)
+    M[:, :n, :n] = A * tau
+    M[:, :n, n:n + m] = B * tau
+    M[:, n:n + m, n + m:] = torch.eye(m, dtype=A.dtype, device=A.device)
+    return M
+
+
+def _split_hold(F: Tensor, n: int, m: int, hold: str) -> tuple[Tensor, Tensor, Tensor]:
+    """exp(Van Loan) [..., N, N] -> (phi [..., n, n], g0, g1 [..., n, m])."""
+    phi, F1, F2 = F[..., :n, :n], F[..., :n, n:n + m], F[..., :n, n + m:]
+    if hold == "zoh":
+        return phi, F1, torch.zeros_like(F2)
+    return phi, F1 - F2, F2
+
+
+def discrete_maps(model: LinearModel, params: Tensor, h: float, hold: str = "spline", substeps: int = 4,
+                  tangents: bool = False):
+    """Per-sample maps of one sampling interval.
+
+    Returns (Phi [b, n, n], Lam [b, m_sub+1, n, m]) and, with ``tangents``, also
+    (dPhi [b, P, n, n], dLam [b, P, m_sub+1, n, m]); x_{k+1} = Phi x_k + sum_j Lam_j s_{k,j}.
+    m_sub = substeps for "spline", 1 otherwise (FOH: Lam = (Gamma0, Gamma1); ZOH: (Gamma, 0)).
+    """
+    p = params.to(_DTYPE)
+    A, B, _, _ = model.matrices(p)
+    n, m = model.n_state, model.n_input
+    m_sub = substeps if hold == "spline" else 1
+    tau = h / m_sub
+    M = _van_loan(A, B, tau)
+    if not tangents:
+        phi, g0, g1 = _split_hold(torch.linalg.matrix_exp(M), n, m, hold)
+        return _fold_substeps(phi, g0, g1, m_sub)
+    dA, dB, _, _ = model.matrix_derivatives(p)
+    batch, n_params = p.shape
+    dM = torch.zeros(batch, n_params, n + 2 * m, n + 2 * m, dtype=_DTYPE, device=p.device)
+    dM[:, :, :n, :n] = dA * tau
+    dM[:, :, :n, n:n + m] = dB * tau
+    F, dF = expm_with_tangents(M, dM)
+    phi, g0, g1 = _split_hold(F, n, m, hold)
+    dphi, dg0, dg1 = _split_hold(dF, n, m, hold)
+    return _fold_substeps(phi, g0, g1, m_sub, dphi, dg0, dg1)
+
+
+def _fold_substeps(phi, g0, g1, m_sub, dphi=None, dg0=None, dg1=None):
+    """Fold m_sub FOH sub-steps into one step (module docstring), with product-rule tangents."""
+    with_t = dphi is not None
+    eye = torch.eye(phi.shape[-1], dtype=phi.dtype, device=phi.device).expand_as(phi)
+    powers, dpowers = [eye], [torch.zeros_like(dphi)] if with_t else [None]
+    for i in range(1, m_sub + 1):
+        powers.append(phi if i == 1 else phi @ powers[-1])
+        if with_t:
+            dpowers.append(dphi if i == 1 else dphi @ powers[-2].unsqueeze(1) + phi.unsqueeze(1) @ dpowers[-1])
+    lam, dlam = [], []
+    for j in range(m_sub + 1):
+        term = torch.zeros_like(g0)
+        dterm = torch.zeros_like(dg0) if with_t else None
+        if j < m_sub:
+            term = term + powers[m_sub - 1 - j] @ g0
+            if with_t:
+                dterm = dterm + dpowers[m_sub - 1 - j] @ g0.unsqueeze(1) + powers[m_sub - 1 - j].unsqueeze(1) @ dg0
+        if j >= 1:
+            term = term + powers[m_sub - j] @ g1
+            if with_t:
+                dterm = dterm + dpowers[m_sub - j] @ g1.unsqueeze(1) + powers[m_sub - j].unsqueeze(1) @ dg1
+        lam.append(term)
+        dlam.append(dterm)
+    if not with_t:
+        return powers[m_sub], torch.stack(lam, 1)
+    return powers[m_sub], torch.stack(lam, 1), dpowers[m_sub], torch.stack(dlam, 2)
+
+
+# ----------------------------------------------------------------------------- recursions
+def _primal_states(phi, forcing, x0: Tensor | None, batch: int, n: int, T: int, device) -> Tensor:
+    """x_k for k = 0..T-1 as [T, n, b] (batch innermost). forcing [T-1, n, b]."""
+    states = torch.empty(T, n, batch, dtype=_DTYPE, device=device)
+    if x0 is None:
+        states[0].zero_()
+    else:
+        states[0].copy_(x0.t())
+    if T == 1:
+        return states
+    phi_cols = phi.permute(2, 1, 0).contiguous()  # [l, i, b]: column l of every Phi
+    for k in range(T - 1):
+        nxt, cur = states[k + 1], states[k]
+        torch.mul(phi_cols[0], cur[0], out=nxt)
+        for l in range(1, n):
+            nxt.addcmul_(phi_cols[l], cur[l])
+        nxt.add_(forcing[k])
+    return states
+
+
+def _prepare(model, params, x0, inputs, h, hold, substeps):
+    inputs = _check(model, params, x0, inputs, h, hold, substeps).to(_DTYPE)
+    params = params.to(_DTYPE)
+    x0 = None if x0 is None else x0.to(_DTYPE)
+    return params, x0, inputs
+
+
+@torch.no_grad()
+def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
+                  hold: str = "spline", substeps: int = 4) -> Tensor:
+    """params [b, P], x0 [b, n] (None = rest), inputs [b, T, m] -> y [b, T, o] (float64).
+
+    x0 is the state at t_0 (the first sample) in the model's state coordinates.
+    """
+    params, x0, inputs = _prepare(model, params, x0, inputs, h, hold, substeps)
+    batch, T, _ = inputs.shape
+    n = model.n_state
+    _, _, C, E = model.matrices(params)
+    if T > 1:
+        phi, lam = discrete_maps(model, params, h, hold, substeps)
+        s, _ = _sub_samples(inputs, hold, substeps)
+        lam_rows = lam.transpose(-1, -2).reshape(batch, -1, n)  # [b, (m_sub+1) m, n]
+        forcing = torch.bmm(s, lam_rows).permute(1, 2, 0).contiguous()  # [T-1, n, b]
+    else:
+        phi, forcing = None, None
+    states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
+    x_time = states.permute(2, 0, 1)  # [b, T, n]
+    return torch.bmm(x_time, C.transpose(1, 2)) + torch.bmm(inputs, E.transpose(1, 2))
+
+
+@torch.no_grad()
+def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
+                        hold: str = "spline", substeps: int = 4, with_x0: bool = True) -> Tensor:
+    """Prediction and Jacobian in one forward pass.
+
+    -> [b, T, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
+    [..., 1 + P + i] = dy/dx0_i. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
+    """
+    params, x0, inputs = _prepare(model, params, x0, inputs, h, hold, substeps)
+    batch, T, _ = inputs.shape
+    n, o, n_params = model.n_state, model.n_output, model.n_params
+    width = 1 + n_params + (n if with_x0 else 0)
+    _, _, C, E = model.matrices(params)
+    _, _, dC, dE = model.matrix_derivatives(params)
+    out = torch.empty(batch, T, o, width, dtype=_DTYPE, device=params.device)
+
+    if T > 1:
+        phi, lam, dphi, dlam = discrete_maps(model, params, h, hold, substeps, tangents=True)
+        s, m_sub = _sub_samples(inputs, hold, substeps)
+        lam_rows = lam.transpose(-1, -2).reshape(batch, -1, n)
+        forcing = torch.bmm(s, lam_rows).permute(1, 2, 0).contiguous()  # [T-1, n, b]
+    else:
+        phi = forcing = None
+    states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
+    x_time = states.permute(2, 0, 1).contiguous()  # [b, T, n]
+
+    # primal and the explicit terms dC x_k + dE w_k, laid out as out[..., 0] and out[..., 1:1+P]
+    out[..., 0] = torch.bmm(x_time, C.transpose(1, 2)) + torch.bmm(inputs, E.transpose(1, 2))
+    dC_cols = dC.permute(0, 3, 2, 1).reshape(batch, n, o * n_params)  # [b, l, (o, j)]
+    dE_cols = dE.permute(0, 3, 2, 1).reshape(batch, -1, o * n_params)
+    explicit = torch.bmm(x_time, dC_cols).add_(torch.bmm(inputs, dE_cols))
+    out[..., 1:1 + n_params] = explicit.view(batch, T, o, n_params)
+
+    if with_x0:  # dy_k/dx0 = C Phi^k, rows stacked over k and filled by doubling
+        rows = torch.empty(batch, T, o, n, dtype=_DTYPE, device=params.device)
+        rows[:, 0] = C
+        power, filled = phi, 1
+        while filled < T:
+            block = min(filled, T - filled)
+            rows[:, filled:filled + block] = torch.bmm(rows[:, :block].reshape(batch, block * o, n),
+                                                       power).view(batch, block, o, n)
+            filled += block
+            if filled < T:
+                power = torch.bmm(power, power)
+        out[..., 1 + n_params:] = rows
+
+    if T > 1:
+        # tangent forcing U_k = dPhi x_k + sum_j dLam_j s_{k,j} for all k in one bmm: [b, T-1, (i, j)]
+        xi = torch.cat([x_time[:, :T - 1], s], -1)  # [b, T-1, n + (m_sub+1) m]
+        q_x = dphi.permute(0, 3, 2, 1).reshape(batch, n, n * n_params)  # [b, l, (i, j)]
+        q_s = dlam.permute(0, 2, 4, 3, 1).reshape(batch, -1, n * n_params)  # [b, (q, c), (i, j)]
+        tangent_forcing = torch.bmm(xi, torch.cat([q_x, q_s], 1)).view(batch, T - 1, n, n_params)
+        phi_cols = phi.permute(2, 1, 0).contiguous()[:, :, None, :]  # [l, i, 1, b]
+        c_cols = C.permute(2, 1, 0).contiguous()[:, :, None, :]  # [l, o, 1, b]
+        z = torch.zeros(n, n_params, batch, dtype=_DTYPE, device=params.device)  # dx_k/dp, [i, j, b]
+        z_next = torch.empty_like(z)
+        cz = torch.empty(o, n_params, batch, dtype=_DTYPE, device=params.device)
+        for k in range(1, T):
+            torch.mul(phi_cols[0], z[0], out=z_next)
+            for l in range(1, n):
+                z_next.addcmul_(phi_cols[l], z[l])
+            z_next.add_(tangent_forcing[:, k - 1].permute(1, 2, 0))
+            z, z_next = z_next, z
+            torch.mul(c_cols[0], z[0], out=cz)
+            for l in range(1, n):
+                cz.addcmul_(c_cols[l], z[l])
+            out[:, k, :, 1:1 + n_params] += cz.permute(2, 0, 1)
+    return out

@@ -1,0 +1,161 @@
+"""Continuous-time linear models  dx/dt = A(p) x + B(p) w(t),  y = C(p) x + E(p) w.
+
+One class per vehicle model the estimator can fit; ``estimation.exact`` discretises any of them
+exactly. Shapes (b = batch, P = n_params, n = n_state, m = n_input, o = n_output)::
+
+    matrices(p [b, P])            -> A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]
+    matrix_derivatives(p [b, P])  -> dA [b, P, n, n], dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m]
+
+All three models below are *linear* in p (every entry of A, B, C, E is a fixed linear
+combination of the p_j plus a constant), so their derivatives are the constant matrices
+M(e_j) - M(0): computed once per call from P + 1 evaluations and expanded over the batch
+(no copy). A non-linear subclass sets ``linear_in_params = False`` and gets torch.func.jacfwd.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hybridqcm.physics.parameters import params_to_matrices, road_gain, system_matrix
+
+
+class LinearModel:
+    """Continuous-time LTI model  dx/dt = A(p) x + B(p) w(t),  y = C(p) x + E(p) w  (w: inputs).
+
+    Subclasses set: name, param_names (tuple, len n_params), state_names (n_state),
+    input_names (n_input), output_names (n_output), and implement matrices(p).
+    """
+
+    name: str = "linear"
+    param_names: tuple[str, ...] = ()
+    state_names: tuple[str, ...] = ()
+    input_names: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    linear_in_params: bool = False
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    @property
+    def n_state(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_input(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def n_output(self) -> int:
+        return len(self.output_names)
+
+    def check_params(self, p: Tensor) -> None:
+        if p.ndim != 2 or p.shape[-1] != self.n_params:
+            raise ValueError(f"{self.name}: params must be [batch, {self.n_params}] "
+                             f"({', '.join(self.param_names)}), got {tuple(p.shape)}")
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """p [batch, n_params] -> A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]."""
+        raise NotImplementedError
+
+    def matrix_derivatives(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """p [b, P] -> dA [b, P, n, n], dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m];
+        [:, j] = d/dp_j. Linear models: constant, returned as expanded (read-only) views."""
+        self.check_params(p)
+        batch, n_params = p.shape
+        if self.linear_in_params:
+            basis = torch.cat([torch.zeros(1, n_params, dtype=p.dtype, device=p.device),
+                               torch.eye(n_params, dtype=p.dtype, device=p.device)])
+            return tuple((m[1:] - m[:1]).unsqueeze(0).expand(batch, *m[1:].shape)
+                         for m in self.matrices(basis))
+        jac = torch.func.vmap(torch.func.jacfwd(lambda q: tuple(m[0] for m in self.matrices(q[None]))))(p)
+        return tuple(d.movedim(-1, 1).contiguous() for d in jac)  # [b, ..., P] -> [b, P, ...]
+
+
+class QuarterCarRoad(LinearModel):
+    """The full quarter car driven by the road (SPEC § 1, § 9).
+
+    state (v3, v2, v1, q3, q2, q1) (the order of ``/split/state0``), A = [[D, S], [I, 0]];
+    input: road u in metres, B = p_u e_v1 with p_u = p10 - p9, or, with ``scaled_road``, the
+    wheel forcing f = p_u u itself, B = e_v1; outputs (a3, a2, a1) = D v + S q + (0, 0, f):
+    C = [D, S], E = B's top half.
+    """
+
+    linear_in_params = True
+    param_names = tuple(f"p{i}" for i in range(1, 11))
+    state_names = ("v3", "v2", "v1", "q3", "q2", "q1")
+    output_names = ("a3", "a2", "a1")
+
+    def __init__(self, scaled_road: bool = False) -> None:
+        self.scaled_road = bool(scaled_road)
+        self.name = "quarter_car_scaled_road" if self.scaled_road else "quarter_car_road"
+        self.input_names = ("f",) if self.scaled_road else ("u",)
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        self.check_params(p)
+        A = system_matrix(p)
+        D, S = params_to_matrices(p)
+        gain = torch.ones_like(p[:, 0]) if self.scaled_road else road_gain(p)
+        zero = torch.zeros_like(gain)
+        B = torch.stack([zero, zero, gain, zero, zero, zero], -1)[..., None]  # out of place: vmap/jacfwd-safe
+        return A, B, torch.cat([D, S], -1), B[:, :3].clone()
+
+
+class SeatBaseExcitation(LinearModel):
+    """Road-free seat model (SPEC § 9): the chassis acceleration a2 drives the seat, a3 is read.
+
+    z = q3 - q2, state (dz/dt, z), params (p1, p2):  z'' = a3 - a2,  a3 = -p1 z' - p2 z, so
+    A = [[-p1, -p2], [1, 0]], B = (-1, 0), C = [-p1, -p2], E = 0 and
+    A3(s)/A2(s) = (p1 s + p2)/(s^2 + p1 s + p2).
+    """
+
+    name = "seat_base_excitation"
+    linear_in_params = True
+    param_names = ("p1", "p2")
+    state_names = ("dz", "z")
+    input_names = ("a2",)
+    output_names = ("a3",)
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        self.check_params(p)
+        p1, p2 = p.unbind(-1)
+        zero, one = torch.zeros_like(p1), torch.ones_like(p1)
+        A = torch.stack([torch.stack([-p1, -p2], -1), torch.stack([one, zero], -1)], -2)
+        B = torch.stack([-one, zero], -1)[..., None]
+        C = torch.stack([-p1, -p2], -1)[:, None, :]
+        return A, B, C, zero[:, None, None]
+
+
+class SprungBaseExcitation(LinearModel):
+    """Road-free sprung part (SPEC § 9): the wheel acceleration a1 drives seat and chassis.
+
+    State relative to the wheel, w3 = q3 - q1, w2 = q2 - q1, ordered (dw3, dw2, w3, w2);
+    params p1..p6. From SPEC § 1 (v3 - v2 = dw3 - dw2, v2 - v1 = dw2, q2 - q1 = w2):
+
+        a3 = -p1 (dw3 - dw2) - p2 (w3 - w2)
+        a2 =  p3 (dw3 - dw2) + p5 (w3 - w2) - p4 dw2 - p6 w2
+        w3'' = a3 - a1,   w2'' = a2 - a1
+
+    so C = the first two rows of A, B = (-1, -1, 0, 0), E = 0; outputs (a3, a2).
+    """
+
+    name = "sprung_base_excitation"
+    linear_in_params = True
+    param_names = tuple(f"p{i}" for i in range(1, 7))
+    state_names = ("dw3", "dw2", "w3", "w2")
+    input_names = ("a1",)
+    output_names = ("a3", "a2")
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        self.check_params(p)
+        p1, p2, p3, p4, p5, p6 = p.unbind(-1)
+        zero, one = torch.zeros_like(p1), torch.ones_like(p1)
+        C = torch.stack([
+            torch.stack([-p1, p1, -p2, p2], -1),
+            torch.stack([p3, -(p3 + p4), p5, -(p5 + p6)], -1),
+        ], -2)
+        kinematics = torch.stack([torch.stack([one, zero, zero, zero], -1),
+                                  torch.stack([zero, one, zero, zero], -1)], -2)
+        A = torch.cat([C, kinematics], -2)
+        B = torch.stack([-one, -one, zero, zero], -1)[..., None]
+        return A, B, C, torch.zeros(p.shape[0], 2, 1, dtype=p.dtype, device=p.device)

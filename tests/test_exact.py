@@ -1,0 +1,335 @@
+"""Exact discretisation layer: Jacobian (FD, autograd), continuous-time references, closed forms."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+
+from hybridqcm.estimation.exact import (HOLDS, discrete_maps, exact_outputs, exact_sensitivities, expm_taylor,
+                                        expm_with_tangents, spline_matrix)
+from hybridqcm.estimation.sensitivity import euler_accelerations
+from hybridqcm.estimation.synthetic import synthetic_samples
+from hybridqcm.physics import params_to_matrices, reference_params, road_gain, system_matrix
+from hybridqcm.physics.linear_models import (LinearModel, QuarterCarRoad, SeatBaseExcitation,
+                                             SprungBaseExcitation)
+
+H = 0.01
+F64 = torch.float64
+# low-frequency road made of sines, evaluated in continuous time: (amplitude m, frequency Hz, phase)
+SINES = ((0.010, 0.7, 0.3), (0.006, 1.9, 1.1), (0.003, 3.1, 2.0))
+
+
+def road(t):
+    """u(t) for a numpy or torch array of times."""
+    lib = torch if isinstance(t, torch.Tensor) else np
+    return sum(a * lib.sin(2 * math.pi * f * t + ph) for a, f, ph in SINES)
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return synthetic_samples(3, n_steps=40, seed=5)
+
+
+def _x0(batch, n, seed=0, scale=0.01):
+    return scale * torch.randn(batch, n, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+
+def _model_case(name, samples):
+    p = samples["params"]
+    u = samples["road"].to(F64)[..., None]
+    if name == "quarter":
+        return QuarterCarRoad(), p, u
+    if name == "quarter_scaled":
+        return QuarterCarRoad(scaled_road=True), p, road_gain(p)[:, None, None] * u
+    accel = samples["accel"].to(F64)
+    if name == "seat":
+        return SeatBaseExcitation(), p[:, :2], accel[..., 1:2]
+    return SprungBaseExcitation(), p[:, :6], accel[..., 2:3]
+
+
+def _reference_outputs(model, p, x0, w, h, hold, substeps):
+    """Plain differentiable implementation: torch.linalg.matrix_exp per sub-step, explicit loop."""
+    A, B, C, E = model.matrices(p)
+    n, m = model.n_state, model.n_input
+    m_sub = substeps if hold == "spline" else 1
+    tau = h / m_sub
+    b = p.shape[0]
+    zeros = lambda r, c: torch.zeros(b, r, c, dtype=F64)  # noqa: E731
+    M = torch.cat([torch.cat([A * tau, B * tau, zeros(n, m)], -1),
+                   torch.cat([zeros(m, n + m), torch.eye(m, dtype=F64).expand(b, m, m)], -1),
+                   zeros(m, n + 2 * m)], -2)
+    F = torch.linalg.matrix_exp(M)
+    phi, F1, F2 = F[:, :n, :n], F[:, :n, n:n + m], F[:, :n, n + m:]
+    g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
+    T = w.shape[1]
+    fine = torch.einsum("st,btc->bsc", spline_matrix(T, m_sub), w) if hold == "spline" else w
+    x = x0 if x0 is not None else torch.zeros(p.shape[0], n, dtype=F64)
+    ys = []
+    for k in range(T):
+        ys.append(torch.einsum("bon,bn->bo", C, x) + torch.einsum("bom,bm->bo", E, w[:, k]))
+        for j in range(m_sub if k < T - 1 else 0):
+            x = (torch.einsum("bij,bj->bi", phi, x) + torch.einsum("bij,bj->bi", g0, fine[:, k * m_sub + j])
+                 + torch.einsum("bij,bj->bi", g1, fine[:, k * m_sub + j + 1]))
+    return torch.stack(ys, 1)
+
+
+# ----------------------------------------------------------------------------- models
+def test_quarter_car_matrices_agree_with_parameters(samples):
+    p = samples["params"]
+    for scaled in (False, True):
+        A, B, C, E = QuarterCarRoad(scaled).matrices(p)
+        D, S = params_to_matrices(p)
+        torch.testing.assert_close(A, system_matrix(p), rtol=0, atol=0)
+        torch.testing.assert_close(C, torch.cat([D, S], -1), rtol=0, atol=0)
+        gain = torch.ones(3, dtype=F64) if scaled else road_gain(p)
+        expected_b = torch.zeros(3, 6, 1, dtype=F64)
+        expected_b[:, 2, 0] = gain
+        torch.testing.assert_close(B, expected_b, rtol=0, atol=0)
+        torch.testing.assert_close(E, expected_b[:, :3], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("model", [QuarterCarRoad(), QuarterCarRoad(True), SeatBaseExcitation(),
+                                   SprungBaseExcitation()], ids=lambda m: m.name)
+def test_linear_derivatives_match_jacfwd(model, samples):
+    p = samples["params"][:, :model.n_params]
+    closed = model.matrix_derivatives(p)
+    generic = LinearModel.matrix_derivatives.__get__(model)  # same method, forced through jacfwd below
+    model.linear_in_params = False
+    try:
+        jac = generic(p)
+    finally:
+        del model.linear_in_params
+    for c, j in zip(closed, jac):
+        assert c.shape == j.shape
+        torch.testing.assert_close(c, j, rtol=0, atol=1e-15)
+
+
+def test_euler_convention_rows_match_euler_layer(samples):
+    """C x + E w with the Euler states is the Euler layer's acceleration (same output map)."""
+    p, u = samples["params"], samples["road"].to(F64)
+    _, _, C, E = QuarterCarRoad().matrices(p)
+    x = torch.cat([samples["vel"], samples["disp"]], -1).to(F64)
+    y = torch.einsum("bon,btn->bto", C, x) + E[:, None, :, 0] * u[..., None]
+    torch.testing.assert_close(y, euler_accelerations(p, u, H), rtol=1e-6, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- matrix exponential
+def test_expm_taylor_and_tangents_against_torch():
+    g = torch.Generator().manual_seed(1)
+    M = torch.randn(5, 8, 8, generator=g, dtype=F64) * torch.tensor([0.1, 1.0, 6.0, 30.0, 0.0], dtype=F64)[:, None, None]
+    dM = torch.randn(5, 3, 8, 8, generator=g, dtype=F64)
+    ref = torch.linalg.matrix_exp(M)
+    torch.testing.assert_close(expm_taylor(M), ref, rtol=1e-12, atol=1e-13 * ref.abs().amax())
+    E, dE = expm_with_tangents(M, dM)
+    torch.testing.assert_close(E, ref, rtol=1e-12, atol=1e-13 * ref.abs().amax())
+    # Fréchet derivative: top-right block of exp([[M, dM], [0, M]]) ...
+    block = torch.zeros(5, 3, 16, 16, dtype=F64)
+    block[..., :8, :8] = M[:, None]
+    block[..., 8:, 8:] = M[:, None]
+    block[..., :8, 8:] = dM
+    frechet = torch.linalg.matrix_exp(block)[..., :8, 8:]
+    scale = frechet.abs().amax((-1, -2), keepdim=True)
+    torch.testing.assert_close(dE, frechet, rtol=1e-11, atol=1e-12 * scale.amax())
+    # ... and forward-mode autograd of torch.linalg.matrix_exp
+    for j in range(3):
+        _, jvp = torch.func.jvp(torch.linalg.matrix_exp, (M,), (dM[:, j],))
+        torch.testing.assert_close(dE[:, j], jvp, rtol=1e-11, atol=1e-12 * scale.amax())
+
+
+# ----------------------------------------------------------------------------- Jacobian
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "quarter_scaled", "seat", "sprung"])
+def test_jacobian_matches_autograd_through_matrix_exp(samples, case, hold):
+    model, p, w = _model_case(case, samples)
+    p, w = p[:2], w[:2]
+    x0 = _x0(2, model.n_state)
+    out = exact_sensitivities(model, p, x0, w, H, hold=hold, substeps=3)
+    assert out.shape == (2, w.shape[1], model.n_output, 1 + model.n_params + model.n_state) and out.dtype == F64
+    ref = _reference_outputs(model, p, x0, w, H, hold, 3)
+    torch.testing.assert_close(out[..., 0], ref, rtol=1e-10, atol=1e-10 * ref.abs().amax())
+    jac_p = torch.func.jacrev(lambda q: _reference_outputs(model, q, x0, w, H, hold, 3))(p)
+    jac_x = torch.func.jacrev(lambda x: _reference_outputs(model, p, x, w, H, hold, 3))(x0)
+    reference = torch.cat([torch.stack([jac_p[i, :, :, i] for i in range(2)]),
+                           torch.stack([jac_x[i, :, :, i] for i in range(2)])], -1)
+    scale = reference.abs().amax((0, 1, 2))
+    err = (out[..., 1:] - reference).abs().amax((0, 1, 2))
+    assert (err <= 1e-9 * scale + 1e-14).all(), f"relative errors {(err / scale).tolist()}"
+
+
+@pytest.mark.parametrize("hold", ["spline", "foh"])
+def test_jacobian_matches_finite_differences(samples, hold):
+    model, p, w = _model_case("quarter", samples)
+    x0 = _x0(3, 6, seed=2)
+    out = exact_sensitivities(model, p, x0, w, H, hold=hold)
+    for j in range(10):
+        step = 1e-5 * p[:, j]
+        plus, minus = p.clone(), p.clone()
+        plus[:, j] += step
+        minus[:, j] -= step
+        fd = (exact_outputs(model, plus, x0, w, H, hold) - exact_outputs(model, minus, x0, w, H, hold)) / (
+            2 * step)[:, None, None]
+        assert (out[..., 1 + j] - fd).abs().amax() <= 1e-6 * fd.abs().amax(), f"p{j + 1}"
+    for i in range(6):
+        plus, minus = x0.clone(), x0.clone()
+        plus[:, i] += 1e-3
+        minus[:, i] -= 1e-3
+        fd = (exact_outputs(model, p, plus, w, H, hold) - exact_outputs(model, p, minus, w, H, hold)) / 2e-3
+        assert (out[..., 11 + i] - fd).abs().amax() <= 1e-8 * fd.abs().amax(), f"x0[{i}]"
+    without = exact_sensitivities(model, p, x0, w, H, hold=hold, with_x0=False)
+    assert without.shape[-1] == 11
+    torch.testing.assert_close(without, out[..., :11], rtol=1e-13, atol=1e-13)
+
+
+# ----------------------------------------------------------------------------- continuous-time references
+def _continuous_quarter_car(p: torch.Tensor, t: np.ndarray) -> np.ndarray:
+    """Accelerations [len(t), 3] of the continuous quarter car from rest, road(t) in continuous time."""
+    A = system_matrix(p).numpy()
+    gain = float(road_gain(p))
+    b = np.zeros(6)
+    b[2] = gain
+    sol = solve_ivp(lambda s, x: A @ x + b * road(s), (t[0], t[-1]), np.zeros(6), method="DOP853",
+                    t_eval=t, rtol=1e-12, atol=1e-15)
+    x = sol.y.T
+    return x @ A[:3].T + np.outer(road(t), b[:3])
+
+
+def test_holds_converge_to_the_continuous_solution():
+    p = torch.stack([reference_params(), synthetic_samples(1, n_steps=2, seed=7)["params"][0]])
+    T = 100
+    t = np.arange(T) * H
+    reference = torch.tensor(np.stack([_continuous_quarter_car(p[i:i + 1][0], t) for i in range(2)]))
+    w = road(torch.tensor(t))[None, :, None].expand(2, T, 1)
+    model = QuarterCarRoad()
+
+    def rel_err(hold, substeps=4):
+        y = exact_outputs(model, p, None, w, H, hold, substeps)
+        return float((y - reference).norm() / reference.norm())
+
+    foh, zoh = rel_err("foh"), rel_err("zoh")
+    spline = [rel_err("spline", m) for m in (1, 2, 4, 8)]
+    assert spline[0] == pytest.approx(foh, rel=0.5)  # one sub-step of the spline is FOH on the samples
+    assert all(a > b for a, b in zip(spline, spline[1:])), spline  # decreasing with substeps
+    assert spline[2] < foh / 5 and foh < zoh / 5, (foh, zoh, spline)
+    assert spline[2] < 1e-3 and foh < 1e-2
+
+
+def test_euler_layer_converges_to_exact_as_h_goes_to_zero():
+    p = synthetic_samples(2, n_steps=2, seed=11)["params"]
+    errors = []
+    for h in (0.004, 0.002, 0.001):
+        t = torch.arange(round(1.0 / h)) * h
+        u = road(t)[None].expand(2, -1).to(F64)
+        exact = exact_outputs(QuarterCarRoad(), p, None, u[..., None], h, "spline")
+        errors.append(float((euler_accelerations(p, u, h) - exact).norm() / exact.norm()))
+    ratios = [a / b for a, b in zip(errors, errors[1:])]
+    assert all(1.7 < r < 2.3 for r in ratios), (errors, ratios)  # first order in h
+
+
+# ----------------------------------------------------------------------------- exactness
+def test_foh_is_exact_for_piecewise_linear_input():
+    """Seat model driven by a piecewise-linear a2: closed form per piece (particular solution
+    alpha + beta t of x' = A x + B (w0 + r t)), independent of Van Loan."""
+    model = SeatBaseExcitation()
+    p = torch.tensor([[7.7, 1237.0], [3.0, 400.0]], dtype=F64)
+    T = 30
+    knots = torch.randn(2, T, generator=torch.Generator().manual_seed(4), dtype=F64)
+    x0 = _x0(2, 2, seed=6, scale=0.1)
+    A, B, C, E = model.matrices(p)
+    x, expected = x0.clone(), []
+    for k in range(T):
+        expected.append(torch.einsum("bon,bn->bo", C, x) + E[:, :, 0] * knots[:, k:k + 1])
+        if k == T - 1:
+            break
+        rate = (knots[:, k + 1] - knots[:, k]) / H
+        beta = -torch.linalg.solve(A, B[..., 0] * rate[:, None])
+        alpha = torch.linalg.solve(A, beta - B[..., 0] * knots[:, k:k + 1])
+        x = torch.einsum("bij,bj->bi", torch.linalg.matrix_exp(A * H), x - alpha) + alpha + beta * H
+    expected = torch.stack(expected, 1)
+    y = exact_outputs(model, p, x0, knots[..., None], H, "foh")
+    torch.testing.assert_close(y, expected, rtol=0, atol=1e-12 * expected.abs().amax())
+    ys = exact_sensitivities(model, p, x0, knots[..., None], H, "foh")[..., 0]
+    torch.testing.assert_close(ys, expected, rtol=0, atol=1e-12 * expected.abs().amax())
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+def test_free_response_is_the_matrix_exponential(samples, hold):
+    p = samples["params"]
+    x0 = _x0(3, 6, seed=8)
+    T = 50
+    y = exact_outputs(QuarterCarRoad(), p, x0, torch.zeros(3, T, 1, dtype=F64), H, hold)
+    A, _, C, _ = QuarterCarRoad().matrices(p)
+    t = torch.arange(T, dtype=F64) * H
+    x = torch.einsum("btij,bj->bti", torch.linalg.matrix_exp(A[:, None] * t[None, :, None, None]), x0)
+    expected = torch.einsum("bon,btn->bto", C, x)
+    torch.testing.assert_close(y, expected, rtol=0, atol=1e-11 * expected.abs().amax())
+    sens = exact_sensitivities(QuarterCarRoad(), p, x0, torch.zeros(3, T, 1, dtype=F64), H, hold)
+    torch.testing.assert_close(sens[..., 0], expected, rtol=0, atol=1e-11 * expected.abs().amax())
+
+
+def test_spline_matrix_reproduces_cubics():
+    T, m = 9, 4
+    t = torch.arange(T, dtype=F64)
+    fine_t = torch.arange((T - 1) * m + 1, dtype=F64) / m
+    cubic = lambda s: 0.3 - 1.2 * s + 0.5 * s**2 - 0.07 * s**3  # noqa: E731
+    torch.testing.assert_close(spline_matrix(T, m) @ cubic(t), cubic(fine_t), rtol=0, atol=1e-12)
+    assert spline_matrix(T, m).shape == ((T - 1) * m + 1, T)
+
+
+# ----------------------------------------------------------------------------- base-excitation models
+def test_seat_transmissibility_closed_form():
+    model = SeatBaseExcitation()
+    p = torch.tensor([[7.7, 1237.0], [12.0, 800.0]], dtype=F64)
+    omega = 2 * math.pi * torch.tensor([1.5, 4.0], dtype=F64)
+    p1, p2 = p.unbind(-1)
+    denominator = -omega**2 + 1j * p1 * omega + p2
+    Z = -1 / denominator  # steady-state phasor of z for a2 = sin(omega t) = Im(e^{i omega t})
+    H_closed = (1j * p1 * omega + p2) / denominator
+    x0 = torch.stack([(1j * omega * Z).imag, Z.imag], -1)  # start on the steady state: no transient
+    t = torch.arange(200, dtype=F64) * H
+    a2 = torch.sin(omega[:, None] * t)
+    expected = (H_closed[:, None] * torch.exp(1j * omega[:, None] * t)).imag
+    # what is left is the FOH error on the sub-steps, ~(omega h/m)^2/12: it falls with m
+    for substeps, tol in ((4, 1e-3), (16, 1e-4)):
+        a3 = exact_outputs(model, p, x0, a2[..., None], H, "spline", substeps)[..., 0]
+        torch.testing.assert_close(a3, expected, rtol=0, atol=tol * expected.abs().amax())
+
+
+def test_sprung_model_reproduces_quarter_car_simulation():
+    p = torch.stack([reference_params(), synthetic_samples(1, n_steps=2, seed=3)["params"][0]])
+    T = 100
+    t = np.arange(T) * H
+    a_full = torch.tensor(np.stack([_continuous_quarter_car(p[i], t) for i in range(2)]))  # [2, T, (a3, a2, a1)]
+    y = exact_outputs(SprungBaseExcitation(), p[:, :6], None, a_full[..., 2:3], H, "spline")
+    err = (y - a_full[..., :2]).norm() / a_full[..., :2].norm()
+    assert err < 1e-3, float(err)
+
+
+# ----------------------------------------------------------------------------- validation
+def test_bad_input_raises_one_line_errors(samples):
+    model, p, w = _model_case("quarter", samples)
+    bad = [
+        dict(params=p[:, :9]), dict(inputs=w[:2]), dict(inputs=w[..., 0, None, None]), dict(x0=torch.zeros(3, 5)),
+        dict(h=0.0), dict(h=-0.01), dict(h=float("nan")), dict(hold="cubic"), dict(substeps=0), dict(substeps=1.5),
+        dict(inputs=torch.zeros(3, 0, 1)),
+    ]
+    for fn in (exact_outputs, exact_sensitivities):
+        for override in bad:
+            kwargs = dict(model=model, params=p, x0=None, inputs=w, h=H, hold="spline", substeps=4)
+            kwargs.update(override)
+            with pytest.raises(ValueError) as info:
+                fn(**kwargs)
+            assert "\n" not in str(info.value) and str(info.value).startswith("exact:"), override
+    with pytest.raises(ValueError, match="params must be"):
+        QuarterCarRoad().matrices(p[:, :9])
+
+
+def test_single_sample_and_two_dimensional_input(samples):
+    model, p, w = _model_case("quarter", samples)
+    y = exact_outputs(model, p, None, w[:, :1], H)
+    assert y.shape == (3, 1, 3)
+    torch.testing.assert_close(exact_outputs(model, p, None, w[..., 0], H), exact_outputs(model, p, None, w, H))
+    maps = discrete_maps(model, p, H, "spline", 4)
+    assert maps[0].shape == (3, 6, 6) and maps[1].shape == (3, 5, 6, 1)
