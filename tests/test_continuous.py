@@ -128,3 +128,36 @@ def test_bad_input_is_one_line():
     with pytest.raises(ValueError, match="warmup"):
         simulate_continuous(p, one, one, torch.tensor([1.0]), 10, 0.01, -1.0)
     assert math.isfinite(float(simulate_continuous(p, one, one, torch.tensor([1.0]), 10, 0.01).accel.abs().max()))
+
+
+def test_euler_mid_drive_is_the_recursion_from_rest_cut_after_the_warmup():
+    from hybridqcm.data.simulate import simulate_samples
+    from hybridqcm.physics.integrators import simulate
+
+    prior, road = build_prior("thesis", h=0.01), RoadProfile(n_waves=60)
+    out = simulate_samples(prior, road, torch.tensor([0, 1]), 40, 0.01, SPEED, torch.Generator().manual_seed(5), 3,
+                           physics="euler", warmup_s=(0.5, 2.0))
+    g = torch.Generator().manual_seed(5)
+    amplitude, phase = road.draw(torch.tensor([0, 1]), g)               # same draws, same order
+    for i in range(6):
+        steps = int(round(float(out["warmup"][i]) / 0.01))
+        assert 50 <= steps <= 200
+        s = SPEED * 0.01 * torch.arange(steps + 40, dtype=torch.float64)
+        u = road.evaluate(amplitude[i // 3:i // 3 + 1], phase[i // 3:i // 3 + 1], s)
+        ref = simulate(out["params"][i:i + 1], u, 0.01)
+        torch.testing.assert_close(out["accel"][i], ref.accel[0, steps:], rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(out["road"][i], u[0, steps:], rtol=1e-9, atol=1e-14)
+        torch.testing.assert_close(out["state0"][i], torch.cat([ref.vel[0, steps], ref.disp[0, steps]]), rtol=1e-9, atol=1e-14)
+
+
+def test_euler_at_100_hz_is_another_vehicle():
+    """The Euler recursion at 100 Hz is another vehicle (SPEC §9): several % apart in a3, a1."""
+    from hybridqcm.data.simulate import simulate_samples
+
+    prior, road = build_prior("thesis", h=0.01), RoadProfile()
+    kw = dict(n_steps=400, h=0.01, speed_mps=SPEED, samples_per_profile=20, warmup_s=(0.0, 0.0))
+    euler = simulate_samples(prior, road, torch.tensor([0, 1]), generator=torch.Generator().manual_seed(6), physics="euler", **kw)
+    exact = simulate_samples(prior, road, torch.tensor([0, 1]), generator=torch.Generator().manual_seed(6), physics="continuous", **kw)
+    torch.testing.assert_close(euler["params"], exact["params"])
+    rel = ((euler["accel"] - exact["accel"]).pow(2).mean((0, 1)) / exact["accel"].pow(2).mean((0, 1))).sqrt()
+    assert 0.01 < float(rel[0]) < 0.5 and 0.05 < float(rel[2]) < 0.6, rel

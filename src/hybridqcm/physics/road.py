@@ -61,6 +61,8 @@ class RoadProfile:
         phase = 2 * math.pi * torch.rand(road_class.shape[0], self.n_waves, generator=generator, dtype=torch.float64)
         return self.amplitudes(road_class), phase
 
+    _draw = draw  # the earlier private name
+
     @staticmethod
     def _distance(n_steps: int, h: float, speed_mps: float) -> Tensor:
         if n_steps < 1 or h <= 0 or speed_mps <= 0:
