@@ -14,6 +14,7 @@ for the CAE / U-Net, per_sample_mse.csv, mse_summary.{csv,md}, mse_hist_<channel
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
@@ -175,7 +176,7 @@ def train(cfg) -> dict[str, float]:
             "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],
             "train_seconds": train_seconds, "steps": trainer.global_step, "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
             "denoiser_ckpt": cfg.get("denoiser_ckpt"), "noise_sigma": getattr(datamodule, "noise_sigma", None),
-            "sensor": vars(datamodule.sensor) if getattr(datamodule, "sensor", None) is not None else None,
+            "sensor": dataclasses.asdict(datamodule.sensor) if getattr(datamodule, "sensor", None) is not None else None,
             "data_path": getattr(datamodule, "path", None) and str(datamodule.path),
             "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
             "device": str(model.device), "metrics": test_metrics,
