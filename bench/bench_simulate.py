@@ -4,6 +4,7 @@ and writing the full reference dataset.
     .venv/bin/python bench/bench_simulate.py            # full scale (34 000 x 500 integrator, 51 000 x 512 file)
     .venv/bin/python bench/bench_simulate.py --quick    # reduced scale, ~1 min
     .venv/bin/python bench/bench_simulate.py --skip-write
+    .venv/bin/python bench/bench_simulate.py --physics-only --scale 0.05   # euler vs continuous datasets only
 
 Prints absolute figures and ratios side by side, plus the machine load (other processes may share
 the CPU; the load average is printed before and after).
@@ -137,12 +138,34 @@ def bench_write(scale: float, directory: Path) -> None:
     path.unlink()
 
 
+def bench_physics(scale: float, directory: Path) -> None:
+    """write_dataset with physics=euler (from rest) and physics=continuous (mid-drive, warm-up 2-20 s), side by side."""
+    profiles, per_profile = _reference_protocol()
+    splits = {s: {"profiles": {c: max(1, round(n * scale)) for c, n in p["profiles"].items()}} for s, p in profiles.items()}
+    total = sum(sum(s["profiles"].values()) for s in splits.values()) * per_profile
+    print(f"\n== physics: {total} samples x 512 steps, both splits, gzip level 1, thesis prior, seed 0")
+    print(f"{'physics':<40}{'seconds':>10}{'samples/s':>12}{'ratio':>8}")
+    times = {}
+    for physics, warmup, prior_h in (("euler", (0.0, 0.0), H), ("continuous", (2.0, 20.0), None)):
+        path = directory / f"{physics}.h5"
+        start = time.perf_counter()
+        write_dataset(path, splits, build_prior("thesis", h=prior_h), RoadProfile(), n_steps=512, h=H, speed_mps=SPEED,
+                      samples_per_profile=per_profile, seed=0, progress=False, physics=physics, warmup_s=warmup)
+        times[physics] = time.perf_counter() - start
+        path.unlink()
+        label = f"{physics} (warm-up {warmup[0]:g}-{warmup[1]:g} s)"
+        print(f"{label:<40}{times[physics]:10.1f}{total / times[physics]:12.0f}{times[physics] / times['euler']:7.2f}x")
+    print(f"continuous / euler = {times['continuous'] / times['euler']:.2f} (target <= 2)")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="reduced scale (3 400 samples, 1/10 of the dataset)")
     parser.add_argument("--skip-write", action="store_true", help="skip the dataset-writing benchmark")
     parser.add_argument("--batch", type=int, default=3400, help="integrator batch size (samples per simulate call)")
     parser.add_argument("--write-only", action="store_true", help="only the dataset-writing benchmark")
+    parser.add_argument("--physics-only", action="store_true", help="only the euler vs continuous dataset comparison")
+    parser.add_argument("--scale", type=float, default=None, help="fraction of the reference protocol for --physics-only")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads (default: torch's choice); 1 gives steadier figures on a shared CPU")
     parser.add_argument("--dir", type=Path, default=None, help="where to write the temporary dataset")
@@ -153,12 +176,18 @@ def main() -> int:
           f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
     print(f"before: {load()}")
     n = 3400 if args.quick else 34000
+    if args.physics_only:
+        with tempfile.TemporaryDirectory(dir=args.dir) as directory:
+            bench_physics(args.scale or (0.1 if args.quick else 1.0), Path(directory))
+        print(f"\nafter: {load()}")
+        return 0
     if not args.write_only:
         bench_integrator(n, 500, min(args.batch, n), n_loop=100 if args.quick else 200)
         bench_road(34 if args.quick else 340, 512)
     if not args.skip_write:
         with tempfile.TemporaryDirectory(dir=args.dir) as directory:
             bench_write(0.1 if args.quick else 1.0, Path(directory))
+            bench_physics(0.1 if args.quick else 1.0, Path(directory))
     print(f"\nafter: {load()}")
     return 0
 

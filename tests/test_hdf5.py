@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hybridqcm.data import simulate as simulate_module
-from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, DatasetError, DatasetWriter, dataset_info, read_split
+from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, DatasetError, DatasetWriter, dataset_info, read_split, recorded_channels
 
 from conftest import write_tiny_dataset
 
@@ -25,6 +25,7 @@ def random_split(m: int, n: int, seed: int = 0) -> dict[str, np.ndarray]:
         "params": rng.uniform(1, 2, size=(m, 10)),
         "road_class": rng.integers(0, 3, size=m).astype(np.int8),
         "profile_id": np.arange(m, dtype=np.int32),
+        "state0": rng.normal(size=(m, 6)),
     }
 
 
@@ -235,9 +236,9 @@ def test_not_hdf5(tmp_path):
 
 
 def test_wrong_schema_version(tmp_path):
-    path = tmp_path / "v2.h5"
-    write_plain(path, {"test": random_split(2, 8)}, attrs={"schema": "hybridqcm.dataset/2"})
-    with pytest.raises(DatasetError, match=r"v2.h5: attribute schema = 'hybridqcm.dataset/2' is not supported"):
+    path = tmp_path / "v3.h5"
+    write_plain(path, {"test": random_split(2, 8)}, attrs={"schema": "hybridqcm.dataset/3"})
+    with pytest.raises(DatasetError, match=r"v3.h5: attribute schema = 'hybridqcm.dataset/3' is not supported"):
         read_split(path)
     with pytest.raises(DatasetError, match="schema"):
         dataset_info(path)
@@ -292,3 +293,58 @@ def test_split_that_is_not_a_group(tmp_path):
         f.create_dataset("test", data=np.zeros(3))
     with pytest.raises(DatasetError, match="not a group"):
         read_split(path, "test")
+
+
+def test_schema_1_files_still_read_and_say_euler_from_rest(tmp_path):
+    path = tmp_path / "v1.h5"
+    split = random_split(3, 8)
+    write_plain(path, {"test": split}, attrs={"schema": "hybridqcm.dataset/1", "h": 0.01, "integrator": "semi_explicit_euler",
+                                              "created_by": "hybridqcm 0.1 qcm-simulate (me@here)"})
+    np.testing.assert_array_equal(read_split(path, "test", ("accel",))["accel"], split["accel"])
+    info = dataset_info(path)
+    assert (info["physics"], info["initial_state"]) == ("euler", "rest")
+
+
+def test_a_logger_file_is_continuous_with_unknown_initial_state(tmp_path):
+    path = tmp_path / "logger.h5"
+    accel = random_split(4, 16)["accel"]
+    accel[..., 2] = np.nan                                              # no wheel accelerometer
+    write_plain(path, {"drive": {"accel": accel}}, attrs={"h": 0.002})  # no road, no params, no physics
+    info = dataset_info(path)
+    assert (info["physics"], info["initial_state"]) == ("continuous", "unknown")
+    out = read_split(path, "drive", ("accel",))
+    assert out["h"] == 0.002 and np.isnan(out["accel"][..., 2]).all()
+    assert recorded_channels(path, "drive") == ["a3", "a2"]
+    accel[1, 3, 0] = np.nan                                             # a gap in a recorded channel is still an error
+    write_plain(tmp_path / "gap.h5", {"drive": {"accel": accel}})
+    with pytest.raises(DatasetError, match=r"gap.h5: /drive/accel contains non-finite values \(first at index \(1, 3, 0\)"):
+        read_split(tmp_path / "gap.h5", "drive", ("accel",))
+
+
+@pytest.mark.parametrize("h,shown", [("0.01", "'0.01'"), (0.0, "0.0"), (-0.01, "-0.01"), (np.inf, "inf")])
+def test_attribute_h_must_be_a_positive_number(tmp_path, h, shown):
+    path = tmp_path / "h.h5"
+    write_plain(path, {"test": random_split(2, 8)}, attrs={"h": h})
+    with pytest.raises(DatasetError, match=rf"h.h5: attribute h = {shown} must be a positive number"):
+        read_split(path, "test", ("accel",))
+    with pytest.raises(DatasetError, match="attribute h"):
+        dataset_info(path)
+
+
+def test_accel_dtype_must_be_floating(tmp_path):
+    path = tmp_path / "int.h5"
+    write_plain(path, {"test": {"accel": np.zeros((2, 8, 3), np.int16)}})
+    with pytest.raises(DatasetError, match=r"int.h5: /test/accel has dtype int16; expected float32 or float64"):
+        read_split(path, "test", ("accel",))
+
+
+def test_schema_2_attributes_and_state0(tmp_path):
+    path = tmp_path / "c.h5"
+    write_tiny_dataset(path, physics="continuous", warmup_s=(1.0, 4.0), n_steps=64)
+    info = dataset_info(path)
+    assert info["attrs"]["schema"] == SCHEMA == "hybridqcm.dataset/2"
+    assert (info["physics"], info["initial_state"]) == ("continuous", "mid-drive")
+    assert info["attrs"]["warmup_s"] == [1.0, 4.0] and info["attrs"]["integrator"] == "exact"
+    out = read_split(path, "test", ("state0", "vel", "disp"))
+    assert out["state0"].dtype == np.float64 and out["state0"].shape[1] == 6
+    np.testing.assert_allclose(out["state0"], np.concatenate([out["vel"][:, 0], out["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9)

@@ -77,6 +77,10 @@ BAD_INPUTS = [
     ("profiles_per_chunk=0", "profiles_per_chunk must be >= 1, got 0"),
     ("integrator=euler", "unknown integrator 'euler'"),
     ("prior_options.sigma=-0.5", "prior sigma must be >= 0"),
+    ("physics=exact", "physics = 'exact' is not known; choose one of ['continuous', 'euler']"),
+    ("window.warmup_s=[-1,2]", "window.warmup_s must be a range 0 <= low <= high"),
+    ("window.warmup_s=[5,2]", "window.warmup_s must be a range 0 <= low <= high"),
+    ("window.warmup_s=-3", "window.warmup_s must be a range 0 <= low <= high"),
 ]
 
 
@@ -118,3 +122,30 @@ def test_refuses_to_overwrite_existing_output(tmp_path):
     result = qcm_simulate(tmp_path, "overwrite=true", "n_steps=32")
     assert result.returncode == 0, result.stderr
     assert dataset_info(out)["splits"]["test"]["n_steps"] == 32
+
+
+@pytest.mark.parametrize("h", [0.005, 0.002, 0.001])
+def test_logger_rates_continuous_mid_drive(tmp_path, h):
+    n_steps = int(round(0.64 / h))                                  # the same 0.64 s window at every rate
+    result = qcm_simulate(tmp_path, f"h={h}", f"n_steps={n_steps}", "samples_per_profile=2")
+    assert result.returncode == 0, result.stderr
+    out = tmp_path / "data" / "out.h5"
+    info = dataset_info(out)
+    assert info["physics"] == "continuous" and info["initial_state"] == "mid-drive"
+    assert info["attrs"]["h"] == h and info["attrs"]["warmup_s"] == [2.0, 20.0]
+    data = read_split(out, "test", ("accel", "vel", "disp", "state0"))
+    assert data["accel"].shape[1] == n_steps
+    np.testing.assert_allclose(data["state0"], np.concatenate([data["vel"][:, 0], data["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9)
+    assert np.abs(data["state0"]).min(0).max() > 0                   # windows start while moving
+    # the signal is the same physical process at every rate: accel RMS within a factor 2 of 100 Hz
+    assert 0.02 < float(np.sqrt((data["accel"][..., 0] ** 2).mean())) < 1.0
+
+
+def test_euler_from_rest_keeps_the_source_protocol(tmp_path):
+    result = qcm_simulate(tmp_path, "physics=euler", "n_steps=64")
+    assert result.returncode == 0, result.stderr
+    info = dataset_info(tmp_path / "data" / "out.h5")
+    assert info["physics"] == "euler" and info["initial_state"] == "rest"
+    assert info["attrs"]["integrator"] == "semi_explicit_euler" and info["attrs"]["warmup_s"] == [0.0, 0.0]
+    data = read_split(tmp_path / "data" / "out.h5", "train", ("accel", "state0"))
+    assert not data["state0"].any() and np.abs(data["accel"][:, 0, :2]).max() == 0

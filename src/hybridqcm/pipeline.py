@@ -75,7 +75,7 @@ def demo_stages(root: str = "outputs/demo", dataset: str = "data/demo.h5", prese
     train_time bounds each training run (Lightning's DD:HH:MM:SS)."""
     minutes = train_time
     return [
-        Stage("simulate", "qcm-simulate", [f"preset={preset}", f"output={dataset}"], f"{root}/simulate", [os.path.abspath(dataset)], 0.5),
+        Stage("simulate", "qcm-simulate", [f"preset={preset}", f"output={dataset}", "physics=euler"], f"{root}/simulate", [os.path.abspath(dataset)], 0.5),
         _train("exp2_physics", "exp2_physics", dataset, root, 4.5, "5.2", "exp2", "physics-residual CNN clean",
                extra=[f"trainer.max_time={minutes}"]),
         _train("exp9_unet", "exp9_unet", dataset, root, 4.5, None, "exp9", "U-Net completion",
@@ -88,7 +88,7 @@ def demo_stages(root: str = "outputs/demo", dataset: str = "data/demo.h5", prese
 
 def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/reference.h5") -> list[Stage]:
     """The reference protocol (51 000 samples): every experiment, noise sweeps, CPU-scale training recipes."""
-    s = [Stage("simulate", "qcm-simulate", [f"output={dataset}"], f"{root}/simulate", [os.path.abspath(dataset)], 1.5)]
+    s = [Stage("simulate", "qcm-simulate", [f"output={dataset}", "physics=euler"], f"{root}/simulate", [os.path.abspath(dataset)], 1.5)]
     # CPU recipes train on freshly simulated samples (the dataset file plays no part in training), then
     # every checkpoint is tested on the reference test split by its own stage.
     train = {name: Stage(f"train_{name}", "qcm-train", [f"experiment={name}"], f"{root}/train_{name}",

@@ -2,7 +2,9 @@
 
 Examples:
     qcm-simulate                                   # reference protocol (51 000 samples)
-    qcm-simulate preset=small                      # data/small.h5
+    qcm-simulate preset=small                      # data/small.h5 (continuous physics, windows mid-drive)
+    qcm-simulate preset=small physics=euler                  # the source protocol: Euler from rest
+    qcm-simulate h=0.002 n_steps=2560              # a 500 Hz logger (same 5.12 s window)
     qcm-simulate output=data/mine.h5 seed=7 prior=physical overwrite=true
     qcm-simulate --cfg job                         # show the resolved configuration
 """
@@ -16,7 +18,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
-from hybridqcm.data.simulate import kmh_to_mps, write_dataset
+from hybridqcm.data.simulate import DEFAULT_WARMUP_S, check_physics, check_warmup, kmh_to_mps, write_dataset
 from hybridqcm.physics.parameters import PARAM_NAMES
 from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.road import RoadProfile
@@ -42,14 +44,19 @@ def run(cfg: DictConfig) -> dict:
     for key in ("h", "speed_kmh"):
         if not _number(cfg, key, float) > 0:
             raise ValueError(f"{key} must be > 0, got {cfg[key]}")
+    physics = check_physics(str(cfg.physics))
+    warmup_s = OmegaConf.to_container(cfg.window, resolve=True).get("warmup_s")
+    warmup_s = check_warmup(DEFAULT_WARMUP_S[physics] if warmup_s is None else warmup_s)
     options = OmegaConf.to_container(cfg.prior_options, resolve=True)
-    prior = build_prior(cfg.prior, h=float(cfg.h), mass_range=tuple(options.pop("mass_range")), **options)
+    # continuous physics: the prior checks the eigenvalues of A only (no Euler step map to keep stable)
+    prior = build_prior(cfg.prior, h=float(cfg.h) if physics == "euler" else None,
+                        mass_range=tuple(options.pop("mass_range")), **options)
     splits = OmegaConf.to_container(cfg.splits, resolve=True)
     summaries = write_dataset(
         output, splits, prior, RoadProfile(n_waves=int(cfg.road.n_waves)), n_steps=int(cfg.n_steps), h=float(cfg.h),
         speed_mps=kmh_to_mps(cfg.speed_kmh), samples_per_profile=int(cfg.samples_per_profile), seed=int(cfg.seed),
         overwrite=bool(cfg.overwrite), profiles_per_chunk=int(cfg.profiles_per_chunk), method=cfg.integrator,
-        progress=bool(cfg.progress), compression=cfg.compression,
+        progress=bool(cfg.progress), compression=cfg.compression, physics=physics, warmup_s=warmup_s,
     )
     summary = {split: s.as_dict() for split, s in summaries.items()}
     rows = []

@@ -4,6 +4,7 @@
     qcm-train experiment=exp1_labelled_reference data.path=data/reference.h5   # source scale
     qcm-train experiment=exp1_labelled train=false ckpt_path=CKPT data.path=FILE data.noise_sigma=0.05 [denoiser_ckpt=CKPT]
     qcm-train -m experiment=exp2_physics data.noise_sigma=0,0.01,0.05,0.1     # one run folder per job + summary.csv
+    qcm-train experiment=exp2_physics train=false ckpt_path=CKPT data.path=FILE sensor=additive sensor.sigma=0.05
     qcm-train experiment=exp1_labelled debug=fdr            # fast_dev_run
 
 Run folder (hydra.run.dir): checkpoints/{best-*.ckpt,last.ckpt}, tensorboard/, test_metrics.json and,
@@ -13,6 +14,7 @@ for the CAE / U-Net, per_sample_mse.csv, mse_summary.{csv,md}, mse_hist_<channel
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import logging
@@ -174,6 +176,7 @@ def train(cfg) -> dict[str, float]:
             "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],
             "train_seconds": train_seconds, "steps": trainer.global_step, "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
             "denoiser_ckpt": cfg.get("denoiser_ckpt"), "noise_sigma": getattr(datamodule, "noise_sigma", None),
+            "sensor": dataclasses.asdict(datamodule.sensor) if getattr(datamodule, "sensor", None) is not None else None,
             "data_path": getattr(datamodule, "path", None) and str(datamodule.path),
             "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
             "device": str(model.device), "metrics": test_metrics,

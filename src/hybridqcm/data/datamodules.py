@@ -11,7 +11,12 @@ checkpoint accepts raw data at inference):
     index   int64   [B]            sample index within its split (for predictions.csv)
 
 Noise: training batches draw fresh eta every time; validation/test noise is drawn once from a
-seeded generator, so a metric at sigma > 0 is reproducible.
+seeded generator, so a metric at sigma > 0 is reproducible. Two ways to ask for it:
+`noise_sigma` (the source's multiplicative a (1 + eta), kept bit-for-bit for the reproduction
+tables) or `sensor` (data/sensor.py: additive / multiplicative noise, bias, quantisation; the noise
+of a sample depends only on (sensor.seed, sample index), whatever the batching). Not both.
+`train_additive_max` > 0 adds, to training batches only, additive noise of a per-sample level
+drawn from U[0, max] times the channel RMS (augmentation for realistic sensors).
 
 Normalisation statistics (per channel mean/std of inputs and targets over the training split)
 are computed in `setup` and kept in `stats` (and in the datamodule's state_dict, hence in
@@ -32,6 +37,7 @@ from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_in
 from hybridqcm.data.channels import (ChannelError, is_param, required_keys, select_channels, select_params,
                                      validate_channels)
 from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
+from hybridqcm.data.sensor import SensorModel, additive_augmentation, apply_to_channels, build_sensor
 
 log = logging.getLogger(__name__)
 
@@ -129,14 +135,20 @@ def channel_stats(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor
 class TensorBatches(Dataset):
     """In-memory samples; fetched a batch at a time (`__getitems__`), noise applied per batch."""
 
-    def __init__(self, tensors: Mapping[str, torch.Tensor], noise_sigma: float = 0.0, fixed_noise_seed: int | None = None) -> None:
+    def __init__(self, tensors: Mapping[str, torch.Tensor], noise_sigma: float = 0.0, fixed_noise_seed: int | None = None,
+                 sensor: SensorModel | None = None, names: Sequence[str] = (), augment_max: float = 0.0) -> None:
         self.tensors = dict(tensors)
         self.noise_sigma = float(noise_sigma)
+        self.sensor = sensor if sensor is not None and sensor.active else None
+        self.names, self.augment_max = tuple(names), float(augment_max)
         self.n = int(self.tensors["x"].shape[0])
         self.noisy_x = None
         if self.noise_sigma > 0 and fixed_noise_seed is not None:
             generator = torch.Generator().manual_seed(int(fixed_noise_seed))
             self.noisy_x = apply_noise(self.tensors["x"], self.noise_sigma, generator)
+        if self.sensor is not None and fixed_noise_seed is not None:
+            self.noisy_x = apply_to_channels(self.sensor, self.tensors["x"], self.names, self.tensors["index"],
+                                             salt=int(fixed_noise_seed))
 
     def __len__(self) -> int:
         return self.n
@@ -148,6 +160,11 @@ class TensorBatches(Dataset):
             batch["x"] = self.noisy_x[idx]
         elif self.noise_sigma > 0:
             batch["x"] = apply_noise(batch["x"], self.noise_sigma)
+        elif self.sensor is not None:  # training: fresh noise per batch (the salt comes from the seeded global RNG)
+            salt = int(torch.randint(1, 2 ** 62, ()))
+            batch["x"] = apply_to_channels(self.sensor, batch["x"], self.names, batch["index"], salt)
+        if self.augment_max > 0:
+            batch["x"] = additive_augmentation(batch["x"], self.names, self.augment_max)
         return batch
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
@@ -160,13 +177,21 @@ class _BaseDataModule(LightningDataModule):
     def __init__(self, inputs: Sequence[str] = ("a3", "a2"), targets: Sequence[str] | None = ("p1", "p2"),
                  aux: Sequence[str] | None = None, window: int = 500, noise_sigma: float = 0.0,
                  batch_size: int = 256, eval_batch_size: int | None = None, num_workers: int = 0,
-                 pin_memory: bool = False, seed: int = 0, targets_optional: bool = False, stats_samples: int = 2048) -> None:
+                 pin_memory: bool = False, seed: int = 0, targets_optional: bool = False, stats_samples: int = 2048,
+                 sensor: Mapping | SensorModel | None = None, train_additive_max: float = 0.0) -> None:
         super().__init__()
         self.spec = ChannelSpec(inputs, targets, aux, targets_optional)
         self.window = int(window)
         if self.window < 1:
             raise ValueError(f"{type(self).__name__}: window must be >= 1, got {window}")
         self.noise_sigma = _check_sigma(noise_sigma, type(self).__name__)
+        self.sensor = build_sensor(sensor)
+        if self.sensor.active and self.noise_sigma > 0:
+            raise ValueError(f"{type(self).__name__}: noise_sigma = {self.noise_sigma} and sensor.kind = {self.sensor.kind!r} "
+                             f"both add noise; use one (noise_sigma is the source's multiplicative model)")
+        self.train_additive_max = float(train_additive_max)
+        if not (math.isfinite(self.train_additive_max) and self.train_additive_max >= 0):
+            raise ValueError(f"{type(self).__name__}: train_additive_max must be a finite number >= 0, got {train_additive_max}")
         if int(batch_size) < 1:
             raise ValueError(f"{type(self).__name__}: batch_size must be >= 1, got {batch_size}")
         self.batch_size = int(batch_size)
@@ -286,13 +311,16 @@ class HDF5DataModule(_BaseDataModule):
             train, val = self._carve(self._read(self.train_split, self.limit_train, info))
             self._train_tensors = train
             self.stats = channel_stats(train)
-            self.data_train = TensorBatches(train, self.noise_sigma)
-            self.data_val = TensorBatches(val, self.noise_sigma, fixed_noise_seed=self.seed + 1)
+            self.data_train = TensorBatches(train, self.noise_sigma, sensor=self.sensor, names=self.spec.inputs,
+                                            augment_max=self.train_additive_max)
+            self.data_val = TensorBatches(val, self.noise_sigma, fixed_noise_seed=self.seed + 1, sensor=self.sensor,
+                                          names=self.spec.inputs)
             log.info("HDF5DataModule %s: %d train / %d val samples, window %d, sigma %g",
                      self.path, len(self.data_train), len(self.data_val), self.window, self.noise_sigma)
         if "test" in stages and self.data_test is None:
             test = self._read(self.test_split, self.limit_test, info)
-            self.data_test = TensorBatches(test, self.noise_sigma, fixed_noise_seed=self.seed + 2)
+            self.data_test = TensorBatches(test, self.noise_sigma, fixed_noise_seed=self.seed + 2, sensor=self.sensor,
+                                           names=self.spec.inputs)
             log.info("HDF5DataModule %s: %d test samples", self.path, len(self.data_test))
 
     def train_dataloader(self) -> DataLoader:
@@ -316,8 +344,10 @@ class SimulatedStream(IterableDataset):
     """
 
     def __init__(self, simulator: "StreamSimulator", spec: ChannelSpec, batch_size: int, batches_per_epoch: int,
-                 noise_sigma: float, seed: int) -> None:
+                 noise_sigma: float, seed: int, sensor: SensorModel | None = None, augment_max: float = 0.0) -> None:
         self.simulator, self.spec = simulator, spec
+        self.sensor = sensor if sensor is not None and sensor.active else None
+        self.augment_max = float(augment_max)
         self.batch_size, self.batches_per_epoch = int(batch_size), int(batches_per_epoch)
         self.noise_sigma, self.seed = float(noise_sigma), int(seed)
         self._passes = 0
@@ -351,6 +381,11 @@ class SimulatedStream(IterableDataset):
             arrays = self.simulator(self.batch_size, generator)
             batch = self.spec.build(arrays, torch.full((self.batch_size,), -1, dtype=torch.long))
             batch["x"] = apply_noise(batch["x"], self.noise_sigma, generator)
+            if self.sensor is not None:  # fresh, seeded noise: random sample ids from the stream's generator
+                ids = torch.randint(0, 2 ** 62, (self.batch_size,), generator=generator)
+                batch["x"] = apply_to_channels(self.sensor, batch["x"], self.spec.inputs, ids, salt=self.seed)
+            if self.augment_max > 0:
+                batch["x"] = additive_augmentation(batch["x"], self.spec.inputs, self.augment_max, generator)
             yield batch
 
 
@@ -358,14 +393,21 @@ class StreamSimulator:
     """Callable (n, generator) -> arrays dict of n fresh samples (picklable, for DataLoader workers)."""
 
     def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, n_steps: int = 500,
-                 h: float = 0.01, speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", n_waves: int = 1000) -> None:
+                 h: float = 0.01, speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", n_waves: int = 1000,
+                 physics: str = "euler", warmup_s: float | Sequence[float] = 0.0) -> None:
+        from hybridqcm.data.simulate import check_physics, check_warmup
         from hybridqcm.physics import RoadProfile, build_prior, road_class_index
 
+        self.physics = check_physics(physics)
+        self.warmup_s = check_warmup(warmup_s, "data.warmup_s")
+        if not float(h) > 0:
+            raise ValueError(f"data.h must be > 0, got {h}")
         prior = dict(prior or {"name": "thesis"})
         name = prior.pop("name", "thesis")
         if "mass_range" in prior:
             prior["mass_range"] = tuple(prior["mass_range"])
-        self.prior = build_prior(name, h=h, **prior)
+        # continuous physics: only the eigenvalues of A need be stable (no Euler step map)
+        self.prior = build_prior(name, h=h if physics == "euler" else None, **prior)
         road_classes = dict(road_classes or {"A": 200, "B": 140, "C": 60})
         weights = [float(w) for w in road_classes.values()]
         if any(w < 0 for w in weights) or sum(weights) <= 0:
@@ -381,7 +423,7 @@ class StreamSimulator:
         pick = torch.multinomial(self.class_weights, n, replacement=True, generator=generator)
         classes = self.class_index[pick]
         arrays = simulate_samples(self.prior, self.road, classes, self.n_steps, self.h, self.speed_mps, generator,
-                                  1, self.integrator)
+                                  1, self.integrator, self.physics, self.warmup_s)
         arrays["profile_id"] = arrays.pop("profile")
         return arrays
 
@@ -396,11 +438,13 @@ class StreamingDataModule(_BaseDataModule):
     """
 
     def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, h: float = 0.01,
-                 speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", samples_per_epoch: int = 51200,
+                 speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", physics: str = "euler",
+                 warmup_s: float | Sequence[float] = 0.0, samples_per_epoch: int = 51200,
                  val_samples: int = 2000, test_samples: int = 2000, val_seed: int = 1_000_001, test_seed: int = 2_000_002,
                  path: str | None = None, test_split: str = "test", limit_test: int | None = None, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self.simulator = StreamSimulator(prior, road_classes, self.window, h, speed_kmh, integrator)
+        self.simulator = StreamSimulator(prior, road_classes, self.window, h, speed_kmh, integrator,
+                                         physics=physics, warmup_s=warmup_s)
         if int(samples_per_epoch) < 1 or int(val_samples) < 0 or int(test_samples) < 0:
             raise ValueError(f"StreamingDataModule: need samples_per_epoch >= 1 and val/test_samples >= 0, got "
                              f"{samples_per_epoch}, {val_samples}, {test_samples}")
@@ -429,6 +473,7 @@ class StreamingDataModule(_BaseDataModule):
     def _hdf5_test(self) -> "HDF5DataModule":
         return HDF5DataModule(self.path, test_split=self.test_split, inputs=self.spec.inputs, targets=self.spec.targets,
                               aux=self.spec.aux, window=self.window, noise_sigma=self.noise_sigma, seed=self.seed,
+                              sensor=self.sensor,
                               limit_test=self.limit_test, targets_optional=self.spec.targets_optional)
 
     def _fixed_set(self, n: int, seed: int, chunk: int = 1000) -> dict[str, torch.Tensor]:
@@ -447,9 +492,11 @@ class StreamingDataModule(_BaseDataModule):
         if "fit" in stages and self.data_train is None:
             self._val_tensors = self._fixed_set(self.val_samples, self.val_seed)
             self.stats = channel_stats(self.stats_batch())
-            self.data_val = TensorBatches(self._val_tensors, self.noise_sigma, fixed_noise_seed=self.val_seed + 1)
+            self.data_val = TensorBatches(self._val_tensors, self.noise_sigma, fixed_noise_seed=self.val_seed + 1,
+                                          sensor=self.sensor, names=self.spec.inputs)
             self.data_train = SimulatedStream(self.simulator, self.spec, self.batch_size,
-                                              max(1, self.samples_per_epoch // self.batch_size), self.noise_sigma, self.seed)
+                                              max(1, self.samples_per_epoch // self.batch_size), self.noise_sigma, self.seed,
+                                              sensor=self.sensor, augment_max=self.train_additive_max)
         if "test" in stages and self.data_test is None:
             if self.path:
                 self.check(("test",))
@@ -458,7 +505,7 @@ class StreamingDataModule(_BaseDataModule):
                 self.data_test = hdf5.data_test
             else:
                 self.data_test = TensorBatches(self._fixed_set(self.test_samples, self.test_seed), self.noise_sigma,
-                                               fixed_noise_seed=self.test_seed + 1)
+                                               fixed_noise_seed=self.test_seed + 1, sensor=self.sensor, names=self.spec.inputs)
 
     def train_dataloader(self) -> DataLoader:
         if self.data_train is None:

@@ -1,9 +1,16 @@
-"""The HDF5 dataset format (SPEC §5) — the interface other tools write to and read from.
+"""The HDF5 dataset format (SPEC §5, §9) — the interface other tools write to and read from.
 
-    attrs: schema = "hybridqcm.dataset/1", h, n_steps, speed_mps, prior, seed, created_by
+    attrs: schema = "hybridqcm.dataset/2", h, n_steps, speed_mps, prior, seed, created_by,
+           physics ("euler" | "continuous"), warmup_s [low, high] seconds driven before a window
     /<split>/accel float32 [M, n_steps, 3] (a3, a2, a1)   /<split>/vel, /<split>/disp likewise
     /<split>/road  float32 [M, n_steps]   u in metres     /<split>/params float64 [M, 10]
     /<split>/road_class int8 [M]                          /<split>/profile_id int32 [M]
+    /<split>/state0 float64 [M, 6]  state at the window start (v3 v2 v1 q3 q2 q1)
+
+Schema /1 files (no physics, no state0) still read. A file without `physics` from another
+producer (a real logger) is taken as continuous physics with an unknown initial state. Files
+may lack /road (nobody measures it) and accel may hold an all-NaN column (an unrecorded
+channel): readers check only what the task asks for.
 
 Readers accept any producer's file that has the keys the task needs. Writers never leave a
 half-written file that looks valid: they write to a temporary file beside the target and
@@ -20,8 +27,10 @@ from typing import Iterable, Mapping
 import h5py
 import numpy as np
 
-SCHEMA = "hybridqcm.dataset/1"
+SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
+SUPPORTED_SCHEMAS = ("hybridqcm.dataset/1", SCHEMA)
+ACCEL_CHANNELS = ("a3", "a2", "a1")
 
 # key -> (dtype, trailing shape given n_steps); the leading dimension is the sample count M.
 LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
@@ -32,6 +41,7 @@ LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
     "params": (np.dtype("float64"), (10,)),
     "road_class": (np.dtype("int8"), ()),
     "profile_id": (np.dtype("int32"), ()),
+    "state0": (np.dtype("float64"), (6,)),
 }
 TIME_KEYS = ("accel", "vel", "disp", "road")
 
@@ -55,12 +65,41 @@ def _open(path: str | os.PathLike) -> h5py.File:
 
 
 def _check_schema(path: Path, handle: h5py.File) -> None:
+    if "h" in handle.attrs:
+        _step(path, handle)
     schema = handle.attrs.get("schema")
     if schema is None:
         return  # other producers may omit it; the layout checks below still apply
     schema = schema.decode() if isinstance(schema, bytes) else str(schema)
-    if schema != SCHEMA:
-        raise DatasetError(f"{path}: attribute schema = {schema!r} is not supported (expected {SCHEMA!r})")
+    if schema not in SUPPORTED_SCHEMAS:
+        raise DatasetError(f"{path}: attribute schema = {schema!r} is not supported (expected one of {list(SUPPORTED_SCHEMAS)})")
+
+
+def _step(path: Path, handle: h5py.File) -> float:
+    """Attribute h as a positive finite float, or a one-line DatasetError."""
+    raw = _attr_value(handle.attrs["h"])
+    try:
+        value = float(raw) if not isinstance(raw, (str, bool)) else float("nan")
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise DatasetError(f"{path}: attribute h = {raw!r} must be a positive number of seconds (the sampling period)")
+    return value
+
+
+def _physics(attrs: Mapping) -> tuple[str, str]:
+    """(physics, initial_state) of a file: initial_state is "rest", "mid-drive" or "unknown"."""
+    physics = attrs.get("physics")
+    ours = str(attrs.get("created_by", "")).startswith("hybridqcm")
+    if physics is None:
+        if ours and "integrator" in attrs:  # schema /1 from our generator: Euler from rest
+            return "euler", "rest"
+        return "continuous", "unknown"      # another producer, e.g. a real logger
+    warmup = attrs.get("warmup_s")
+    high = max(np.atleast_1d(np.asarray(warmup, dtype=float))) if warmup is not None else None
+    if high is None:
+        return str(physics), "unknown"
+    return str(physics), "rest" if high == 0 else "mid-drive"
 
 
 def _attr_value(value):
@@ -97,6 +136,7 @@ def dataset_info(path: str | os.PathLike) -> dict:
     with _open(path) as handle:
         _check_schema(path, handle)
         attrs = {k: _attr_value(v) for k, v in handle.attrs.items()}
+        physics, initial_state = _physics(attrs)
         splits = {}
         for name, group in handle.items():
             if not isinstance(group, h5py.Group):
@@ -108,7 +148,14 @@ def dataset_info(path: str | os.PathLike) -> dict:
                 "n_steps": int(first.shape[1]) if first is not None and first.ndim > 1 else None,
                 "keys": keys,
             }
-    return {"path": str(path), "attrs": attrs, "splits": splits}
+    return {"path": str(path), "attrs": attrs, "splits": splits, "physics": physics, "initial_state": initial_state}
+
+
+def recorded_channels(path: str | os.PathLike, split: str = "test") -> list[str]:
+    """Accelerometer channels of /<split>/accel (of a3, a2, a1) that hold any finite value."""
+    arrays = read_split(path, split, ("accel",))
+    finite = np.isfinite(arrays["accel"]).any(axis=(0, 1))
+    return [name for name, ok in zip(ACCEL_CHANNELS, finite) if ok]
 
 
 def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str] = ("accel", "road", "params"),
@@ -163,12 +210,19 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
             array = np.asarray(array)
             if inverse is not None:
                 array = array[inverse]
-            if check_finite and array.dtype.kind == "f" and not np.isfinite(array).all():
-                bad = np.argwhere(~np.isfinite(array))[0]
+            if key == "accel" and array.dtype not in (np.float32, np.float64):
+                raise DatasetError(f"{path}: /{split}/accel has dtype {array.dtype}; expected float32 or float64")
+            finite = np.isfinite(array) if check_finite and array.dtype.kind == "f" else None
+            if finite is not None and key == "accel" and array.size:
+                # an all-NaN channel is an unrecorded one (the consumer decides whether it needs it)
+                unrecorded = np.isnan(array).all(axis=(0, 1))
+                finite = finite | unrecorded[None, None, :]
+            if finite is not None and not finite.all():
+                bad = np.argwhere(~finite)[0]
                 raise DatasetError(f"{path}: /{split}/{key} contains non-finite values (first at index {tuple(int(i) for i in bad)}: {array[tuple(bad)]})")
             out[key] = array
         if "h" in handle.attrs:
-            out["h"] = float(handle.attrs["h"])
+            out["h"] = _step(path, handle)
     return out
 
 

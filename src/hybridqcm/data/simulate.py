@@ -7,7 +7,7 @@ each chunk is written before the next is simulated, so memory stays bounded by t
 from __future__ import annotations
 
 import getpass
-
+import math
 import platform
 import time
 from dataclasses import dataclass, field
@@ -19,31 +19,107 @@ import torch
 
 from hybridqcm import __version__
 from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.physics.continuous import simulate_continuous, time_basis
 from hybridqcm.physics.integrators import METHODS, simulate
 from hybridqcm.physics.prior import _RejectionPrior
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index
 
 
+PHYSICS = ("continuous", "euler")
+# seconds driven before a window when none is given: mid-drive for continuous data, the source's
+# "from rest" for the Euler protocol
+DEFAULT_WARMUP_S = {"continuous": (2.0, 20.0), "euler": (0.0, 0.0)}
+
+
+def check_warmup(warmup_s, where: str = "window.warmup_s") -> tuple[float, float]:
+    """(low, high) seconds from a number or a [low, high] pair; one-line ValueError otherwise."""
+    values = [warmup_s] if isinstance(warmup_s, (int, float)) else list(warmup_s)
+    if len(values) == 1:
+        values = values * 2
+    try:
+        low, high = (float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} must be seconds or a [low, high] range, got {warmup_s!r}") from None
+    if len(values) != 2 or not (math.isfinite(low) and math.isfinite(high)) or low < 0 or high < low:
+        raise ValueError(f"{where} must be a range 0 <= low <= high (seconds), got {warmup_s!r}")
+    return low, high
+
+
+def check_physics(physics: str) -> str:
+    if physics not in PHYSICS:
+        raise ValueError(f"physics = {physics!r} is not known; choose one of {list(PHYSICS)}")
+    return physics
+
+
+def _warmups(n: int, warmup_s: tuple[float, float], generator: torch.Generator) -> torch.Tensor:
+    low, high = warmup_s
+    return low + (high - low) * torch.rand(n, generator=generator, dtype=torch.float64)
+
+
+def _euler_mid_drive(params: torch.Tensor, amplitude: torch.Tensor, phase: torch.Tensor, road_profile: RoadProfile,
+                     steps_before: torch.Tensor, n_steps: int, h: float, speed_mps: float, method: str) -> dict:
+    """Euler recursion from rest `steps_before[i]` steps before the window. All samples share one grid
+    of max(steps_before) + n_steps steps; sample i's drive starts at index max - steps_before[i] and its
+    forcing is zero before that, so its state stays exactly at rest until then."""
+    lead = int(steps_before.max())
+    total = lead + n_steps
+    start = lead - steps_before                                                     # [b]
+    shift = (start.to(torch.float64) * h * speed_mps)[:, None]                     # distance offset
+    # u at index j is the road at time (j - start) h: the phases absorb the start offset
+    road_full = road_profile.evaluate(amplitude, phase + road_profile.omega[None, :] * shift,
+                                      road_profile._distance(total, h, speed_mps))
+    road_full = road_full * (torch.arange(total)[None, :] >= start[:, None])
+    trajectory = simulate(params, road_full, h, method)
+    window = slice(lead, total)
+    vel, disp = trajectory.vel[:, window], trajectory.disp[:, window]
+    return {"accel": trajectory.accel[:, window], "vel": vel, "disp": disp, "road": road_full[:, window],
+            "state0": torch.cat([vel[:, 0], disp[:, 0]], -1)}
+
+
 def simulate_samples(prior: _RejectionPrior, road_profile: RoadProfile, road_class: torch.Tensor, n_steps: int,
                      h: float, speed_mps: float, generator: torch.Generator, samples_per_profile: int = 1,
-                     method: str = "semi_explicit_euler") -> dict[str, torch.Tensor | int]:
+                     method: str = "semi_explicit_euler", physics: str = "euler",
+                     warmup_s: tuple[float, float] = (0.0, 0.0), basis: torch.Tensor | None = None) -> dict[str, torch.Tensor | int]:
     """Simulate `len(road_class) * samples_per_profile` samples.
 
     road_class: LongTensor [profiles]. Returns float64 tensors accel/vel/disp [M, n_steps, 3],
-    road [M, n_steps], params [M, 10], road_class [M], profile [M] (0-based within this call)
-    and `n_drawn`, the prior's candidate count (for its acceptance rate).
+    road [M, n_steps], params [M, 10], state0 [M, 6] (v3 v2 v1 q3 q2 q1 at the window start),
+    warmup [M] seconds, road_class [M], profile [M] (0-based within this call) and `n_drawn`,
+    the prior's candidate count (for its acceptance rate).
+
+    physics = "euler": the recursion `method` at step h; "continuous": the exact response
+    (physics.continuous; `method` unused). Each sample drives U(warmup_s) seconds on its road
+    from rest before the window (euler: rounded to whole steps). Random draws come in the
+    order roads, parameters, warm-ups, so euler data with warm-up 0 are those of earlier versions.
     """
+    check_physics(physics)
     road_class = torch.as_tensor(road_class, dtype=torch.long).reshape(-1)
     n_profiles = road_class.shape[0]
-    roads = road_profile.sample(road_class, n_steps, h, speed_mps, generator)          # [profiles, n_steps]
-    draw = prior.sample(n_profiles * samples_per_profile, generator)
     profile = torch.arange(n_profiles).repeat_interleave(samples_per_profile)
-    road = roads[profile]
-    trajectory = simulate(draw.params, road, h, method)
-    return {
-        "accel": trajectory.accel, "vel": trajectory.vel, "disp": trajectory.disp, "road": road,
-        "params": draw.params, "road_class": road_class[profile], "profile": profile, "n_drawn": draw.n_drawn,
-    }
+    mid_drive = warmup_s[1] > 0
+    if physics == "euler" and not mid_drive:
+        roads = road_profile.sample(road_class, n_steps, h, speed_mps, generator)      # [profiles, n_steps]
+        draw = prior.sample(n_profiles * samples_per_profile, generator)
+        road = roads[profile]
+        trajectory = simulate(draw.params, road, h, method)
+        out = {"accel": trajectory.accel, "vel": trajectory.vel, "disp": trajectory.disp, "road": road,
+               "state0": torch.zeros(road.shape[0], 6, dtype=torch.float64), "warmup": torch.zeros(road.shape[0], dtype=torch.float64)}
+    else:
+        amplitude, phase = road_profile.draw(road_class, generator)
+        draw = prior.sample(n_profiles * samples_per_profile, generator)
+        warmup = _warmups(profile.shape[0], warmup_s, generator) if mid_drive else torch.zeros(profile.shape[0], dtype=torch.float64)
+        if physics == "euler":
+            steps_before = torch.round(warmup / h).long()
+            out = _euler_mid_drive(draw.params, amplitude[profile], phase[profile], road_profile, steps_before,
+                                   n_steps, h, speed_mps, method)
+            warmup = steps_before.to(torch.float64) * h
+        else:
+            response = simulate_continuous(draw.params, amplitude[profile], phase[profile], road_profile.omega * speed_mps,
+                                           n_steps, h, warmup, basis=basis)
+            out = {"accel": response.accel, "vel": response.vel, "disp": response.disp, "road": response.road,
+                   "state0": response.state0}
+        out["warmup"] = warmup
+    return {**out, "params": draw.params, "road_class": road_class[profile], "profile": profile, "n_drawn": draw.n_drawn}
 
 
 @dataclass
@@ -108,8 +184,12 @@ def _user() -> str:
 def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _RejectionPrior, road_profile: RoadProfile,
                   n_steps: int, h: float, speed_mps: float, samples_per_profile: int, seed: int,
                   overwrite: bool = False, profiles_per_chunk: int = 10, method: str = "semi_explicit_euler",
-                  attrs: Mapping | None = None, progress: bool = True, compression: str | None = "gzip") -> dict[str, SplitSummary]:
+                  attrs: Mapping | None = None, progress: bool = True, compression: str | None = "gzip",
+                  physics: str = "euler", warmup_s=(0.0, 0.0)) -> dict[str, SplitSummary]:
     """Simulate every split and stream it into `output` (atomically). Returns a summary per split.
+
+    physics: "euler" (the recursion `method`, the source protocol) or "continuous" (exact
+    response); warmup_s: [low, high] seconds driven before each window (0 = from rest).
 
     splits: {split: {"profiles": {"A": 200, ...}}}. The same seed gives identical arrays: each
     split has its own generator seeded from (seed, split position).
@@ -121,8 +201,10 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
         raise ValueError(f"profiles_per_chunk must be >= 1, got {profiles_per_chunk}")
     if method not in METHODS:
         raise ValueError(f"unknown integrator {method!r}; choose one of {METHODS}")
+    check_physics(physics)
+    warmup_s = check_warmup(warmup_s)
     prior_h = getattr(prior, "h", None)
-    if prior_h is not None and abs(float(prior_h) - float(h)) > 1e-12 * float(h):
+    if physics == "euler" and prior_h is not None and abs(float(prior_h) - float(h)) > 1e-12 * float(h):
         # the prior rejects draws that are unstable under the Euler map of *its* h
         raise ValueError(f"the prior checks stability at h = {prior_h} but the data are simulated at h = {h}")
     plan = {split: _class_list(spec.get("profiles", {}), split) for split, spec in splits.items()}
@@ -131,7 +213,8 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
         raise ValueError("nothing to simulate: every split has zero profiles")
     file_attrs = {
         "h": float(h), "n_steps": int(n_steps), "speed_mps": float(speed_mps), "prior": getattr(prior, "name", "custom"),
-        "seed": int(seed), "samples_per_profile": int(samples_per_profile), "integrator": method,
+        "seed": int(seed), "samples_per_profile": int(samples_per_profile), "integrator": method if physics == "euler" else "exact",
+        "physics": physics, "warmup_s": np.array(warmup_s, dtype=np.float64),
         "created_by": f"hybridqcm {__version__} qcm-simulate ({_user()}@{platform.node()})",
         **dict(attrs or {}),
     }
@@ -139,6 +222,7 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("samples"), TimeRemainingColumn())
+    basis = time_basis(road_profile.omega * speed_mps, n_steps, h) if physics == "continuous" else None
     with DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer, \
             Progress(*columns, disable=not progress, transient=False) as bar:
         task = bar.add_task(f"simulating {Path(output).name}", total=total)
@@ -153,14 +237,15 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
             classes_tensor = torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
             for first in range(0, len(classes), profiles_per_chunk):
                 chunk = classes_tensor[first:first + profiles_per_chunk]
-                batch = simulate_samples(prior, road_profile, chunk, n_steps, h, speed_mps, generator, samples_per_profile, method)
+                batch = simulate_samples(prior, road_profile, chunk, n_steps, h, speed_mps, generator, samples_per_profile,
+                                         method, physics, warmup_s, basis)
                 row = first * samples_per_profile
                 if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
                     raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
                 writer.write(
                     split, row,
                     accel=batch["accel"].float().numpy(), vel=batch["vel"].float().numpy(), disp=batch["disp"].float().numpy(),
-                    road=batch["road"].float().numpy(), params=batch["params"].numpy(),
+                    road=batch["road"].float().numpy(), params=batch["params"].numpy(), state0=batch["state0"].numpy(),
                     road_class=batch["road_class"].numpy().astype(np.int8),
                     profile_id=(batch["profile"] + first).numpy().astype(np.int32),
                 )
@@ -177,4 +262,4 @@ def kmh_to_mps(speed_kmh: float) -> float:
     return float(speed_kmh) / 3.6
 
 
-__all__ = ["simulate_samples", "write_dataset", "SplitSummary", "kmh_to_mps"]
+__all__ = ["simulate_samples", "write_dataset", "SplitSummary", "kmh_to_mps", "check_warmup", "check_physics", "PHYSICS", "DEFAULT_WARMUP_S"]

@@ -35,16 +35,18 @@ class _RejectionPrior:
 
     max_rounds = 1000
 
-    def __init__(self, h: float = 0.01, mass_range: tuple[float, float] = (30.0, 150.0), sigma: float = 0.1,
+    def __init__(self, h: float | None = 0.01, mass_range: tuple[float, float] = (30.0, 150.0), sigma: float = 0.1,
                  vehicle: PhysicalConstants = REFERENCE_VEHICLE) -> None:
         low, high = float(mass_range[0]), float(mass_range[1])
         if not 0 < low < high:
             raise ValueError(f"prior mass_range must satisfy 0 < low < high, got {mass_range}")
         if sigma < 0:
             raise ValueError(f"prior sigma must be >= 0, got {sigma}")
-        if h <= 0:
+        if h is not None and not float(h) > 0:
             raise ValueError(f"prior h must be > 0, got {h}")
-        self.h, self.mass_range, self.sigma, self.vehicle = float(h), (low, high), float(sigma), vehicle
+        # h = None: continuous-time data, only the eigenvalues of A are checked (no Euler step map)
+        self.h = None if h is None else float(h)
+        self.mass_range, self.sigma, self.vehicle = (low, high), float(sigma), vehicle
 
     def _candidates(self, n: int, generator: torch.Generator) -> Tensor:
         raise NotImplementedError

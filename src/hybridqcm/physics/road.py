@@ -54,10 +54,14 @@ class RoadProfile:
         psd = phi0 * (self.omega[None, :] / self.omega0) ** (-self.waviness)
         return torch.sqrt(psd * self.d_omega / math.pi)
 
-    def _draw(self, road_class: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+    def draw(self, road_class: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """(amplitudes A_i, phases phi_i), both [batch, waves]: one profile per class index [batch]
+        (the same generator draws as `sample`, which evaluates them on a grid)."""
         road_class = torch.as_tensor(road_class, dtype=torch.long).reshape(-1)
         phase = 2 * math.pi * torch.rand(road_class.shape[0], self.n_waves, generator=generator, dtype=torch.float64)
         return self.amplitudes(road_class), phase
+
+    _draw = draw  # the earlier private name
 
     @staticmethod
     def _distance(n_steps: int, h: float, speed_mps: float) -> Tensor:
@@ -68,7 +72,7 @@ class RoadProfile:
     def sample(self, road_class: Tensor, n_steps: int, h: float, speed_mps: float,
                generator: torch.Generator | None = None) -> Tensor:
         """Profiles u [batch, n_steps] (float64) by two matrix products."""
-        amplitude, phase = self._draw(road_class, generator)
+        amplitude, phase = self.draw(road_class, generator)
         return self.evaluate(amplitude, phase, self._distance(n_steps, h, speed_mps))
 
     def basis(self, distance: Tensor) -> Tensor:
@@ -87,7 +91,7 @@ class RoadProfile:
     def sample_direct(self, road_class: Tensor, n_steps: int, h: float, speed_mps: float,
                       generator: torch.Generator | None = None) -> Tensor:
         """Same profiles as `sample` (same generator state), by the direct sum of sines (reference, slow)."""
-        amplitude, phase = self._draw(road_class, generator)
+        amplitude, phase = self.draw(road_class, generator)
         s = self._distance(n_steps, h, speed_mps)
         out = torch.empty(amplitude.shape[0], n_steps, dtype=torch.float64)
         for b in range(amplitude.shape[0]):

@@ -1,0 +1,173 @@
+"""The accelerometer model (SPEC §9), applied when data is read so one clean file serves every
+noise level.
+
+    additive:        a + sigma_c s_c eta + bias_c s_c    (eta ~ N(0, 1) per point)
+    multiplicative:  a (1 + sigma_c eta) + bias_c s_c    (the source's model, SPEC §5)
+    then, if quantisation > 0, rounding to multiples of the step.
+
+s_c is the sample's RMS of channel c over the window when `relative` (sigma, bias are fractions
+of the signal), else 1 (sigma, bias in m/s^2). Channels are (a3, a2, a1).
+
+Reproducibility: the noise of sample i comes from its own generator seeded by (seed, salt, i),
+so it is the same whatever the batching or order; evaluation uses a fixed salt, training a
+fresh one per batch (fresh noise every epoch).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+KINDS = ("none", "additive", "multiplicative")
+ACCEL = ("a3", "a2", "a1")
+
+
+def _per_channel(value, name: str) -> tuple[float, float, float]:
+    values = [value] if isinstance(value, (int, float)) else list(value)
+    if len(values) == 1:
+        values = values * 3
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f"sensor.{name} must be a number or one per channel (a3, a2, a1), got {value!r}") from None
+    if len(out) != 3:
+        raise ValueError(f"sensor.{name} must be a number or 3 numbers (a3, a2, a1), got {value!r}")
+    if not all(math.isfinite(v) and v >= 0 for v in out):
+        raise ValueError(f"sensor.{name} must be finite and >= 0, got {value!r}")
+    return out
+
+
+@dataclass
+class SensorModel:
+    kind: str = "none"                       # none | additive | multiplicative
+    sigma: float | Sequence[float] = 0.0     # noise std per channel (a3, a2, a1)
+    relative: bool = True                    # sigma and bias as fractions of each sample's channel RMS; else m/s^2
+    bias: float | Sequence[float] = 0.0      # constant bias per channel
+    quantisation: float = 0.0                # step in m/s^2, 0 = none
+    seed: int = 0
+
+    def validate(self) -> "SensorModel":
+        """Checks every field (one-line ValueError); returns self."""
+        if self.kind not in KINDS:
+            raise ValueError(f"sensor.kind = {self.kind!r} is not known; choose one of {list(KINDS)}")
+        self._sigma = _per_channel(self.sigma, "sigma")
+        self._bias = _per_channel(self.bias, "bias")
+        q = float(self.quantisation)
+        if not (math.isfinite(q) and q >= 0):
+            raise ValueError(f"sensor.quantisation must be finite and >= 0, got {self.quantisation!r}")
+        if self.kind == "none" and (any(self._sigma) or any(self._bias) or q > 0):
+            raise ValueError(f"sensor.kind = 'none' takes no sigma, bias or quantisation (got sigma={self.sigma!r}, "
+                             f"bias={self.bias!r}, quantisation={q}); pick sensor=additive or sensor=multiplicative")
+        return self
+
+    @property
+    def active(self) -> bool:
+        return self.kind != "none"
+
+    def _checked(self) -> "SensorModel":
+        return self if hasattr(self, "_sigma") else self.validate()
+
+    def _noise(self, index: Tensor, n_steps: int, salt: int) -> Tensor:
+        """eta [b, T, 3] float64, sample i's from its own generator seeded by (seed, salt, i)."""
+        out = torch.empty(index.shape[0], n_steps, 3, dtype=torch.float64)
+        generator = torch.Generator()
+        for row, i in enumerate(index.tolist()):
+            state = np.random.SeedSequence([int(self.seed), int(salt) % 2 ** 63, int(i) % 2 ** 63]).generate_state(2, np.uint32)
+            generator.manual_seed(int(state[0]) << 32 | int(state[1]))
+            out[row] = torch.randn(n_steps, 3, generator=generator, dtype=torch.float64)
+        return out
+
+    def _scale(self, accel: Tensor) -> Tensor:
+        """[b, 3]: each sample's channel RMS (relative) or ones."""
+        if self.relative:
+            return accel.double().pow(2).mean(1).sqrt()
+        return torch.ones(accel.shape[0], 3, dtype=torch.float64, device=accel.device)
+
+    def apply(self, accel: Tensor, index: Tensor, salt: int = 0) -> Tensor:
+        """accel [b, T, 3] (NaN channels stay NaN), index [b] global sample ids -> measured accel [b, T, 3]
+        (same dtype). The noise of sample i depends only on (seed, salt, i)."""
+        self._checked()
+        if not self.active:
+            return accel
+        if accel.ndim != 3 or accel.shape[-1] != 3 or index.shape != accel.shape[:1]:
+            raise ValueError(f"sensor: accel must be [b, T, 3] and index [b], got {tuple(accel.shape)}, {tuple(index.shape)}")
+        x = accel.double()
+        sigma = torch.tensor(self._sigma, dtype=torch.float64)
+        bias = torch.tensor(self._bias, dtype=torch.float64)
+        scale = self._scale(x)[:, None, :]                                        # [b, 1, 3]
+        eta = self._noise(index, x.shape[1], salt).to(x.device)
+        if self.kind == "additive":
+            x = x + sigma * scale * eta
+        else:
+            x = x * (1 + sigma * eta)
+        x = x + bias * scale
+        if self.quantisation > 0:
+            x = torch.round(x / self.quantisation) * self.quantisation
+        return x.to(accel.dtype)
+
+    def noise_std(self, accel: Tensor) -> Tensor:
+        """[b, 3] nominal noise std per channel (for residual weighting): sigma s_c (additive) or
+        sigma RMS_c (multiplicative), with the quantisation's step/sqrt(12) added in quadrature."""
+        self._checked()
+        sigma = torch.tensor(self._sigma, dtype=torch.float64)
+        if self.kind == "multiplicative":
+            std = sigma * accel.double().pow(2).mean(1).sqrt()
+        elif self.kind == "additive":
+            std = sigma * self._scale(accel)
+        else:
+            std = torch.zeros(accel.shape[0], 3, dtype=torch.float64)
+        return (std.pow(2) + float(self.quantisation) ** 2 / 12).sqrt()
+
+
+def build_sensor(spec: Mapping | SensorModel | None) -> SensorModel:
+    """A validated SensorModel from a config mapping (unknown keys: one-line ValueError)."""
+    if spec is None:
+        return SensorModel().validate()
+    if isinstance(spec, SensorModel):
+        return spec.validate()
+    spec = dict(spec)
+    unknown = sorted(set(spec) - set(SensorModel.__dataclass_fields__))
+    if unknown:
+        raise ValueError(f"sensor: unknown option(s) {unknown}; known: {sorted(SensorModel.__dataclass_fields__)}")
+    return SensorModel(**spec).validate()
+
+
+def apply_to_channels(sensor: SensorModel, x: Tensor, names: Sequence[str], index: Tensor, salt: int = 0) -> Tensor:
+    """The sensor on the accelerometer channels of x [b, C, N] named `names` (others, e.g. pu_u, untouched)."""
+    if not sensor.active:
+        return x
+    where = [(c, ACCEL.index(n)) for c, n in enumerate(names) if n in ACCEL]
+    if not where:
+        return x
+    accel = torch.full((x.shape[0], x.shape[2], 3), float("nan"), dtype=x.dtype)
+    for c, k in where:
+        accel[..., k] = x[:, c]
+    measured = sensor.apply(accel, index, salt)
+    out = x.clone()
+    for c, k in where:
+        out[:, c] = measured[..., k]
+    return out
+
+
+def additive_augmentation(x: Tensor, names: Sequence[str], sigma_max: float, generator: torch.Generator | None = None) -> Tensor:
+    """Training augmentation: additive white noise on the accelerometer channels of x [b, C, N],
+    std = s * RMS of the sample's channel, s ~ U[0, sigma_max] per sample."""
+    if sigma_max <= 0:
+        return x
+    rows = [c for c, n in enumerate(names) if n in ACCEL]
+    if not rows:
+        return x
+    level = sigma_max * torch.rand(x.shape[0], generator=generator, dtype=torch.float64).to(x.dtype)
+    out = x.clone()
+    part = out[:, rows]
+    rms = part.pow(2).mean(-1, keepdim=True).sqrt()
+    noise = torch.randn(part.shape, generator=generator, dtype=torch.float64).to(x.dtype)
+    out[:, rows] = part + level[:, None, None] * rms * noise
+    return out
+
+
+__all__ = ["SensorModel", "build_sensor", "apply_to_channels", "additive_augmentation", "KINDS"]

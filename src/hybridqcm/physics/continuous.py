@@ -1,0 +1,153 @@
+"""Exact continuous-time response of the quarter car to a sum-of-sines road (SPEC §3, §9).
+
+Between samples the vehicle obeys x' = A x + B u(t), x = (v3, v2, v1, q3, q2, q1),
+B u = (0, 0, p_u u, 0, 0, 0), and the road is u(t) = sum_i a_i sin(w_i t - phi_i) with
+w_i = Omega_i * speed. The car starts from rest at t = 0 and the logger records
+t_k = t0 + k h, t0 = the sample's warm-up.
+
+Particular (steady-state) solution: for the forcing Im[a e^{i(w t - phi)}] it is
+Im[G(w) a e^{i(w t - phi)}] with G(w) = (i w I - A)^{-1} B. With A = V L V^{-1},
+G(w) = V diag(1 / (i w - lambda)) V^{-1} B, so all 1000 frequencies cost one [6, 6] x [6, W]
+product per sample. Writing G = R + i I and theta = w (t0 + k h) - phi,
+
+    Im[G e^{i theta}] = sin(w k h) (R cos psi + I sin psi) + cos(w k h) (I cos psi - R sin psi),
+    psi = phi - w t0,
+
+so the window is one GEMM of per-sample coefficients [b 7, 2 W] (six states and the road) against
+the shared basis [sin(w k h); -cos(w k h)] of shape [2 W, T], as in RoadProfile.evaluate.
+
+Homogeneous part: x(t) = x_p(t) + exp(A t)(x(0) - x_p(0)) with x(0) = 0, i.e.
+x_h(t) = -Re[V diag(e^{lambda t}) V^{-1} x_p(0)].
+
+A sample whose eigendecomposition reconstructs A poorly (a nearly defective A) falls back to a
+solve of (i w I - A) per frequency and to matrix exponentials for the homogeneous part; both
+paths are exact up to round-off, the fallback is only slower.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybridqcm.physics.parameters import road_gain, system_matrix
+
+# relative reconstruction error ||V L V^-1 - A|| / ||A|| above which a sample takes the fallback
+EIG_TOL = 1e-9
+
+
+@dataclass
+class ContinuousResponse:
+    """accel, vel, disp [b, T, 3] (order 3, 2, 1), road u [b, T] in metres, state0 x(t0) [b, 6]
+    (v3 v2 v1 q3 q2 q1), all float64; `n_fallback` samples used the per-frequency solve."""
+
+    accel: Tensor
+    vel: Tensor
+    disp: Tensor
+    road: Tensor
+    state0: Tensor
+    n_fallback: int = 0
+
+
+def time_basis(omega_t: Tensor, n_steps: int, h: float) -> Tensor:
+    """[sin(w k h); -cos(w k h)] as [2 W, n_steps] (float64), w = temporal frequencies [W] in rad/s."""
+    angle = omega_t.to(torch.float64)[:, None] * (h * torch.arange(n_steps, dtype=torch.float64))[None, :]
+    return torch.cat([torch.sin(angle), -torch.cos(angle)])
+
+
+def _check(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor) -> None:
+    if p.ndim != 2 or p.shape[-1] != 10:
+        raise ValueError(f"p must be [batch, 10], got {tuple(p.shape)}")
+    b, w = p.shape[0], omega_t.shape[0]
+    if amplitude.shape != (b, w) or phase.shape != (b, w):
+        raise ValueError(f"amplitude and phase must be [batch, waves] = [{b}, {w}], got {tuple(amplitude.shape)}, {tuple(phase.shape)}")
+    if warmup.shape != (b,):
+        raise ValueError(f"warmup must be [batch] = [{b}], got {tuple(warmup.shape)}")
+    if not h > 0 or n_steps < 1:
+        raise ValueError(f"need h > 0 and n_steps >= 1, got h = {h}, n_steps = {n_steps}")
+    if bool((warmup < 0).any()) or not bool(torch.isfinite(warmup).all()):
+        raise ValueError(f"warmup must be finite and >= 0 seconds, got min {float(warmup.min())}")
+
+
+def _gains_eig(V: Tensor, lam: Tensor, Vinv: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
+    """G(w) [b, 6, W] complex = V diag(1/(i w - lambda)) V^{-1} e_v1 p_u."""
+    c = Vinv[:, :, 2] * gain[:, None].to(Vinv.dtype)                               # [b, 6]
+    modal = c[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])        # [b, 6, W]
+    return V @ modal
+
+
+def _gains_solve(A: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
+    """G(w) [b, 6, W] by one complex 6x6 solve per frequency (the fallback)."""
+    b, w = A.shape[0], omega_t.shape[0]
+    eye = torch.eye(6, dtype=torch.complex128)
+    lhs = 1j * omega_t[None, :, None, None] * eye - A[:, None].to(torch.complex128)  # [b, W, 6, 6]
+    rhs = torch.zeros(b, w, 6, 1, dtype=torch.complex128)
+    rhs[:, :, 2, 0] = gain[:, None]
+    return torch.linalg.solve(lhs, rhs)[..., 0].transpose(1, 2)
+
+
+def simulate_continuous(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float,
+                        warmup: Tensor | float = 0.0, basis: Tensor | None = None, eig_tol: float = EIG_TOL) -> ContinuousResponse:
+    """Exact response, recorded at t_k = warmup + k h, for p [b, 10], road amplitudes/phases [b, W]
+    (u(t) = sum_i amplitude_i sin(omega_t_i t - phase_i)), temporal frequencies omega_t [W] rad/s,
+    warmup [b] seconds (the car starts from rest at t = 0). `basis` = time_basis(omega_t, n_steps, h)
+    when the caller shares it across chunks."""
+    p = p.to(torch.float64)
+    b = p.shape[0]
+    amplitude, phase, omega_t = amplitude.to(torch.float64), phase.to(torch.float64), omega_t.to(torch.float64)
+    warmup = torch.as_tensor(warmup, dtype=torch.float64)
+    warmup = warmup.expand(b).clone() if warmup.ndim == 0 else warmup
+    _check(p, amplitude, phase, omega_t, n_steps, h, warmup)
+    A = system_matrix(p)
+    gain = road_gain(p)
+    lam, V = torch.linalg.eig(A)
+    Vinv = torch.linalg.inv(V)
+    rebuilt = (V * lam[:, None, :]) @ Vinv
+    error = (rebuilt - A).abs().amax((-2, -1)) / A.abs().amax((-2, -1))
+    bad = ~(error <= eig_tol)                         # NaN (singular V) counts as bad
+    G = torch.empty(b, 6, omega_t.shape[0], dtype=torch.complex128)
+    good = ~bad
+    if good.any():
+        G[good] = _gains_eig(V[good], lam[good], Vinv[good], gain[good], omega_t)
+    if bad.any():
+        G[bad] = _gains_solve(A[bad], gain[bad], omega_t)
+
+    # Particular part at the window: phases shifted by the warm-up, one GEMM for states and road.
+    psi = phase - omega_t[None, :] * warmup[:, None]                                # [b, W]
+    cos_psi, sin_psi = amplitude * torch.cos(psi), amplitude * torch.sin(psi)      # [b, W]
+    R, I = G.real, G.imag                                                           # [b, 6, W]
+    coeff_sin = torch.cat([R * cos_psi[:, None] + I * sin_psi[:, None], cos_psi[:, None]], 1)   # [b, 7, W]
+    coeff_mcos = torch.cat([R * sin_psi[:, None] - I * cos_psi[:, None], sin_psi[:, None]], 1)  # [b, 7, W]
+    coeff = torch.cat([coeff_sin, coeff_mcos], -1)                                  # [b, 7, 2W]
+    if basis is None:
+        basis = time_basis(omega_t, n_steps, h)
+    series = (coeff.reshape(b * 7, -1) @ basis).reshape(b, 7, n_steps)
+    x = series[:, :6]                                                               # [b, 6, T]
+    road = series[:, 6]                                                             # [b, T]
+
+    # Homogeneous part from rest at t = 0: x_p(0) = Im[G a e^{-i phi}] summed over the waves.
+    xp0 = (G * (amplitude * torch.exp(-1j * phase))[:, None, :]).imag.sum(-1)       # [b, 6]
+    t = warmup[:, None] + h * torch.arange(n_steps, dtype=torch.float64)[None, :]  # [b, T]
+    if good.any():
+        d = torch.linalg.solve(V[good], -xp0[good].to(torch.complex128))           # V^{-1}(-x_p(0)) [g, 6]
+        decay = torch.exp(lam[good][:, :, None] * t[good][:, None, :])              # [g, 6, T]
+        x[good] += (V[good] @ (d[:, :, None] * decay)).real
+    if bad.any():
+        A_bad, t_bad = A[bad], t[bad]
+        start = torch.matrix_exp(A_bad * t_bad[:, :1, None])                        # exp(A t0)
+        step = torch.matrix_exp(A_bad * h)
+        state = start @ (-xp0[bad])[:, :, None]                                     # [n, 6, 1]
+        columns = []
+        for _ in range(n_steps):
+            columns.append(state[..., 0])
+            state = step @ state
+        x[bad] += torch.stack(columns, -1)
+
+    vel, disp = x[:, :3].transpose(1, 2), x[:, 3:].transpose(1, 2)                  # [b, T, 3]
+    accel = vel @ A[:, :3, :3].transpose(1, 2) + disp @ A[:, :3, 3:].transpose(1, 2)
+    accel[..., 2] += gain[:, None] * road
+    return ContinuousResponse(accel=accel, vel=vel.contiguous(), disp=disp.contiguous(), road=road,
+                              state0=x[:, :, 0].clone(), n_fallback=int(bad.sum()))
+
+
+__all__ = ["ContinuousResponse", "simulate_continuous", "time_basis", "EIG_TOL"]
