@@ -32,9 +32,9 @@ INITIAL_STATES = ("auto", "unknown", "rest")
 def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
     """(model, initial_state) for this file: ``auto`` follows the file's ``physics`` attribute.
 
-    Files from our Euler generator starting at rest (schema 1, or schema 2 with physics=euler and
-    no warm-up) keep the source protocol; everything else — continuous-time simulations, windows
-    cut mid-drive, files from other producers and real loggers — gets the exact model with the
+    Files from our Euler generator keep the source's model (from rest, as the reproduction, or with
+    the initial state estimated for windows cut mid-drive); everything else — continuous-time
+    simulations, files from other producers and real loggers — gets the exact model with the
     initial state estimated.
     """
     model, initial = str(cfg.model), str(cfg.initial_state)
@@ -42,18 +42,11 @@ def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
         raise ConfigError(f"model={model!r}: choose one of {list(MODELS)}")
     if initial not in INITIAL_STATES:
         raise ConfigError(f"initial_state={initial!r}: choose one of {list(INITIAL_STATES)}")
-    physics = info.get("physics")
-    file_initial = info.get("initial_state")
-    if physics is None:  # a reader without schema-2 support: schema 1 is the Euler protocol
-        schema = str(info["attrs"].get("schema", ""))
-        physics = "euler" if schema.endswith("/1") else "continuous"
-        file_initial = "rest" if physics == "euler" else "unknown"
+    physics, file_initial = info["physics"], info["initial_state"]  # rest | mid-drive | unknown
     if model == "auto":
-        model = "euler" if physics == "euler" and file_initial == "rest" else "exact"
+        model = "euler" if physics == "euler" else "exact"
     if initial == "auto":
-        initial = "rest" if model == "euler" else "unknown"
-    if model == "euler" and initial != "rest":
-        raise ConfigError("model=euler starts from rest (the source protocol): use model=exact for initial_state=unknown")
+        initial = "rest" if (model == "euler" and file_initial == "rest") else "unknown"
     return model, initial
 
 
@@ -134,6 +127,8 @@ def validate(cfg) -> dict:
             raise ConfigError(f"known={list(cfg.known)}: the {base} model holds only p1..p{n_params}")
         if str(cfg.model) == "euler":
             raise ConfigError(f"base_excitation={base} uses the exact continuous-time model: model=euler is not available")
+        if str(cfg.initial_state) == "rest":
+            raise ConfigError(f"base_excitation={base}: the initial relative state is always estimated (initial_state=unknown)")
     if cfg.known_source not in ("file", "reference"):
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if int(cfg.batch_size) < 1:
@@ -219,8 +214,8 @@ def validate(cfg) -> dict:
         raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
     n_samples = n_total if cfg.n_samples is None else min(int(cfg.n_samples), n_total)
     model, initial_state = resolve_model(cfg, info)
-    if base is not None and model == "euler":  # auto on an Euler file: the road-free models are continuous-time
-        model, initial_state = "exact", ("unknown" if str(cfg.initial_state) == "auto" else initial_state)
+    if base is not None:  # the road-free models are continuous-time, with their initial state estimated
+        model, initial_state = "exact", "unknown"
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,

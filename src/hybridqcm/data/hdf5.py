@@ -96,7 +96,15 @@ def _physics(attrs: Mapping) -> tuple[str, str]:
             return "euler", "rest"
         return "continuous", "unknown"      # another producer, e.g. a real logger
     warmup = attrs.get("warmup_s")
-    high = max(np.atleast_1d(np.asarray(warmup, dtype=float))) if warmup is not None else None
+    if isinstance(warmup, str):  # lists are stored as JSON text by DatasetWriter
+        try:
+            warmup = json.loads(warmup)
+        except ValueError:
+            raise DatasetError(f"attribute warmup_s = {warmup!r} is not a number or [low, high] range of seconds") from None
+    try:
+        high = max(np.atleast_1d(np.asarray(warmup, dtype=float))) if warmup is not None else None
+    except (TypeError, ValueError):
+        raise DatasetError(f"attribute warmup_s = {warmup!r} is not a number or [low, high] range of seconds") from None
     if high is None:
         return str(physics), "unknown"
     return str(physics), "rest" if high == 0 else "mid-drive"

@@ -54,22 +54,32 @@ class ResponseModel:
         raise NotImplementedError
 
 
-class EulerResponse(ResponseModel):
-    """The source's semi-explicit Euler recursion from rest (SPEC §4): θ = p1..p10, inputs = road [b, time]
-    (u in metres, or p_u u when ``scaled_road``), outputs (a3, a2, a1)."""
+STATE_NAMES = ("v3", "v2", "v1", "q3", "q2", "q1")
 
-    theta_names = PARAM_NAMES
+
+class EulerResponse(ResponseModel):
+    """The source's semi-explicit Euler recursion (SPEC §4): θ = p1..p10 (from rest) or (p, x0) with
+    ``initial_state="unknown"``; inputs = road [b, time] (u in metres, or p_u u when ``scaled_road``),
+    outputs (a3, a2, a1)."""
+
     output_names = CHANNELS
     n_params = 10
 
-    def __init__(self, h: float = 0.01, scaled_road: bool = False) -> None:
+    def __init__(self, h: float = 0.01, scaled_road: bool = False, initial_state: str = "rest") -> None:
+        if initial_state not in INITIAL_STATES:
+            raise ValueError(f"initial_state={initial_state!r}: choose one of {list(INITIAL_STATES)}")
         self.h, self.scaled_road = float(h), bool(scaled_road)
+        self.with_x0 = initial_state == "unknown"
+        self.theta_names = PARAM_NAMES + (tuple(f"x0_{s}" for s in STATE_NAMES) if self.with_x0 else ())
 
     def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
-        return euler_accelerations(theta, inputs, self.h, self.scaled_road)
+        x0 = theta[:, 10:] if self.with_x0 else None
+        return euler_accelerations(theta[:, :10].contiguous(), inputs, self.h, self.scaled_road, x0=x0)
 
     def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
-        return euler_sensitivities(theta, inputs, self.h, self.scaled_road)
+        x0 = theta[:, 10:] if self.with_x0 else None
+        return euler_sensitivities(theta[:, :10].contiguous(), inputs, self.h, self.scaled_road, x0=x0,
+                                   with_x0=self.with_x0)
 
 
 class ExactResponse(ResponseModel):
@@ -116,9 +126,7 @@ def quarter_car_response(model: str, h: float, scaled_road: bool, initial_state:
     """The road-driven quarter car as the solver's model: ``model="euler"`` (source protocol, from rest)
     or ``"exact"`` (continuous-time physics)."""
     if model == "euler":
-        if initial_state != "rest":
-            raise ValueError("the Euler model starts from rest (initial_state=rest); use model=exact for an unknown x0")
-        return EulerResponse(h, scaled_road)
+        return EulerResponse(h, scaled_road, initial_state)
     if model == "exact":
         return ExactResponse(QuarterCarRoad(scaled_road=scaled_road), h, hold, substeps, initial_state)
     raise ValueError(f"model={model!r}: choose exact or euler")

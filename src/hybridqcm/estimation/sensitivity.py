@@ -20,6 +20,10 @@ as an axis of width 11 (column 0 primal, column j the derivative w.r.t. p_j), on
 step is: one small matmul for c, one multiply by p, one scatter of the explicit terms
 ∂a/∂p_j = c_j, one matmul summing into (a3, a2, a1), two axpy's for v and q. No autograd graph,
 no per-sample bmm.
+
+Initial state: a window cut from a drive starts at x0 = (v_0, q_0) ≠ 0. Every column of the
+recursion is linear in the state, so x0 enters as the primal's initial value, and its 6
+tangents ∂/∂x0_i are 6 more columns started at the unit vectors (width 17 instead of 11).
 """
 
 from __future__ import annotations
@@ -67,24 +71,28 @@ def _check_inputs(params: Tensor, road: Tensor) -> None:
 
 
 @torch.no_grad()
-def euler_accelerations(params: Tensor, road: Tensor, h: float, scaled_road: bool = False) -> Tensor:
+def euler_accelerations(params: Tensor, road: Tensor, h: float, scaled_road: bool = False,
+                        x0: Tensor | None = None) -> Tensor:
     """Model accelerations without tangents (forward only, the line-search evaluation).
 
-    params [batch, 10], road [batch, time] (u in metres, or p_u·u when ``scaled_road``)
+    params [batch, 10], road [batch, time] (u in metres, or p_u·u when ``scaled_road``), x0
+    [batch, 6] = (v3, v2, v1, q3, q2, q1) at the first sample (None: rest)
     -> accelerations [batch, time, 3] columns (a3, a2, a1), in the dtype of ``params``.
     """
-    return _recursion(params, road, h, scaled_road, with_tangents=False)[..., 0]
+    return _recursion(params, road, h, scaled_road, with_tangents=False, x0=x0)[..., 0]
 
 
 @torch.no_grad()
-def euler_sensitivities(params: Tensor, road: Tensor, h: float, scaled_road: bool = False) -> Tensor:
-    """Accelerations and their derivatives w.r.t. all 10 parameters in one forward pass.
+def euler_sensitivities(params: Tensor, road: Tensor, h: float, scaled_road: bool = False,
+                        x0: Tensor | None = None, with_x0: bool = False) -> Tensor:
+    """Accelerations and their derivatives w.r.t. all 10 parameters (and x0) in one forward pass.
 
-    Returns ``[batch, time, 3, 11]``: [..., 0] the accelerations, [..., j] = ∂a/∂p_j (j = 1..10).
-    Viewed as [batch, time*3, 11] it is the Jacobian with the prediction as an extra first
+    Returns ``[batch, time, 3, 11]`` (``[batch, time, 3, 17]`` with ``with_x0``): [..., 0] the
+    accelerations, [..., j] = ∂a/∂p_j (j = 1..10), [..., 10 + i] = ∂a/∂x0_i (i = 1..6).
+    Viewed as [batch, time*3, width] it is the Jacobian with the prediction as an extra first
     column, which is how the solver forms JᵀJ, JᵀR and RᵀR with a single bmm.
     """
-    return _recursion(params, road, h, scaled_road, with_tangents=True)
+    return _recursion(params, road, h, scaled_road, with_tangents=True, x0=x0, with_x0=with_x0)
 
 
 def accelerations_and_jacobian(
@@ -95,12 +103,15 @@ def accelerations_and_jacobian(
     return out[..., 0], out[..., 1:]
 
 
-def _recursion(params: Tensor, road: Tensor, h: float, scaled_road: bool, with_tangents: bool) -> Tensor:
+def _recursion(params: Tensor, road: Tensor, h: float, scaled_road: bool, with_tangents: bool,
+               x0: Tensor | None = None, with_x0: bool = False) -> Tensor:
     """The Euler recursion on the augmented state; returns [batch, time, 3, width]."""
     _check_inputs(params, road)
     dtype, device = params.dtype, params.device
     batch, n_steps = road.shape
-    width = N_PARAMS + 1 if with_tangents else 1
+    if x0 is not None and tuple(x0.shape) != (batch, 6):
+        raise ValueError(f"x0 must be [batch, 6] = [{batch}, 6] (v3, v2, v1, q3, q2, q1), got {tuple(x0.shape)}")
+    width = (N_PARAMS + 1 + (6 if with_x0 else 0)) if with_tangents else 1
     coeff = _coefficient_matrix(scaled_road, dtype, device)  # [10, 7]
     row_sum = _row_sum_matrix(dtype, device)  # [3, 10]
     weights = params.t().contiguous().unsqueeze(1)  # [10, 1, batch]
@@ -109,6 +120,10 @@ def _recursion(params: Tensor, road: Tensor, h: float, scaled_road: bool, with_t
     # Augmented state (v3, v2, v1, q3, q2, q1, u) x (primal, tangents) x batch: [7, width, batch].
     # Batch innermost keeps every slice below contiguous (strided column access was 10x slower).
     state = torch.zeros(7, width, batch, dtype=dtype, device=device)
+    if x0 is not None:
+        state[0:6, 0] = x0.to(dtype).t()
+    if with_tangents and with_x0:  # ∂x_0/∂x0_i = e_i
+        state[torch.arange(6), N_PARAMS + 1 + torch.arange(6)] = 1.0
     accel_k = torch.empty(3, width, batch, dtype=dtype, device=device)
     weighted = torch.empty(N_PARAMS, width, batch, dtype=dtype, device=device)
     # Output batch-major: each step's [3, width, batch] block is transposed while it is in cache
