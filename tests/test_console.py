@@ -76,3 +76,26 @@ def test_comparison_tables_keep_every_column_in_a_log_file(tmp_path):
     assert len(rows) == 10
     # every estimate is 1000x too large: each row loses on all four criteria, and says so in full
     assert all(row.rstrip(" |").endswith("✗ mean,≤10 %,>25 %,max") for row in rows), rows
+
+
+def test_quiet_third_party_acts_only_when_an_entry_point_calls_it():
+    """Importing the library changes no warning filter or log handler; quiet_third_party() does, once called."""
+    code = """
+import logging, sys, warnings
+import hybridqcm.apps.common as common, hybridqcm.apps.pipeline, hybridqcm.apps.train, hybridqcm.apps.estimate
+import lightning
+
+ours = lambda: [f for f in warnings.filters if f[1] is not None and "LeafSpec" in f[1].pattern]
+lightning_console = lambda: [h for h in logging.getLogger("lightning").handlers if type(h) is logging.StreamHandler]
+assert ours() == [] and len(lightning_console()) == 1, (ours(), lightning_console())
+logging.basicConfig(stream=sys.stdout, format="%(name)s | %(message)s")  # stands in for Hydra's job logging
+common.quiet_third_party()
+assert len(ours()) == 1 and lightning_console() == [], (ours(), lightning_console())
+from lightning.pytorch.utilities.rank_zero import rank_zero_info
+rank_zero_info("kept: GPU available")
+rank_zero_info("Tip: try installing litlogger")
+"""
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.splitlines() == ["lightning.pytorch.utilities.rank_zero | kept: GPU available"]
+    assert "kept" not in result.stderr
