@@ -6,11 +6,12 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test test-slow reproduce reproduce-plan results bench tensorboard clean-outputs help
+.PHONY: install demo test lint test-slow reproduce reproduce-plan results bench tensorboard clean-outputs help
 
 help:
 	@echo "make demo       - end-to-end hybrid pipeline on a small dataset (about 15-20 min on 2 CPU cores)"
 	@echo "make test       - install and run the default test suite"
+	@echo "make lint       - ruff check and ruff format --check over src, tests, bench"
 	@echo "make test-slow  - also the long end-to-end checks (pytest -m slow)"
 	@echo "make reproduce  - the full reference protocol, all experiments (hours; see 'make reproduce-plan')"
 	@echo "make results    - regenerate docs/RESULTS.md from the run folders"
@@ -30,6 +31,10 @@ demo: install
 
 test: install
 	$(BIN)/python -m pytest -q
+
+lint: install
+	$(BIN)/ruff check src tests bench
+	$(BIN)/ruff format --check src tests bench
 
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow

@@ -27,7 +27,7 @@ import time
 def _data(n: int, steps: int, seed: int = 0):
     import torch
 
-    from hybridqcm.estimation.synthetic import synthetic_samples
+    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics import reference_params
 
     s = synthetic_samples(n, n_steps=steps, seed=seed)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from hybridqcm import pipeline
+from hybridqcm.apps import pipeline, stages
 
 
 def test_demo_plan_lists_every_stage_with_its_command(tmp_path, capsys):
@@ -20,7 +20,7 @@ def test_demo_plan_lists_every_stage_with_its_command(tmp_path, capsys):
 
 
 def test_reproduce_covers_every_source_table():
-    tables = {s.table for s in pipeline.reproduce_stages() if s.table}
+    tables = {s.table for s in stages.reproduce_stages() if s.table}
     from hybridqcm.apps.results import load_thesis_tables
 
     assert tables == {r["table"] for r in load_thesis_tables()}
@@ -59,7 +59,7 @@ def test_unknown_stage_is_an_error(tmp_path):
 def test_demo_end_to_end_on_a_tiny_scale(tmp_path):
     """The whole demo (simulate, train CNN and U-Net briefly, GN exps 5 and 10, tables) on tiny data."""
     root, dataset = tmp_path / "demo", tmp_path / "tiny.h5"
-    command = [sys.executable, "-m", "hybridqcm.pipeline", "demo", "--root", str(root), "--dataset", str(dataset),
+    command = [sys.executable, "-m", "hybridqcm.apps.pipeline", "demo", "--root", str(root), "--dataset", str(dataset),
                "--preset", "tiny", "--train-time", "00:00:00:30"]
     result = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
@@ -85,7 +85,7 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
         (root / name / "test_metrics.json").write_text("{}")
     calls = []
     monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
-    monkeypatch.setattr("hybridqcm.apps.results.print_summary", lambda path: None)
+    monkeypatch.setattr(pipeline, "print_summary", lambda path: None)
     pipeline.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert len(calls) == 1 and "experiment=exp10_hybrid" in calls[0]
 
@@ -93,9 +93,9 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
 def test_manifest_records_merge_across_runs(tmp_path):
     """Two pipelines recording different stages of one root keep both records; a re-run updates in place."""
     root = str(tmp_path)
-    pipeline._record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
-    pipeline._record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
-    pipeline._record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)  # a skip keeps the timing
-    pipeline._record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
-    stages = pipeline.load_manifest(tmp_path / "manifest.json")["stages"]
-    assert {s["name"]: s["seconds"] for s in stages} == {"a": 1.0, "b": 3.0}
+    stages.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
+    stages.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
+    stages.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)  # a skip keeps the timing
+    stages.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
+    records = stages.load_manifest(tmp_path / "manifest.json")["stages"]
+    assert {s["name"]: s["seconds"] for s in records} == {"a": 1.0, "b": 3.0}

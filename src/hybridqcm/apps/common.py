@@ -1,8 +1,11 @@
-"""Shared pieces of the Hydra entry points: config location, error exit, console tables."""
+"""Shared pieces of the Hydra entry points: config location, error exit, console tables, a quiet console."""
 from __future__ import annotations
 
+import functools
+import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Iterable, NoReturn, Sequence
 
@@ -18,8 +21,25 @@ def fail(error: BaseException | str, code: int = 2) -> NoReturn:
     sys.exit(code)
 
 
-def print_table(title: str, header: Sequence[str], rows: Iterable[Sequence], markdown: bool = False) -> None:
-    """A console table (rich)."""
+def _markdown_cell(value) -> str:
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def print_table(title: str, header: Sequence[str], rows: Iterable[Sequence], markdown: bool | None = None) -> None:
+    """A console table: rich on a terminal, a markdown table when stdout is not one (a log file, a pipe).
+
+    markdown=None picks by `sys.stdout.isatty()`. A rich table in a file is cut at the console's
+    width (80 columns when there is no terminal); the markdown form is never cut, and pastes into docs."""
+    rows = [[str(x) for x in row] for row in rows]
+    if markdown is None:
+        markdown = not sys.stdout.isatty()
+    if markdown:
+        cells = [[_markdown_cell(c) for c in header]] + [[_markdown_cell(c) for c in row] for row in rows]
+        widths = [max(len(row[i]) for row in cells if i < len(row)) for i in range(len(header))]
+        lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in cells]
+        lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+        print("\n".join(["", f"{title}", "", *lines, ""]), flush=True)
+        return
     from rich.console import Console
     from rich.table import Table
 
@@ -27,8 +47,62 @@ def print_table(title: str, header: Sequence[str], rows: Iterable[Sequence], mar
     for column in header:
         table.add_column(str(column))
     for row in rows:
-        table.add_row(*[str(x) for x in row])
-    Console(width=max(120, Console().width)).print(table)
+        table.add_row(*row)
+    Console().print(table)
+
+
+class _DropMessages(logging.Filter):
+    """Drops log records whose message contains one of ``fragments``."""
+
+    def __init__(self, *fragments: str):
+        super().__init__()
+        self.fragments = fragments
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not any(fragment in message for fragment in self.fragments)
+
+
+# Third-party messages that say nothing actionable about a qcm run (matched on their text):
+_NOISE_WARNINGS = (
+    # lightning 2.6 calls a torch pytree API that torch deprecates; nothing of ours to change.
+    r".*isinstance\(treespec, LeafSpec\)",
+    # the worker count is a config choice (data.num_workers); 0 is right on a 2-core machine.
+    r".*does not have many workers",
+    # SimulatedStream shards its samples with get_worker_info(), so its __len__ is exact.
+    r".*Your `IterableDataset` has `__len__` defined",
+)
+_NOISE_LOGS = ("litlogger", "Trainer already configured with model summary callbacks")
+_LIGHTNING_LOGGERS = ("lightning", "lightning.pytorch", "lightning.fabric", "pytorch_lightning", "lightning_fabric")
+
+
+def quiet_third_party() -> None:
+    """The console of our entry points: each log line once, without third-party chatter.
+
+    Call it inside the Hydra job, after Hydra has configured logging (root: console + run-folder
+    file). `import lightning` attaches its own console handler to the "lightning" logger (and, if
+    imported before Hydra configured the root logger, to "lightning.pytorch"/"lightning.fabric"
+    with propagation off), so each Lightning INFO line printed twice, or never reached the run's
+    log file. Here those handlers go and the records propagate to Hydra's handlers: printed once,
+    and kept in `<run>/<task>.log`. Only our console scripts call this; importing the library
+    changes no logging or warning state."""
+    import lightning  # noqa: F401  (attach its handlers now, so they can be removed before any run logs)
+
+    root = logging.getLogger()
+    if root.handlers:  # Hydra (or the caller) configured logging: route Lightning's records there
+        for name in _LIGHTNING_LOGGERS:
+            logger = logging.getLogger(name)
+            for handler in list(logger.handlers):
+                if type(handler) is logging.StreamHandler and handler.stream in (sys.stderr, sys.stdout):
+                    logger.removeHandler(handler)
+            logger.propagate = True
+    noise = _DropMessages(*_NOISE_LOGS)
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, _DropMessages) for f in logger.filters):
+            logger.addFilter(noise)
+    for pattern in _NOISE_WARNINGS:
+        warnings.filterwarnings("ignore", message=pattern)
 
 
 class ConfigError(ValueError):
@@ -73,11 +147,19 @@ def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path 
 
 
 def run_hydra_app(config_name: str, task: str, entry) -> None:
-    """Console-script body: reject unknown / other-app experiments in one line, then hand over to Hydra."""
+    """Console-script body: reject unknown / other-app experiments in one line, then hand over to Hydra.
+
+    The Hydra job quiets third-party output (`quiet_third_party`) before it calls ``entry(cfg)``."""
     import hydra
 
     try:
         check_experiment_overrides(sys.argv[1:], task)
     except ConfigError as error:
         fail(error)
-    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(entry)()
+
+    @functools.wraps(entry)
+    def job(cfg):
+        quiet_third_party()
+        return entry(cfg)
+
+    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(job)()

@@ -19,8 +19,9 @@ import sys
 from importlib import resources
 from pathlib import Path
 
+from hybridqcm.apps.common import print_table
+from hybridqcm.apps.stages import PIPELINES, load_manifest
 from hybridqcm.metrics import read_error_distribution
-from hybridqcm.pipeline import load_manifest
 
 DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json")
 
@@ -103,8 +104,6 @@ def _markdown_comparison(rows: list[dict]) -> str:
 
 def _in_pipeline_order(manifest: dict) -> list[dict]:
     """The manifest's stages in the order the pipeline defines them (records are merged as runs finish)."""
-    from hybridqcm.pipeline import PIPELINES
-
     builder = PIPELINES.get(manifest.get("pipeline"))
     order = {stage.name: i for i, stage in enumerate(builder())} if builder else {}
     return sorted(manifest["stages"], key=lambda stage: order.get(stage["name"], len(order)))
@@ -178,32 +177,28 @@ def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tupl
 
 def print_summary(manifest_path: str | Path) -> None:
     """Console tables of one pipeline's runs beside the source (used at the end of qcm-pipeline)."""
-    from rich.console import Console
-    from rich.table import Table
-
     thesis = load_thesis_tables()
     manifest = load_manifest(manifest_path)
-    console = Console(width=140)
     for stage in manifest["stages"]:
         if not stage.get("table"):
             continue
         try:
             rows = compare_stage(stage, thesis)
         except (FileNotFoundError, ValueError) as error:
-            console.print(f"[red]{stage['name']}: {error}[/]")
+            print(f"{stage['name']}: {error}")
             continue
-        table = Table(title=f"{stage['name']} vs source table {stage['table']} ({stage['setting']})", title_justify="left")
-        for column in ("param", "mean src", "mean ours", "≤10% src", "≤10% ours", ">25% src", ">25% ours", "max src", "max ours", "beat"):
-            table.add_column(column)
+        table = []
         for r in rows:
             s, o = r["source"], r["ours"]
             if o is None:
-                table.add_row(r["param"], _pct(s["mean_err"]), "—", "", "", "", "", "", "", "✗")
+                table.append([r["param"], _pct(s["mean_err"]), "—", "", "", "", "", "", "", "✗"])
                 continue
-            table.add_row(r["param"], _pct(s["mean_err"]), _pct(o["mean_err"]), _pct(s["within_10pct"]), _pct(o["within_10pct"]),
+            table.append([r["param"], _pct(s["mean_err"]), _pct(o["mean_err"]), _pct(s["within_10pct"]), _pct(o["within_10pct"]),
                           _pct(s["over_25pct"]), _pct(o["over_25pct"]), _pct(s["max_err"]), _pct(o["max_err"]),
-                          "✓" if r["beat"] else "✗ " + ",".join(r["short"]))
-        console.print(table)
+                          "✓" if r["beat"] else "✗ " + ",".join(r["short"])])
+        print_table(f"{stage['name']} vs source table {stage['table']} ({stage['setting']})",
+                    ["param", "mean src", "mean ours", "≤10% src", "≤10% ours", ">25% src", ">25% ours", "max src", "max ours",
+                     "beat"], table)
 
 
 def main(argv: list[str] | None = None) -> int:

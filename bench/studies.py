@@ -1,7 +1,7 @@
 """Small reproducible studies behind design choices (numbers quoted in docs/notes/estimation.md).
 
-    python -m hybridqcm.estimation.studies exp10-completion --data data/reference.h5 --samples 1000 --error 0.03
-    python -m hybridqcm.estimation.studies solver-variants --data data/reference.h5 --samples 500
+    .venv/bin/python bench/studies.py exp10-completion --data data/reference.h5 --samples 1000 --error 0.03
+    .venv/bin/python bench/studies.py solver-variants --data data/reference.h5 --samples 500
 
 exp10-completion: how the exp-10 GN design copes with an imperfect U-Net, without a U-Net. The
 completed (a2, a1) are the true ones plus a smooth relative error (white noise through a 9-tap
