@@ -35,7 +35,8 @@ def write_dataset(path: str | Path, samples: dict[str, Tensor], split: str = "te
     n, n_steps = samples["road"].shape
     keys = ["accel", "vel", "disp", "road"] + (["params"] if with_params else [])
     with DatasetWriter(path, attrs={"h": h, "n_steps": n_steps, "speed_mps": 30 / 3.6, "prior": "thesis", "seed": 0,
-                                    "created_by": "hybridqcm.testing"}, overwrite=True,
+                                    "created_by": "hybridqcm.testing",
+                                    "physics": "euler", "warmup_s": [0.0, 0.0]}, overwrite=True,
                        compression=None) as writer:
         writer.create_split(split, n, n_steps, keys=keys)
         writer.write(split, 0, **{k: np.asarray(samples[k].numpy(), dtype=np.float64 if k == "params" else np.float32)

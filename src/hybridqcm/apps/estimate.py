@@ -214,6 +214,14 @@ def validate(cfg) -> dict:
         raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
     n_samples = n_total if cfg.n_samples is None else min(int(cfg.n_samples), n_total)
     model, initial_state = resolve_model(cfg, info)
+    from hybridqcm.data.sensor import build_sensor
+
+    try:
+        sensor = build_sensor(cfg.get("sensor"))
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    if sensor.active and sigma > 0:
+        raise ConfigError(f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one")
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
@@ -221,7 +229,7 @@ def validate(cfg) -> dict:
     return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
             "stages": stages, "n_read_steps": needed, "n_samples": n_samples, "h": h_file or 0.01,
             "completes": completes, "windows": windows, "model": model, "initial_state": initial_state,
-            "base_excitation": base, "n_params": n_params}
+            "base_excitation": base, "n_params": n_params, "sensor": sensor}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -265,7 +273,12 @@ def build_inputs(cfg, plan: Mapping) -> dict:
     if sigma > 0:
         noise_gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
         accel = accel * (1.0 + sigma * torch.randn(accel.shape, generator=noise_gen, dtype=torch.float64))
+    sensor = plan["sensor"]
     out = {"accel": accel, "road": road, "pu": pu, "init": init, "true": true, "index": torch.arange(m)}
+    if sensor.active:
+        out["accel"] = sensor.apply(accel, torch.arange(m))
+        if cfg.noise_weighting:  # the user knows the sensor: weight each channel by 1/σ_c
+            out["noise_std"] = sensor.noise_std(accel).clamp_min(1e-12)
     if sigma > 0 and cfg.noise_weighting:
         out["noise_sigma"] = torch.full((m,), sigma, dtype=torch.float64)
     return out
@@ -391,6 +404,7 @@ def run(cfg) -> dict:
         "seed": int(cfg.seed), "observed": plan["observed"], "known": [PARAM_NAMES[j] for j in plan["known"]],
         "model": plan["model"], "initial_state": plan["initial_state"], "base_excitation": plan["base_excitation"],
         "hold": str(cfg.hold) if plan["model"] == "exact" else None,
+        "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
         "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
         "stages": collected.stage_status, "stage_mean_loss": collected.stage_loss,
         "iterations_mean": float(result.iterations.double().mean()),

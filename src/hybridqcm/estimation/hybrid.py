@@ -224,6 +224,8 @@ class HybridEstimator(LightningModule):
             # whose error is unknown: they get the same rule, which only balances their scale).
             rms = accel.square().mean(1).sqrt().clamp_min(1e-12)  # [batch, 3]
             prepared["weights"] = 1.0 / (batch["noise_sigma"].double()[:, None] * rms)
+        if batch.get("noise_std") is not None:  # a known sensor noise floor per channel [batch, 3]
+            prepared["weights"] = 1.0 / batch["noise_std"].double()
         if self.base_excitation is not None:
             # The measured driving channel becomes the model's input, the rest its targets.
             driver, outputs, n_params = BASE_EXCITATION[self.base_excitation]
