@@ -118,6 +118,13 @@ def test_the_fallback_solve_agrees_with_the_eigendecomposition():
     slow = simulate_continuous(*args, eig_tol=-1.0)                    # every sample takes the fallback
     assert fast.n_fallback == 0 and slow.n_fallback == 3
     assert _rel(slow.accel.numpy(), fast.accel.numpy()) <= 1e-9
+    for tol in (1e-17, 3e-17, 1e-16, 3e-16, 1e-15, 3e-15, 1e-14):         # some sample on each path
+        mixed = simulate_continuous(*args, eig_tol=tol)
+        if 0 < mixed.n_fallback < 3:
+            break
+    assert 0 < mixed.n_fallback < 3
+    assert _rel(mixed.accel.numpy(), fast.accel.numpy()) <= 1e-9
+    assert _rel(mixed.vel.numpy(), fast.vel.numpy()) <= 1e-9
 
 
 def test_bad_input_is_one_line():
@@ -161,3 +168,19 @@ def test_euler_at_100_hz_is_another_vehicle():
     torch.testing.assert_close(euler["params"], exact["params"])
     rel = ((euler["accel"] - exact["accel"]).pow(2).mean((0, 1)) / exact["accel"].pow(2).mean((0, 1))).sqrt()
     assert 0.01 < float(rel[0]) < 0.5 and 0.05 < float(rel[2]) < 0.6, rel
+
+
+def test_euler_converges_to_the_exact_response_at_first_order():
+    """An independent check of both: semi-explicit Euler is first order, so halving h halves its
+    distance to the exact response (ratio 2 within the pre-asymptotic spread)."""
+    from hybridqcm.data.simulate import simulate_samples
+
+    prior, road = build_prior("thesis", h=0.01), RoadProfile(n_waves=300)
+    errors = []
+    for h in (0.002, 0.001):
+        kw = dict(n_steps=int(round(1.0 / h)), h=h, speed_mps=SPEED, samples_per_profile=5, warmup_s=(0.0, 0.0))
+        euler = simulate_samples(prior, road, torch.tensor([0, 2]), generator=torch.Generator().manual_seed(8), physics="euler", **kw)
+        exact = simulate_samples(prior, road, torch.tensor([0, 2]), generator=torch.Generator().manual_seed(8), physics="continuous", **kw)
+        errors.append(((euler["accel"] - exact["accel"]).pow(2).mean((0, 1)) / exact["accel"].pow(2).mean((0, 1))).sqrt())
+    ratio = errors[0] / errors[1]
+    assert bool(((ratio > 1.8) & (ratio < 2.2)).all()), ratio

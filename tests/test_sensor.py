@@ -131,3 +131,21 @@ def test_streaming_continuous_mid_drive_with_sensor_and_augmentation():
         StreamingDataModule(window=64, physics="rk45")
     with pytest.raises(ValueError, match=r"data.warmup_s must be a range 0 <= low <= high"):
         StreamingDataModule(window=64, physics="continuous", warmup_s=[5, 2])
+
+
+def test_hdf5_datamodule_refuses_only_the_unrecorded_channels_it_reads(tmp_path):
+    import h5py
+    import numpy as np
+
+    path = make_tiny_dataset(tmp_path / "t.h5", n_steps=64)
+    with h5py.File(path, "r+") as f:
+        for split in ("train", "test"):
+            accel = f[split]["accel"][()]
+            accel[..., 2] = np.nan                                      # no wheel accelerometer
+            f[split]["accel"][...] = accel
+    dm = HDF5DataModule(path, window=64, inputs=("a3", "a2"), targets=("p1", "p2"), batch_size=8)
+    dm.setup()                                                          # a3, a2 suffice
+    assert torch.isfinite(next(iter(dm.test_dataloader()))["x"]).all()
+    bad = HDF5DataModule(path, window=64, inputs=("a3", "a1"), targets=("p1", "p2"))
+    with pytest.raises(Exception, match=r"channel\(s\) \['a1'\] are not recorded \(all NaN\) but this task reads them as inputs"):
+        bad.setup()

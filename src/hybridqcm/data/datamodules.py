@@ -282,6 +282,13 @@ class HDF5DataModule(_BaseDataModule):
         arrays = read_split(self.path, split, keys, n_steps=self.window, index=index)
         m = arrays[keys[0]].shape[0]
         tensors = self.spec.build(arrays, torch.arange(m))
+        for part, names in (("x", self.spec.inputs), ("aux", self.spec.aux), ("y", self.spec.targets)):
+            if part in tensors and tensors[part].ndim == 3 and m:
+                # a file may hold an unrecorded (all-NaN) channel; only a channel this task reads is an error
+                missing = [n for c, n in enumerate(names) if bool(torch.isnan(tensors[part][:, c]).all())]
+                if missing:
+                    raise DatasetError(f"{self.path}: /{split} channel(s) {missing} are not recorded (all NaN) "
+                                       f"but this task reads them as {'inputs' if part == 'x' else part}")
         if "profile_id" in arrays:
             tensors["profile_id"] = torch.as_tensor(arrays["profile_id"]).long()
         return tensors

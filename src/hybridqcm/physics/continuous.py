@@ -8,13 +8,13 @@ t_k = t0 + k h, t0 = the sample's warm-up.
 Particular (steady-state) solution: for the forcing Im[a e^{i(w t - phi)}] it is
 Im[G(w) a e^{i(w t - phi)}] with G(w) = (i w I - A)^{-1} B. With A = V L V^{-1},
 G(w) = V diag(1 / (i w - lambda)) V^{-1} B, so all 1000 frequencies cost one [6, 6] x [6, W]
-product per sample. Writing G = R + i I and theta = w (t0 + k h) - phi,
+product per sample. With Z = G a e^{-i psi}, psi = phi - w t0 (the warm-up folded into the phase),
 
-    Im[G e^{i theta}] = sin(w k h) (R cos psi + I sin psi) + cos(w k h) (I cos psi - R sin psi),
-    psi = phi - w t0,
+    Im[Z e^{i w k h}] = Re(Z) sin(w k h) + Im(Z) cos(w k h),
 
-so the window is one GEMM of per-sample coefficients [b 7, 2 W] (six states and the road) against
-the shared basis [sin(w k h); -cos(w k h)] of shape [2 W, T], as in RoadProfile.evaluate.
+so the window is one GEMM of per-sample coefficients [b 7, 2 W] (six states and the road, whose
+Z is a e^{-i psi}) against the shared basis of rows (sin(w_i k h), cos(w_i k h)) interleaved per
+wave, [2 W, T], as in RoadProfile.evaluate; (Re Z, Im Z) interleaved is view_as_real(Z).
 
 Homogeneous part: x(t) = x_p(t) + exp(A t)(x(0) - x_p(0)) with x(0) = 0, i.e.
 x_h(t) = -Re[V diag(e^{lambda t}) V^{-1} x_p(0)].
@@ -50,9 +50,10 @@ class ContinuousResponse:
 
 
 def time_basis(omega_t: Tensor, n_steps: int, h: float) -> Tensor:
-    """[sin(w k h); -cos(w k h)] as [2 W, n_steps] (float64), w = temporal frequencies [W] in rad/s."""
+    """Rows sin(w_i k h), cos(w_i k h) interleaved per wave, [2 W, n_steps] (float64), w = temporal
+    frequencies [W] in rad/s."""
     angle = omega_t.to(torch.float64)[:, None] * (h * torch.arange(n_steps, dtype=torch.float64))[None, :]
-    return torch.cat([torch.sin(angle), -torch.cos(angle)])
+    return torch.stack([torch.sin(angle), torch.cos(angle)], 1).reshape(2 * omega_t.shape[0], n_steps)
 
 
 def _check(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor) -> None:
@@ -87,17 +88,32 @@ def _gains_solve(A: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
 
 
 def simulate_continuous(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float,
-                        warmup: Tensor | float = 0.0, basis: Tensor | None = None, eig_tol: float = EIG_TOL) -> ContinuousResponse:
+                        warmup: Tensor | float = 0.0, basis: Tensor | None = None, eig_tol: float = EIG_TOL,
+                        block: int = 256) -> ContinuousResponse:
     """Exact response, recorded at t_k = warmup + k h, for p [b, 10], road amplitudes/phases [b, W]
     (u(t) = sum_i amplitude_i sin(omega_t_i t - phase_i)), temporal frequencies omega_t [W] rad/s,
     warmup [b] seconds (the car starts from rest at t = 0). `basis` = time_basis(omega_t, n_steps, h)
-    when the caller shares it across chunks."""
+    when the caller shares it across chunks. Samples go through in blocks of `block`: the
+    [block, 6, W] complex intermediates then stay small enough to be cheap to stream."""
     p = p.to(torch.float64)
     b = p.shape[0]
     amplitude, phase, omega_t = amplitude.to(torch.float64), phase.to(torch.float64), omega_t.to(torch.float64)
     warmup = torch.as_tensor(warmup, dtype=torch.float64)
     warmup = warmup.expand(b).clone() if warmup.ndim == 0 else warmup
     _check(p, amplitude, phase, omega_t, n_steps, h, warmup)
+    if basis is None:
+        basis = time_basis(omega_t, n_steps, h)
+    parts = [_block(p[i:i + block], amplitude[i:i + block], phase[i:i + block], omega_t, n_steps, h, warmup[i:i + block],
+                    basis, eig_tol) for i in range(0, b, max(1, int(block)))]
+    if len(parts) == 1:
+        return parts[0]
+    return ContinuousResponse(*(torch.cat([getattr(r, k) for r in parts]) for k in ("accel", "vel", "disp", "road", "state0")),
+                              n_fallback=sum(r.n_fallback for r in parts))
+
+
+def _block(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor,
+           basis: Tensor, eig_tol: float) -> ContinuousResponse:
+    b = p.shape[0]
     A = system_matrix(p)
     gain = road_gain(p)
     lam, V = torch.linalg.eig(A)
@@ -105,33 +121,37 @@ def simulate_continuous(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Te
     rebuilt = (V * lam[:, None, :]) @ Vinv
     error = (rebuilt - A).abs().amax((-2, -1)) / A.abs().amax((-2, -1))
     bad = ~(error <= eig_tol)                         # NaN (singular V) counts as bad
-    G = torch.empty(b, 6, omega_t.shape[0], dtype=torch.complex128)
     good = ~bad
-    if good.any():
-        G[good] = _gains_eig(V[good], lam[good], Vinv[good], gain[good], omega_t)
-    if bad.any():
+    all_good = bool(good.all())
+    road_z = torch.polar(amplitude, omega_t[None, :] * warmup[:, None] - phase)    # a e^{-i psi} [b, W]
+    start_z = torch.polar(amplitude, -phase)                                        # a e^{-i phi}: t = 0
+    if all_good:
+        # G never formed: V (modal z) per sample, and x_p(0) = Im[V (modal @ z0)] by one small bmm
+        modal = (Vinv[:, :, 2] * gain[:, None])[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])
+        states_z = V @ (modal * road_z[:, None, :])                                 # [b, 6, W]
+        xp0 = (V @ (modal @ start_z[:, :, None]))[..., 0].imag                      # [b, 6]
+    else:
+        G = torch.empty(b, 6, omega_t.shape[0], dtype=torch.complex128)
+        if good.any():
+            G[good] = _gains_eig(V[good], lam[good], Vinv[good], gain[good], omega_t)
         G[bad] = _gains_solve(A[bad], gain[bad], omega_t)
+        states_z = G * road_z[:, None, :]
+        xp0 = (G * start_z[:, None, :]).imag.sum(-1)                                # x_p(0) [b, 6]
 
-    # Particular part at the window: phases shifted by the warm-up, one GEMM for states and road.
-    psi = phase - omega_t[None, :] * warmup[:, None]                                # [b, W]
-    cos_psi, sin_psi = amplitude * torch.cos(psi), amplitude * torch.sin(psi)      # [b, W]
-    R, I = G.real, G.imag                                                           # [b, 6, W]
-    coeff_sin = torch.cat([R * cos_psi[:, None] + I * sin_psi[:, None], cos_psi[:, None]], 1)   # [b, 7, W]
-    coeff_mcos = torch.cat([R * sin_psi[:, None] - I * cos_psi[:, None], sin_psi[:, None]], 1)  # [b, 7, W]
-    coeff = torch.cat([coeff_sin, coeff_mcos], -1)                                  # [b, 7, 2W]
-    if basis is None:
-        basis = time_basis(omega_t, n_steps, h)
-    series = (coeff.reshape(b * 7, -1) @ basis).reshape(b, 7, n_steps)
+    # Particular part at the window: the warm-up folded into the phases, one GEMM for states and road.
+    Z = torch.cat([states_z, road_z[:, None, :]], 1)                                # [b, 7, W]
+    series = (torch.view_as_real(Z).reshape(b * 7, -1) @ basis).reshape(b, 7, n_steps)
     x = series[:, :6]                                                               # [b, 6, T]
     road = series[:, 6]                                                             # [b, T]
 
-    # Homogeneous part from rest at t = 0: x_p(0) = Im[G a e^{-i phi}] summed over the waves.
-    xp0 = (G * (amplitude * torch.exp(-1j * phase))[:, None, :]).imag.sum(-1)       # [b, 6]
+    # Homogeneous part from rest at t = 0: x(t) = x_p(t) - exp(A t) x_p(0).
     t = warmup[:, None] + h * torch.arange(n_steps, dtype=torch.float64)[None, :]  # [b, T]
-    if good.any():
-        d = torch.linalg.solve(V[good], -xp0[good].to(torch.complex128))           # V^{-1}(-x_p(0)) [g, 6]
-        decay = torch.exp(lam[good][:, :, None] * t[good][:, None, :])              # [g, 6, T]
-        x[good] += (V[good] @ (d[:, :, None] * decay)).real
+    if all_good:
+        d = (Vinv @ (-xp0).to(torch.complex128)[:, :, None])                        # V^{-1}(-x_p(0)) [b, 6, 1]
+        x += (V @ (d * torch.exp(lam[:, :, None] * t[:, None, :]))).real
+    elif good.any():
+        d = (Vinv[good] @ (-xp0[good]).to(torch.complex128)[:, :, None])
+        x[good] += (V[good] @ (d * torch.exp(lam[good][:, :, None] * t[good][:, None, :]))).real
     if bad.any():
         A_bad, t_bad = A[bad], t[bad]
         start = torch.matrix_exp(A_bad * t_bad[:, :1, None])                        # exp(A t0)
