@@ -118,25 +118,29 @@ def spline_matrix(n_samples: int, substeps: int) -> Tensor:
     return _spline_matrix_cached(int(n_samples), int(substeps))
 
 
-def _sub_samples(inputs: Tensor, hold: str, substeps: int) -> tuple[Tensor, int]:
-    """inputs [b, T, m] -> s [b, T-1, (m_sub+1) * m] with s[:, k, j*m + c] = w_c(t_k + j h/m_sub)."""
+def _sub_samples(inputs: Tensor, hold: str, substeps: int) -> Tensor:
+    """inputs [b, T, m] -> s [m_sub+1, m, T-1, b] (batch innermost, a strided view):
+    s[j, c, k] = w_c(t_k + j h/m_sub), the spline for "spline", the samples themselves otherwise."""
     batch, T, n_in = inputs.shape
     m_sub = substeps if hold == "spline" else 1
-    if hold == "spline" and T > 2:
-        up = spline_matrix(T, m_sub).to(inputs.device)
-        # one GEMM for the whole batch: [T_fine, T] @ [T, b n_in]
-        fine = torch.mm(up, inputs.transpose(0, 1).reshape(T, batch * n_in)).view(-1, batch, n_in).transpose(0, 1)
-    else:
-        fine = inputs if m_sub == 1 else _linear_upsample(inputs, m_sub)
-    windows = fine.unfold(1, m_sub + 1, m_sub)  # [b, T-1, n_in, m_sub+1]
-    return windows.permute(0, 1, 3, 2).reshape(batch, T - 1, (m_sub + 1) * n_in), m_sub
+    columns = inputs.permute(1, 2, 0).reshape(T, n_in * batch)  # [T, (c, b)]
+    if m_sub > 1:  # one GEMM for the whole batch
+        columns = torch.mm(spline_matrix(T, m_sub).to(inputs.device), columns)
+    fine = columns.contiguous()  # [(T-1) m_sub + 1, (c, b)]
+    return fine.as_strided((m_sub + 1, n_in, T - 1, batch), (n_in * batch, batch, m_sub * n_in * batch, 1))
 
 
-def _linear_upsample(inputs: Tensor, m_sub: int) -> Tensor:
-    theta = torch.arange(m_sub, dtype=inputs.dtype, device=inputs.device) / m_sub
-    left, right = inputs[:, :-1, None], inputs[:, 1:, None]
-    inner = (left + theta[None, None, :, None] * (right - left)).flatten(1, 2)
-    return torch.cat([inner, inputs[:, -1:]], 1)
+def _forcing(lam: Tensor, s: Tensor) -> Tensor:
+    """G_k = sum_j Lam_j s_{k,j} as [T-1, n, b]; lam [b, m_sub+1, n, m], s from _sub_samples."""
+    lam_t = lam.permute(1, 3, 2, 0).contiguous()  # [j, c, i, b]
+    n_sub, n_in = s.shape[:2]
+    forcing = torch.empty(s.shape[2], lam.shape[2], s.shape[3], dtype=_DTYPE, device=lam.device)
+    torch.mul(s[0, 0][:, None, :], lam_t[0, 0], out=forcing)
+    for j in range(n_sub):
+        for c in range(n_in):
+            if j or c:
+                forcing.addcmul_(s[j, c][:, None, :], lam_t[j, c])
+    return forcing
 
 
 # ----------------------------------------------------------------------------- matrix exponential
@@ -354,9 +358,7 @@ def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs:
     _, _, C, E = model.matrices(params)
     if T > 1:
         phi, lam = _maps(model, params, h, hold, substeps, False)
-        s, _ = _sub_samples(inputs, hold, substeps)
-        lam_rows = lam.transpose(-1, -2).reshape(batch, -1, n)  # [b, (m_sub+1) m, n]
-        forcing = torch.bmm(s, lam_rows).permute(1, 2, 0).contiguous()  # [T-1, n, b]
+        forcing = _forcing(lam, _sub_samples(inputs, hold, substeps))  # [T-1, n, b]
     else:
         phi, forcing = None, None
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
@@ -382,9 +384,8 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
 
     if T > 1:
         phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # tangents wide
-        s, m_sub = _sub_samples(inputs, hold, substeps)
-        lam_rows = lam.transpose(-1, -2).reshape(batch, -1, n)
-        forcing = torch.bmm(s, lam_rows).permute(1, 2, 0).contiguous()  # [T-1, n, b]
+        s = _sub_samples(inputs, hold, substeps)
+        forcing = _forcing(lam, s)  # [T-1, n, b]
     else:
         phi = forcing = None
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
@@ -411,21 +412,26 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
         out[..., 1 + n_params:] = rows
 
     if T > 1:
-        # tangent forcing U_k = dPhi x_k + sum_j dLam_j s_{k,j} for all k in one bmm: [b, T-1, (i, j)]
-        xi = torch.cat([x_time[:, :T - 1], s], -1)  # [b, T-1, n + (m_sub+1) m]
-        q_x = dphi.permute(0, 3, 1, 2).reshape(batch, n, n * n_params)  # [b, l, (i, j)]
-        q_s = dlam.permute(0, 1, 4, 2, 3).reshape(batch, -1, n * n_params)  # [b, (q, c), (i, j)]
-        tangent_forcing = torch.bmm(xi, torch.cat([q_x, q_s], 1)).view(batch, T - 1, n, n_params)
+        # dx_{k+1} = Phi dx_k + U_k, U_k = dPhi x_k + sum_j dLam_j s_{k,j}: all [i, j, b] blocks
+        # with per-sample scalars, multiply-adds on data that stays in cache
         phi_cols = phi.permute(2, 1, 0).contiguous()[:, :, None, :]  # [l, i, 1, b]
+        dphi_cols = dphi.permute(3, 1, 2, 0).contiguous()  # [l, i, j, b]
+        dlam_t = dlam.permute(1, 4, 2, 3, 0).contiguous()  # [q, c, i, j, b]
         c_cols = C.permute(2, 1, 0).contiguous()[:, :, None, :]  # [l, o, 1, b]
         z = torch.zeros(n, n_params, batch, dtype=_DTYPE, device=params.device)  # dx_k/dp, [i, j, b]
         z_next = torch.empty_like(z)
         cz = torch.empty(o, n_params, batch, dtype=_DTYPE, device=params.device)
+        n_sub, n_in = s.shape[:2]
         for k in range(1, T):
+            x_prev = states[k - 1]
             torch.mul(phi_cols[0], z[0], out=z_next)
             for l in range(1, n):
                 z_next.addcmul_(phi_cols[l], z[l])
-            z_next.add_(tangent_forcing[:, k - 1].permute(1, 2, 0))
+            for l in range(n):
+                z_next.addcmul_(dphi_cols[l], x_prev[l])
+            for q in range(n_sub):
+                for c in range(n_in):
+                    z_next.addcmul_(dlam_t[q, c], s[q, c, k - 1])
             z, z_next = z_next, z
             torch.mul(c_cols[0], z[0], out=cz)
             for l in range(1, n):
