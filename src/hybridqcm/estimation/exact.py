@@ -377,11 +377,8 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     params, x0, inputs = _prepare(model, params, x0, inputs, h, hold, substeps)
     batch, T, _ = inputs.shape
     n, o, n_params = model.n_state, model.n_output, model.n_params
-    width = 1 + n_params + (n if with_x0 else 0)
     _, _, C, E = model.matrices(params)
     _, _, dC, dE = model.matrix_derivatives(params)
-    out = torch.empty(batch, T, o, width, dtype=_DTYPE, device=params.device)
-
     if T > 1:
         phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # tangents wide
         s = _sub_samples(inputs, hold, substeps)
@@ -391,12 +388,12 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
     x_time = states.permute(2, 0, 1).contiguous()  # [b, T, n]
 
-    # primal and the explicit terms dC x_k + dE w_k, laid out as out[..., 0] and out[..., 1:1+P]
-    out[..., 0] = torch.bmm(x_time, C.transpose(1, 2)).add_(_input_term(inputs, E.transpose(1, 2)))
+    # primal and the explicit terms dC x_k + dE w_k (the implicit C dx_k is added below)
+    primal = torch.bmm(x_time, C.transpose(1, 2)).add_(_input_term(inputs, E.transpose(1, 2)))
     dC_cols = dC.permute(0, 3, 2, 1).reshape(batch, n, o * n_params)  # [b, l, (o, j)]
     dE_cols = dE.permute(0, 3, 2, 1).reshape(batch, -1, o * n_params)
-    explicit = torch.bmm(x_time, dC_cols).add_(_input_term(inputs, dE_cols))
-    out[..., 1:1 + n_params] = explicit.view(batch, T, o, n_params)
+    tangents = torch.bmm(x_time, dC_cols).add_(_input_term(inputs, dE_cols)).view(batch, T, o, n_params)
+    pieces = [primal.unsqueeze(-1), tangents]
 
     if with_x0:  # dy_k/dx0 = C Phi^k, rows stacked over k and filled by doubling
         rows = torch.empty(batch, T, o, n, dtype=_DTYPE, device=params.device)
@@ -409,7 +406,7 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
             filled += block
             if filled < T:
                 power = torch.bmm(power, power)
-        out[..., 1 + n_params:] = rows
+        pieces.append(rows)
 
     if T > 1:
         # dx_{k+1} = Phi dx_k + U_k, U_k = dPhi x_k + sum_j dLam_j s_{k,j}: all [i, j, b] blocks
@@ -420,7 +417,8 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
         c_cols = C.permute(2, 1, 0).contiguous()[:, :, None, :]  # [l, o, 1, b]
         z = torch.zeros(n, n_params, batch, dtype=_DTYPE, device=params.device)  # dx_k/dp, [i, j, b]
         z_next = torch.empty_like(z)
-        cz = torch.empty(o, n_params, batch, dtype=_DTYPE, device=params.device)
+        # C dx_k, written contiguously per step (batch innermost) and transposed once at the end
+        c_dx = torch.empty(T, o, n_params, batch, dtype=_DTYPE, device=params.device)
         n_sub, n_in = s.shape[:2]
         for k in range(1, T):
             x_prev = states[k - 1]
@@ -433,8 +431,8 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
                 for c in range(n_in):
                     z_next.addcmul_(dlam_t[q, c], s[q, c, k - 1])
             z, z_next = z_next, z
-            torch.mul(c_cols[0], z[0], out=cz)
+            torch.mul(c_cols[0], z[0], out=c_dx[k])
             for l in range(1, n):
-                cz.addcmul_(c_cols[l], z[l])
-            out[:, k, :, 1:1 + n_params] += cz.permute(2, 0, 1)
-    return out
+                c_dx[k].addcmul_(c_cols[l], z[l])
+        tangents[:, 1:] += c_dx[1:].permute(3, 0, 1, 2)
+    return torch.cat(pieces, -1)
