@@ -27,15 +27,17 @@ g0 = F1 - F2, g1 = F2 (ZOH: Gamma = F1). ONE exponential per sample gives all th
 
 Derivatives. With dM_j = dM/dp_j, d exp(M)[dM_j] is the Fréchet derivative, the top-right block
 of exp([[M, dM_j], [0, M]]). We compute exactly the same quantity more cheaply by carrying the
-tangents through a scaling-and-squaring Taylor evaluation of exp (forward mode: every product
-S T becomes (S T, dS T + S dT)); tests compare it with torch.linalg.matrix_exp and its autograd.
-The combination of sub-steps is differentiated by the product rule.
+tangents through a balanced scaling-and-squaring Taylor evaluation of exp (forward mode: every
+product S T becomes (S T, dS T + S dT)); tests compare it with torch.linalg.matrix_exp of the
+block matrix and with torch.func.jvp. The folding of the sub-steps is differentiated by the
+product rule.
 
 Sensitivities. Outputs are linear in x0, so dy_k/dx0 = C Phi^k (powers by doubling, no
 recursion). For p: dx_{k+1} = Phi dx_k + U_k with U_k = dPhi x_k + sum_j dLambda_j s_{k,j} and
-dy_k = C dx_k + dC x_k + dE w_k. Everything that is not sequential (U_k, dC x_k + dE w_k) is one
-batched matmul over all k after the primal pass; the sequential part is a 6x6 matvec per step on
-a [n, P, batch] block, batch innermost, written as n broadcast multiply-adds (no per-sample bmm).
+dy_k = C dx_k + dC x_k + dE w_k. The explicit dC x_k + dE w_k is one bmm over all k after the
+primal pass; the recursion runs on [n, P, batch] blocks (batch innermost), every per-sample
+matrix-vector product written as n broadcast multiply-adds (no per-sample bmm, which costs
+3-4x more at these sizes), and C dx_k is stored batch-innermost and transposed once.
 """
 from __future__ import annotations
 
