@@ -8,6 +8,12 @@ batch in chunks of --chunk samples with torch.set_num_threads(--threads), as the
 Printed: seconds per full pass (best of --repeats) for exact_sensitivities (p and x0 columns,
 [b, T, 3, 17]) / exact_outputs and euler_sensitivities ([b, T, 3, 11]) / euler_accelerations,
 and the exact/Euler ratios.
+
+    ... bench/bench_exact.py --accuracy
+
+prints instead the relative L2 error of each hold against the continuous-time response
+(scipy solve_ivp, DOP853, rtol 1e-12) of the reference vehicle and one thesis-prior draw to a
+road of three low-frequency sines, T = 100, h = 0.01, from rest.
 """
 from __future__ import annotations
 
@@ -26,6 +32,44 @@ def _best(fn, repeats: int) -> float:
     return min(times)
 
 
+def accuracy() -> None:
+    import math
+
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
+    from hybridqcm.estimation.exact import exact_outputs
+    from hybridqcm.estimation.synthetic import synthetic_samples
+    from hybridqcm.physics import reference_params, road_gain, system_matrix
+    from hybridqcm.physics.linear_models import QuarterCarRoad
+
+    sines = ((0.010, 0.7, 0.3), (0.006, 1.9, 1.1), (0.003, 3.1, 2.0))  # metres, Hz, phase
+
+    def road(t):
+        lib = torch if isinstance(t, torch.Tensor) else np
+        return sum(a * lib.sin(2 * math.pi * f * t + ph) for a, f, ph in sines)
+
+    h, T = 0.01, 100
+    t = np.arange(T) * h
+    params = torch.stack([reference_params(), synthetic_samples(1, n_steps=2, seed=7)["params"][0]])
+    reference = []
+    for p in params:
+        A = system_matrix(p).numpy()
+        b = np.zeros(6)
+        b[2] = float(road_gain(p))
+        sol = solve_ivp(lambda s, x: A @ x + b * road(s), (0.0, t[-1]), np.zeros(6), method="DOP853",
+                        t_eval=t, rtol=1e-12, atol=1e-15)
+        reference.append(sol.y.T @ A[:3].T + np.outer(road(t), b[:3]))
+    reference = torch.tensor(np.stack(reference))
+    w = road(torch.tensor(t))[None, :, None].expand(2, T, 1)
+    print("relative L2 error vs continuous time (all / a3 / a2 / a1):")
+    for hold, m in (("zoh", 1), ("foh", 1), ("spline", 1), ("spline", 2), ("spline", 4), ("spline", 8)):
+        err = exact_outputs(QuarterCarRoad(), params, None, w, h, hold, m) - reference
+        parts = [float(err[..., c].norm() / reference[..., c].norm()) for c in range(3)]
+        print(f"  {hold:6s} substeps={m}: {float(err.norm() / reference.norm()):.2e}  "
+              + " / ".join(f"{x:.2e}" for x in parts))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=17000)
@@ -35,8 +79,12 @@ def main() -> None:
     parser.add_argument("--hold", default="spline")
     parser.add_argument("--substeps", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--accuracy", action="store_true", help="print hold errors vs continuous time instead")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.accuracy:
+        accuracy()
+        return
 
     from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
     from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
