@@ -191,10 +191,10 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
         def __init__(self, design):
             self.design = design
 
-        def outputs(self, theta, inputs):
+        def outputs(self, theta, inputs, start=0, n_steps=None):
             return torch.einsum("ton,bn->bto", self.design, theta)
 
-        def sensitivities(self, theta, inputs):
+        def sensitivities(self, theta, inputs, start=0, n_steps=None):
             jac = self.design.expand(theta.shape[0], *self.design.shape)
             return torch.cat([self.outputs(theta, inputs).unsqueeze(-1), jac], -1)
 

@@ -222,6 +222,18 @@ def validate(cfg) -> dict:
         raise ConfigError(str(error)) from None
     if sensor.active and sigma > 0:
         raise ConfigError(f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one")
+    margin = cfg.get("input_margin", "auto")
+    if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
+        margin = (0, 0) if model == "euler" else (min(4, stored - n_steps), max(0, min(8, stored - n_steps - 4)))
+    try:
+        margin = tuple(int(m) for m in margin)
+    except (TypeError, ValueError):
+        raise ConfigError(f"input_margin={margin!r}: give auto or [before, after] sample counts") from None
+    if len(margin) != 2 or min(margin) < 0:
+        raise ConfigError(f"input_margin={list(margin)}: give auto or [before, after] sample counts >= 0")
+    if margin[0] + n_steps > stored:
+        raise DatasetError(f"{path}: input_margin before = {margin[0]} + n_steps = {n_steps} exceed the {stored} stored steps")
+    needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
@@ -229,7 +241,7 @@ def validate(cfg) -> dict:
     return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
             "stages": stages, "n_read_steps": needed, "n_samples": n_samples, "h": h_file or 0.01,
             "completes": completes, "windows": windows, "model": model, "initial_state": initial_state,
-            "base_excitation": base, "n_params": n_params, "sensor": sensor}
+            "base_excitation": base, "n_params": n_params, "sensor": sensor, "input_margin": margin}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -328,7 +340,7 @@ def run(cfg) -> dict:
         observed=plan["observed"], n_steps=int(cfg.n_steps), h=plan["h"], cnn_init=bool(cfg.init.cnn),
         equation_error_init=bool(cfg.init.equation_error), known=[PARAM_NAMES[j] for j in plan["known"]],
         pu_known=bool(cfg.pu_known), cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
-        base_excitation=plan["base_excitation"],
+        base_excitation=plan["base_excitation"], input_margin=plan["input_margin"],
     )
     stages = [GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"],
                                s["guard"]) for s in plan["stages"]]
@@ -405,6 +417,7 @@ def run(cfg) -> dict:
         "model": plan["model"], "initial_state": plan["initial_state"], "base_excitation": plan["base_excitation"],
         "hold": str(cfg.hold) if plan["model"] == "exact" else None,
         "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
+        "input_margin": list(plan["input_margin"]),
         "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
         "stages": collected.stage_status, "stage_mean_loss": collected.stage_loss,
         "iterations_mean": float(result.iterations.double().mean()),

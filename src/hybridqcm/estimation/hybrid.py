@@ -134,8 +134,15 @@ class HybridEstimator(LightningModule):
     def __init__(self, cnn_ckpt: str | None = None, unet_ckpt: str | None = None, cae_ckpt: str | None = None,
                  observed: Sequence[str] = CHANNELS, n_steps: int = 100, h: float = 0.01,
                  cnn_init: bool = True, equation_error_init: bool = False, known: Sequence[str] = (),
-                 pu_known: bool = True, cnn_a2_from_data: bool = False, base_excitation: str | None = None):
+                 pu_known: bool = True, cnn_a2_from_data: bool = False, base_excitation: str | None = None,
+                 input_margin: Sequence[int] = (0, 0)):
         super().__init__()
+        # (before, after): input samples around the GN window handed to the model with it — the
+        # exact model interpolates the road through them, so its window edges are as accurate as
+        # its interior. The window then starts `before` samples into the recording.
+        self.input_margin = tuple(int(m) for m in input_margin)
+        if len(self.input_margin) != 2 or min(self.input_margin) < 0:
+            raise ValueError(f"input_margin must be two sample counts >= 0 (before, after), got {list(input_margin)}")
         if base_excitation is not None and base_excitation not in BASE_EXCITATION:
             raise ValueError(f"base_excitation={base_excitation!r}: choose one of {sorted(BASE_EXCITATION)} (or none)")
         self.base_excitation = base_excitation
@@ -173,7 +180,7 @@ class HybridEstimator(LightningModule):
 
     def required_steps(self) -> int:
         """Steps of input the networks and GN need (the CNN reads ``window`` steps)."""
-        need = self.n_steps
+        need = self.input_margin[0] + self.n_steps
         if self.cnn_init:
             need = max(need, int(self.cnn.hparams.window))
         return need
@@ -209,15 +216,19 @@ class HybridEstimator(LightningModule):
             p12 = self.cnn.estimate(accel[:, :, 0].float(), accel[:, :, 1].float()).double()
             keep = self.known_mask[:2]
             init[:, :2] = torch.where(keep, init[:, :2], p12)
-        accel = accel[:, : self.n_steps]
-        road = road[:, : self.n_steps]
+        before, after = self.input_margin
+        stop = min(accel.shape[1], before + self.n_steps + after)
+        signals, road_in = accel[:, :stop], road[:, :stop]  # the model's inputs, margins included
+        accel = accel[:, before:before + self.n_steps]
+        road = road[:, before:before + self.n_steps]
         if self.equation_error_init:
             if not all(self.gn_channels()):
                 raise ValueError("equation-error initialisation needs all three accelerations (observed or completed)")
             # p_u known: the forcing is data (scaled road); otherwise p9, p10 carry it.
             forcing = pu[:, None] * road if self.pu_known else road
             init = equation_error_params(accel, forcing, self.h, init, self.known_mask, scaled_road=self.pu_known)
-        prepared = {"targets": accel, "road": road, "pu": pu, "init": init, "index": batch["index"]}
+        prepared = {"targets": accel, "road": road_in, "pu": pu, "init": init, "index": batch["index"],
+                    "input_offset": before}
         if batch.get("noise_sigma") is not None and float(batch["noise_sigma"].max()) > 0:
             # Noise-aware weighting for multiplicative noise a(1 + η): a channel's noise std is
             # σ·rms(a_c), so weights 1/(σ rms_c) standardise every channel (completed ones too,
@@ -230,7 +241,7 @@ class HybridEstimator(LightningModule):
             # The measured driving channel becomes the model's input, the rest its targets.
             driver, outputs, n_params = BASE_EXCITATION[self.base_excitation]
             columns = [CHANNELS.index(c) for c in outputs]
-            prepared.update(targets=accel[:, :, columns], road=accel[:, :, CHANNELS.index(driver)], init=init[:, :n_params])
+            prepared.update(targets=accel[:, :, columns], road=signals[:, :, CHANNELS.index(driver)], init=init[:, :n_params])
             if "weights" in prepared:
                 prepared["weights"] = prepared["weights"][:, columns]
         return prepared
@@ -356,16 +367,17 @@ class GaussNewtonRefinement(Callback):
         per_stage = {}
         result = None
         weights = outputs.get("weights")
+        offset = int(outputs.get("input_offset", 0))
         skip_guarded = restart and not all(stage.guard for stage in self.stages)
         stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
         for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
             if self.reweight and number == len(stages) - 1 and number > 0:
-                weights = self._residual_weights(outputs["targets"].double(), road, params, observed)
+                weights = self._residual_weights(outputs["targets"].double(), road, params, observed, offset)
             window = outputs["targets"].shape[1] if stage.n_steps is None else min(int(stage.n_steps), outputs["targets"].shape[1])
-            problem = LeastSquaresProblem(outputs["targets"][:, :window].double(), road[:, :window], self.h,
+            problem = LeastSquaresProblem(outputs["targets"][:, :window].double(), road, self.h,
                                           scaled_road=self.pu_known, observed=observed, known=self.known,
-                                          weights=weights, model=self.response)
+                                          weights=weights, model=self.response, input_offset=offset)
             result = stage.solver.solve(problem, params)
             per_stage[stage.name] = result
             # A stage that diverged keeps its input for the next stage rather than garbage.
@@ -391,12 +403,13 @@ class GaussNewtonRefinement(Callback):
         extra = self.response.n_theta - self.response.n_params
         return torch.cat([init.double(), init.new_zeros(init.shape[0], extra, dtype=torch.float64)], 1) if extra else init
 
-    def _residual_weights(self, targets: Tensor, road: Tensor, params: Tensor, observed) -> Tensor:
+    def _residual_weights(self, targets: Tensor, road: Tensor, params: Tensor, observed, offset: int = 0) -> Tensor:
         """[batch, n_out] weights 1/σ̂_c from each observed channel's RMS residual at ``params`` over the
         window (floored at 1e-6 of the channel's RMS, so an exact fit cannot give infinite weight);
         unobserved channels get 1."""
         channels = [i for i, o in enumerate(observed) if o]
-        residual = self.response.outputs(params.double(), road)[:, :, channels] - targets[:, :, channels]
+        predicted = self.response.outputs(params.double(), road, offset, targets.shape[1])
+        residual = predicted[:, :, channels] - targets[:, :, channels]
         sigma = residual.square().mean(1).sqrt()
         floor = 1e-6 * targets[:, :, channels].square().mean(1).sqrt().clamp_min(1e-300)
         sigma = torch.where(torch.isfinite(sigma), torch.maximum(sigma, floor), floor)
@@ -407,7 +420,8 @@ class GaussNewtonRefinement(Callback):
     def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured) -> Tensor:
         """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite)."""
         channels = [i for i, m in enumerate(measured) if m]
-        accel = self.response.outputs(params.double(), road)[:, :, channels]
+        targets = outputs["targets"]
+        accel = self.response.outputs(params.double(), road, int(outputs.get("input_offset", 0)), targets.shape[1])[:, :, channels]
         residual = accel - outputs["targets"].double()[:, :, channels]
         if outputs.get("weights") is not None:
             residual = residual * outputs["weights"].double()[:, None, channels]

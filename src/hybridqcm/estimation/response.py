@@ -47,10 +47,12 @@ class ResponseModel:
         mask[: self.n_params] = True
         return mask
 
-    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
+        """y [b, n_steps, n_out] for the input samples start .. start + n_steps - 1 (default: to the end)."""
         raise NotImplementedError
 
-    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
+        """[b, n_steps, n_out, 1 + n_theta] for the same samples."""
         raise NotImplementedError
 
 
@@ -72,13 +74,16 @@ class EulerResponse(ResponseModel):
         self.with_x0 = initial_state == "unknown"
         self.theta_names = PARAM_NAMES + (tuple(f"x0_{s}" for s in STATE_NAMES) if self.with_x0 else ())
 
-    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    # The recursion holds the input over each step: samples outside the window play no part.
+    def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         x0 = theta[:, 10:] if self.with_x0 else None
-        return euler_accelerations(theta[:, :10].contiguous(), inputs, self.h, self.scaled_road, x0=x0)
+        road = inputs[:, start:start + n_steps] if n_steps is not None else inputs[:, start:]
+        return euler_accelerations(theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0)
 
-    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         x0 = theta[:, 10:] if self.with_x0 else None
-        return euler_sensitivities(theta[:, :10].contiguous(), inputs, self.h, self.scaled_road, x0=x0,
+        road = inputs[:, start:start + n_steps] if n_steps is not None else inputs[:, start:]
+        return euler_sensitivities(theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0,
                                    with_x0=self.with_x0)
 
 
@@ -106,14 +111,22 @@ class ExactResponse(ResponseModel):
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
         return theta[:, : self.n_params], (theta[:, self.n_params:] if self.with_x0 else None)
 
-    def outputs(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
-        return exact_outputs(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps)
+        return exact_outputs(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps,
+                             **_window(inputs, start, n_steps))
 
-    def sensitivities(self, theta: Tensor, inputs: Tensor) -> Tensor:
+    def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
-        return exact_sensitivities(self.model, params, x0 if x0 is not None else None, _as_3d(inputs), self.h,
-                                   self.hold, self.substeps, with_x0=self.with_x0)
+        return exact_sensitivities(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps,
+                                   with_x0=self.with_x0, **_window(inputs, start, n_steps))
+
+
+def _window(inputs: Tensor, start: int, n_steps: int | None) -> dict:
+    """Keyword arguments of the exact layer for a window (none for the whole input: older layer API)."""
+    if start == 0 and (n_steps is None or n_steps == inputs.shape[1]):
+        return {}
+    return {"start": int(start), "n_steps": int(inputs.shape[1] - start if n_steps is None else n_steps)}
 
 
 def _as_3d(inputs: Tensor) -> Tensor:

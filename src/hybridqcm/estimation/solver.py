@@ -102,8 +102,11 @@ class LeastSquaresProblem:
 
     targets   [batch, time, n_out] measured outputs (a3, a2, a1 for the quarter car); unobserved
               channels are never read
-    inputs    what drives the model, [batch, time] or [batch, time, n_in] (the road u in metres,
-              or p_u·u when ``scaled_road``, for the default Euler model)
+    inputs    what drives the model, [batch, time_in] or [batch, time_in, n_in] (the road u in
+              metres, or p_u·u when ``scaled_road``, for the default Euler model); time_in ≥
+              input_offset + time: samples around the fitted window sharpen the exact model's
+              interpolation of the input near the window's edges
+    input_offset  which input sample the first target belongs to
     observed  which of the n_out outputs enter the residual
     known     [n_theta] bool, entries of θ held fixed at their initial value (masked out of J)
     model     the :class:`ResponseModel`; None = the Euler recursion with ``h`` and ``scaled_road``
@@ -125,6 +128,7 @@ class LeastSquaresProblem:
     # posterior). None = maximum likelihood.
     prior_mean: Optional[Tensor] = None
     prior_precision: Optional[Tensor] = None
+    input_offset: int = 0
 
     def __post_init__(self):
         if self.model is None:
@@ -132,9 +136,12 @@ class LeastSquaresProblem:
         n_out, n_theta = len(self.model.output_names), self.model.n_theta
         if self.targets.ndim != 3 or self.targets.shape[-1] != n_out:
             raise ValueError(f"targets must be [batch, time, {n_out}], got {tuple(self.targets.shape)}")
-        if tuple(self.inputs.shape[:2]) != tuple(self.targets.shape[:2]) or self.inputs.ndim not in (2, 3):
-            raise ValueError(f"inputs {tuple(self.inputs.shape)} must be [batch, time(, n_in)] with "
-                             f"[batch, time] = {tuple(self.targets.shape[:2])}")
+        batch, n_steps = self.targets.shape[:2]
+        self.input_offset = int(self.input_offset)
+        if (self.inputs.ndim not in (2, 3) or self.inputs.shape[0] != batch or self.input_offset < 0
+                or self.inputs.shape[1] < self.input_offset + n_steps):
+            raise ValueError(f"inputs {tuple(self.inputs.shape)} must be [batch, time_in(, n_in)] with batch = {batch} "
+                             f"and time_in >= input_offset + time = {self.input_offset} + {n_steps}")
         self.observed = tuple(bool(o) for o in self.observed)
         if len(self.observed) != n_out or not any(self.observed):
             raise ValueError(f"observed must name {n_out} channel flags with at least one True, got {self.observed}")
@@ -172,6 +179,11 @@ class LeastSquaresProblem:
     @property
     def observed_index(self) -> list[int]:
         return [i for i, o in enumerate(self.observed) if o]
+
+    @property
+    def window(self) -> tuple[int, int]:
+        """(first input sample of the fit, number of fitted samples): what the model is asked for."""
+        return self.input_offset, self.targets.shape[1]
 
     @property
     def road(self) -> Tensor:
@@ -405,7 +417,7 @@ class NonlinearLeastSquares:
         width = problem.n_theta + 1
         fishers, grads, losses = [], [], []
         for chunk in index.split(self.config.chunk_size):
-            out = problem.model.sensitivities(params[chunk], road[chunk])  # [b, T, n_out, 1 + n_theta]
+            out = problem.model.sensitivities(params[chunk], road[chunk], *problem.window)  # [b, T, n_out, 1 + n_theta]
             if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0]:obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
             out[..., 0] -= targets[chunk]  # residual R in column 0
@@ -473,7 +485,7 @@ class NonlinearLeastSquares:
         for start in range(0, index.numel(), self.config.chunk_size * 2):
             sl = slice(start, start + self.config.chunk_size * 2)
             chunk = index[sl]
-            accel = problem.model.outputs(trial_params[sl], road[chunk])
+            accel = problem.model.outputs(trial_params[sl], road[chunk], *problem.window)
             residual = accel[:, :, obs] - targets[chunk]
             if self._weights is not None:
                 residual = residual * self._weights[chunk][:, None, :]
@@ -564,7 +576,7 @@ class NonlinearLeastSquares:
         threshold = float(chi2.ppf(1.0 - cfg.misfit_alpha, lags)) if lags > 0 else math.inf
         for start in range(0, index.numel(), self.config.chunk_size * 2):
             chunk = index[start:start + self.config.chunk_size * 2]
-            residual = problem.model.outputs(params[chunk], inputs[chunk])[:, :, problem.observed_index] - targets[chunk]
+            residual = problem.model.outputs(params[chunk], inputs[chunk], *problem.window)[:, :, problem.observed_index] - targets[chunk]
             energy = residual.square().sum(1)  # [b, n_obs]
             relative = (energy / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
             q = torch.zeros_like(energy)
