@@ -31,8 +31,7 @@ def print_table(title: str, header: Sequence[str], rows: Iterable[Sequence], mar
     Console(width=max(120, Console().width)).print(table)
 
 
-class ConfigError(ValueError):
-    """An invalid setting or combination of settings, reported before any work; names key and value."""
+from hybridqcm.errors import ConfigError  # noqa: E402 - kept importable here (apps.common.ConfigError)
 
 
 def experiment_task(path: Path) -> str | None:

@@ -36,8 +36,7 @@ LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
 TIME_KEYS = ("accel", "vel", "disp", "road")
 
 
-class DatasetError(ValueError):
-    """A dataset file that cannot be used; the message names the file, key and value at fault."""
+from hybridqcm.errors import DatasetError  # noqa: E402 - kept importable here (data.hdf5.DatasetError)
 
 
 def _trailing_shape(key: str, n_steps: int) -> tuple[int, ...]:
