@@ -1,7 +1,8 @@
 """Stage-by-stage pipelines over the console scripts: `qcm-pipeline demo` and `qcm-pipeline reproduce`.
 
-Each stage is one console-script call with its own run folder. A stage whose outputs exist is
-skipped, so an interrupted pipeline resumes where it stopped (delete a run folder to redo it).
+Each stage is one console-script call with its own run folder. A stage whose completion marker
+(written last, naming its overrides and input files) matches is skipped, so an interrupted
+pipeline resumes where it stopped; a stage that is not done is re-run with overwrite=true.
 Every finished stage is recorded in `<root>/manifest.json` (command, run folder, seconds,
 which table of the source study it answers); `qcm-results` turns that manifest into tables.
 """
@@ -18,6 +19,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
+MARKED_APPS = ("qcm-train", "qcm-estimate")  # apps that write a completion marker (apps/runfolder.py)
 
 
 @dataclass
@@ -33,11 +35,19 @@ class Stage:
     setting: str = ""
     needs: list[str] = field(default_factory=list)
 
+    def task_overrides(self) -> list[str]:
+        """The overrides the app sees; a stage that is not done clears its folder's leftovers (overwrite=true)."""
+        return [*self.overrides, "overwrite=true"] if self.app in MARKED_APPS else list(self.overrides)
+
     def command(self) -> list[str]:
-        return [str(BIN / self.app), *self.overrides, f"hydra.run.dir={self.run_dir}"]
+        return [str(BIN / self.app), *self.task_overrides(), f"hydra.run.dir={self.run_dir}"]
 
     def is_done(self) -> bool:
-        return all((Path(self.run_dir) / f if not os.path.isabs(f) else Path(f)).exists() for f in self.done_when)
+        """Outputs present and, for train/estimate, the completion marker (written last) names these inputs."""
+        from hybridqcm.apps.runfolder import marker_matches
+
+        files = all((Path(self.run_dir) / f if not os.path.isabs(f) else Path(f)).exists() for f in self.done_when)
+        return files and (self.app not in MARKED_APPS or marker_matches(self.run_dir, self.task_overrides()))
 
 
 def _train(name, experiment, dataset, root, minutes, table=None, thesis=None, setting="", extra=()):

@@ -23,7 +23,7 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from hybridqcm.apps import common
+from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import HybridQCMError
@@ -173,10 +173,12 @@ def train(cfg) -> dict[str, float]:
     from hydra.utils import instantiate
 
     L.seed_everything(int(cfg.get("seed", 0)), workers=True)
+    common.check_task_name(cfg.get("task_name", "train"))
     parts = prepare(cfg)
     model, datamodule = parts["model"], parts["datamodule"]
-    out_dir = Path(cfg.paths.output_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = common.check_writable_dir(Path(cfg.paths.output_dir))
+    runfolder.prepare_run_dir(out_dir, runfolder.TRAIN_ARTEFACTS, bool(cfg.get("overwrite", False)),
+                              runfolder.TRAIN_GLOBS, inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
 
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -212,6 +214,9 @@ def train(cfg) -> dict[str, float]:
             "device": str(model.device), "metrics": test_metrics,
         }
         atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
+    if trainer.global_rank == 0:
+        runfolder.write_completion_marker(out_dir, "qcm-train", runfolder.task_overrides(),
+                                          [getattr(datamodule, "path", None), cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
     return metrics
 
 
