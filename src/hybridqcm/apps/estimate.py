@@ -67,6 +67,13 @@ def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
     return method, base
 
 
+def coverage_95(estimate: torch.Tensor, truth: torch.Tensor, std: torch.Tensor, failed: torch.Tensor) -> float:
+    """Fraction of samples [M] whose truth lies in estimate ± 1.96 std; failed or non-finite ones count as not covered."""
+    ok = ~failed & torch.isfinite(estimate) & torch.isfinite(std)
+    inside = ok & ((estimate - truth).abs() <= 1.96 * std)
+    return float(inside.double().mean())
+
+
 def check_positive_params(path: Path, split: str, params, n: int) -> None:
     """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
     from hybridqcm.data.hdf5 import DatasetError
@@ -77,7 +84,7 @@ def check_positive_params(path: Path, split: str, params, n: int) -> None:
     bad = np.argwhere(~(np.isfinite(values) & (values > 0)))
     if bad.size:
         i, j = (int(x) for x in bad[0])
-        raise DatasetError(f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {values[i, j]!r}; parameters "
+        raise DatasetError(f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {float(values[i, j])!r}; parameters "
                            f"must be finite and > 0 ({len(bad)} such values)")
 
 
@@ -408,12 +415,11 @@ def run(cfg) -> dict:
         cal_rows = []
         for j, name in zip(free, free_names):
             ok = ~failed & torch.isfinite(std[:, j]) & torch.isfinite(params[:, j])
-            inside = (ok & ((params[:, j] - true[:, j]).abs() <= 1.96 * std[:, j])).double()
-            cal_rows.append([name, int(params.shape[0]), float(inside.mean()), float(std[:, j][ok].median() / true[:, j][ok].median()) if bool(ok.any()) else math.inf])
+            cal_rows.append([name, int(params.shape[0]), coverage_95(params[:, j], true[:, j], std[:, j], failed),
+                             float(std[:, j][ok].median() / true[:, j][ok].median()) if bool(ok.any()) else math.inf])
         true_m3 = K3 / true[:, 1]
         ok = ~failed & torch.isfinite(m3_std) & torch.isfinite(m3)
-        inside = (ok & ((m3 - true_m3).abs() <= 1.96 * m3_std)).double()
-        cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()),
+        cal_rows.append(["m3", int(params.shape[0]), coverage_95(m3, true_m3, m3_std, failed),
                          float(m3_std[ok].median() / true_m3[ok].median()) if bool(ok.any()) else math.inf])
         atomic_write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
         m3_err = ((m3 - true_m3).abs() / true_m3.abs())

@@ -103,6 +103,10 @@ def dataset_info(path: str | os.PathLike) -> dict:
             if not isinstance(group, h5py.Group):
                 continue
             keys = sorted(group.keys())
+            for key in ("accel", "road"):
+                if key in group and not isinstance(group[key], h5py.Dataset):
+                    raise DatasetError(f"{path}: /{name}/{key} is a {type(group[key]).__name__}, not an array "
+                                       f"with one row per sample")
             first = next((group[k] for k in ("accel", "road") if k in group), None)
             splits[name] = {
                 "n_samples": int(first.shape[0]) if first is not None else 0,
