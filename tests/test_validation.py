@@ -143,3 +143,14 @@ def test_coverage_counts_diverged_and_non_finite_as_not_covered():
     # only sample 0 is covered: 1 has infinite std, 2 a NaN estimate, 3 diverged
     assert coverage_95(estimate, truth, std, failed) == 0.25
     assert coverage_95(estimate, truth, torch.full((4,), math.inf, dtype=torch.float64), torch.ones(4, dtype=bool)) == 0.0
+
+
+def test_train_refuses_unknown_top_level_keys(tmp_path):
+    from hybridqcm.apps.train import check_top_level_keys
+
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        bad = compose("train", overrides=["experiment=exp1_labelled", "+ckpt_pth=x.ckpt"])
+        good = compose("train", overrides=["experiment=exp1_labelled", "hparams_search=exp1_optuna", "debug=fdr"])
+    with pytest.raises(ConfigError, match=r"unknown setting ckpt_pth='x.ckpt'"):
+        check_top_level_keys(bad)
+    check_top_level_keys(good)

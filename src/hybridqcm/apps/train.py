@@ -101,6 +101,23 @@ def record_data_step(model, datamodule) -> None:
         model.hparams["h"] = float(h)
 
 
+def check_top_level_keys(cfg, config_dir: Path = CONFIG_DIR) -> None:
+    """Refuse top-level keys qcm-train does not know (e.g. `+foo=1`, otherwise silently ignored).
+
+    Known: configs/train.yaml's keys and groups, and what the training experiments, searches and debug configs set."""
+    known = set(yaml.safe_load((config_dir / "train.yaml").read_text()) or {})
+    for entry in (yaml.safe_load((config_dir / "train.yaml").read_text()) or {}).get("defaults", []):
+        known |= set(entry) if isinstance(entry, dict) else {str(entry)}
+    for folder in ("experiment", "hparams_search", "debug", "launcher"):
+        for path in (config_dir / folder).glob("*.yaml"):
+            data = yaml.safe_load(path.read_text()) or {}
+            if isinstance(data, dict) and data.get("task", "train") == "train":
+                known |= set(data)
+    unknown = sorted(str(k) for k in cfg.keys() if k not in known)
+    if unknown:
+        raise ConfigError(f"unknown setting {unknown[0]}={cfg[unknown[0]]!r} (qcm-train does not use it)")
+
+
 def check_logger_callbacks(cfg) -> None:
     """Callbacks that need a logger (LearningRateMonitor) with logger=none: one line, before any work."""
     callbacks = cfg.get("callbacks") or {}
@@ -151,6 +168,7 @@ def _prepare(cfg) -> dict:
     if cfg.get("float32_matmul_precision"):
         torch.set_float32_matmul_precision(str(cfg.float32_matmul_precision))
 
+    check_top_level_keys(cfg)
     check_logger_callbacks(cfg)
     model = load_model(cfg, train)
     if cfg.get("denoiser_ckpt"):
