@@ -93,7 +93,8 @@ def check_config_tree(value: Any, where: str, key: str = "hyper_parameters") -> 
         raise CheckpointError(f"{where}: {key} holds a {type(value).__name__}, not plain data; refused")
 
 
-def _torch_load(path: Path, where: str) -> dict:
+def read_raw(path: Path, where: str) -> dict:
+    """The checkpoint dict, loaded with weights_only=True; CheckpointError (one line) for anything else."""
     if not path.is_file():
         raise CheckpointError(f"{where}: checkpoint file does not exist")
     try:
@@ -117,6 +118,7 @@ def _torch_load(path: Path, where: str) -> dict:
 
 
 def _model_classes() -> dict[str, type]:
+    # Deferred: modules.py uses this module (build_network, load_checked), so it cannot be imported at the top.
     from hybridqcm.models.modules import MODULES
 
     return dict(MODULES)
@@ -130,7 +132,7 @@ def read_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key
         raise CheckpointError(f"checkpoint kind {kind!r} is unknown; choose one of {sorted(KINDS)}")
     path = Path(path)
     where = _where(path, config_key)
-    raw = _torch_load(path, where)
+    raw = read_raw(path, where)
     stored = raw.get("hybridqcm_class")
     allowed = KINDS[kind] if kind else tuple(KIND_OF_CLASS)
     if stored not in allowed:
@@ -197,5 +199,5 @@ def kind_of(module: LightningModule) -> str | None:
     return KIND_OF_CLASS.get(type(module).__name__)
 
 
-__all__ = ["KINDS", "NETWORK_TARGETS", "CheckpointInfo", "CheckpointError", "check_config_tree", "read_checkpoint",
+__all__ = ["KINDS", "NETWORK_TARGETS", "CheckpointInfo", "CheckpointError", "check_config_tree", "read_raw", "read_checkpoint",
            "load_checkpoint", "kind_of"]

@@ -130,7 +130,7 @@ def stored_model_class(path: str) -> str | None:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: checkpoint file does not exist")
     try:
-        raw = checkpoint._torch_load(Path(path), str(path))
+        raw = checkpoint.read_raw(Path(path), str(path))
     except CheckpointError as error:
         raise CheckpointMismatch(str(error)) from None
     stored = raw.get("hybridqcm_class")
