@@ -21,7 +21,7 @@ def test_two_process_ddp_training_on_cpu(tmp_path, tiny_dataset):
     assert result.returncode == 0, log[-4000:]
     assert "distributed_backend=gloo" in log and "All distributed processes registered. Starting with 2 processes" in log
     assert (run_dir / "checkpoints" / "last.ckpt").exists()
-    checkpoint = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    checkpoint = torch.load(run_dir / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     # 2 epochs x 2 batches per rank (128 samples / 32 per batch / 2 ranks): each rank stepped on its own shard.
     assert checkpoint["global_step"] == 4
     metrics = json.loads((run_dir / "test_metrics.json").read_text())

@@ -174,7 +174,7 @@ def test_estimate_is_scale_invariant_and_denoiser_attaches(tiny, tmp_path):
                         enable_model_summary=False, enable_checkpointing=False)
     trainer.fit(module, dm)
     trainer.save_checkpoint(tmp_path / "m.ckpt")
-    state = torch.load(tmp_path / "m.ckpt", weights_only=False)["state_dict"]
+    state = torch.load(tmp_path / "m.ckpt", weights_only=True)["state_dict"]
     assert not any(k.startswith("denoiser.") for k in state)                # never saved with the estimator
 
 

@@ -9,6 +9,16 @@ import warnings
 from pathlib import Path
 from typing import Iterable, NoReturn, Sequence
 
+def _register_resolvers() -> None:
+    """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("hybridqcm_pid"):
+        OmegaConf.register_new_resolver("hybridqcm_pid", lambda: os.getpid())
+
+
+_register_resolvers()
+
 # The configs live at the repository root (configs/); HYBRIDQCM_CONFIG_DIR points elsewhere.
 CONFIG_DIR = Path(os.environ.get("HYBRIDQCM_CONFIG_DIR", Path(__file__).resolve().parents[3] / "configs"))
 
@@ -19,6 +29,43 @@ def fail(error: BaseException | str, code: int = 2) -> NoReturn:
 
     Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
     sys.exit(code)
+
+
+def install_signal_handlers() -> None:
+    """Ctrl-C and SIGTERM raise hybridqcm.interrupt.Interrupted, kept pending until the app exits."""
+    from hybridqcm import interrupt
+
+    interrupt.install()
+
+
+def interrupted_exit(error: KeyboardInterrupt) -> NoReturn:
+    """Exit after Ctrl-C / SIGTERM with 128 + signal number (130 / 143) and one line."""
+    import signal
+
+    signum = getattr(error, "signum", signal.SIGINT)
+    name = signal.Signals(signum).name
+    print(f"error: interrupted by {name}; temporary files removed, outputs left as they were", file=sys.stderr)
+    sys.exit(128 + int(signum))
+
+
+def check_writable_dir(path: str | Path, key: str = "hydra.run.dir") -> Path:
+    """Create `path` if needed and prove it writable (a probe file), before any work; ConfigError otherwise."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".write-probe-{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        raise ConfigError(f"{key}={path}: run folder is not writable ({error.strerror or error})") from None
+    return path
+
+
+def check_task_name(name) -> None:
+    """task_name names a folder under outputs/: one plain path component, no separators or '..'."""
+    text = str(name)
+    if not text or text in (".", "..") or "/" in text or "\\" in text or "\0" in text:
+        raise ConfigError(f"task_name={text!r} must be a plain folder name (no '/', '..' or empty)")
 
 
 def _markdown_cell(value) -> str:
@@ -105,8 +152,7 @@ def quiet_third_party() -> None:
         warnings.filterwarnings("ignore", message=pattern)
 
 
-class ConfigError(ValueError):
-    """An invalid setting or combination of settings, reported before any work; names key and value."""
+from hybridqcm.errors import ConfigError  # noqa: E402 - kept importable here (apps.common.ConfigError)
 
 
 def experiment_task(path: Path) -> str | None:
@@ -152,8 +198,10 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     The Hydra job quiets third-party output (`quiet_third_party`) before it calls ``entry(cfg)``."""
     import hydra
 
+    install_signal_handlers()
     try:
         check_experiment_overrides(sys.argv[1:], task)
+        check_task_name_overrides(sys.argv[1:])
     except ConfigError as error:
         fail(error)
 
@@ -162,4 +210,15 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
         quiet_third_party()
         return entry(cfg)
 
-    hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(job)()
+    try:
+        hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(job)()
+    except KeyboardInterrupt as error:
+        interrupted_exit(error)
+
+
+def check_task_name_overrides(args: Sequence[str]) -> None:
+    """Refuse task_name=../x before Hydra builds (and creates) a run folder from it."""
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if sep and key.lstrip("+~") == "task_name":
+            check_task_name(value)

@@ -21,7 +21,9 @@ import torch
 
 from hybridqcm.apps import common
 from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail, print_table
+from hybridqcm.apps import runfolder
 from hybridqcm.atomic import atomic_write_csv, atomic_write_text
+from hybridqcm.errors import HybridQCMError
 
 PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
 CHANNELS = ("a3", "a2", "a1")
@@ -88,12 +90,78 @@ def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
     return method, base
 
 
+def coverage_95(estimate: torch.Tensor, truth: torch.Tensor, std: torch.Tensor, failed: torch.Tensor) -> float:
+    """Fraction of samples [M] whose truth lies in estimate ± 1.96 std; failed or non-finite ones count as not covered."""
+    ok = ~failed & torch.isfinite(estimate) & torch.isfinite(std)
+    inside = ok & ((estimate - truth).abs() <= 1.96 * std)
+    return float(inside.double().mean())
+
+
+def check_positive_params(path: Path, split: str, params, n: int) -> None:
+    """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
+    from hybridqcm.data.hdf5 import DatasetError
+
+    values = np.asarray(params[:n], dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] != 10:
+        raise DatasetError(f"{path}: /{split}/params has shape {values.shape}, expected [M, 10]")
+    bad = np.argwhere(~(np.isfinite(values) & (values > 0)))
+    if bad.size:
+        i, j = (int(x) for x in bad[0])
+        raise DatasetError(f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {float(values[i, j])!r}; parameters "
+                           f"must be finite and > 0 ({len(bad)} such values)")
+
+
+def _known_key_tree() -> dict:
+    """Keys qcm-estimate understands: configs/estimate.yaml plus what its experiments and solvers set."""
+    import yaml
+
+    def merge(into: dict, data) -> None:
+        for k, v in (data or {}).items():
+            if isinstance(v, dict) and isinstance(into.get(k, {}), dict):
+                merge(into.setdefault(k, {}), v)
+            else:
+                into.setdefault(k, None)
+
+    tree: dict = {}
+    merge(tree, yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text()))
+    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
+        data = yaml.safe_load(path.read_text()) or {}
+        if isinstance(data, dict) and data.get("task") == "estimate":
+            merge(tree, data)
+    for group in ("paths", "hydra", "solver", "experiment", "sensor"):
+        tree[group] = None  # groups: their own schemas (checked by solver_settings and build_sensor)
+    return tree
+
+
+# Mappings whose entries are free-form (GN stage lists, vehicle constants are checked where used).
+_OPEN_KEYS = ("stages", "vehicle", "defaults")
+
+
+def check_known_keys(cfg) -> None:
+    """Refuse keys qcm-estimate does not know (e.g. `+data.pathh=x`, which would otherwise be ignored)."""
+    from omegaconf import DictConfig
+
+    def walk(node, tree, prefix: str) -> None:
+        for key in node.keys():
+            name = f"{prefix}{key}"
+            if key not in tree:
+                raise ConfigError(f"unknown setting {name}={node[key]!r} (qcm-estimate does not use it); "
+                                  f"known under {prefix or 'the top level'}: {sorted(tree)}")
+            sub = tree[key]
+            if isinstance(sub, dict) and key not in _OPEN_KEYS and isinstance(node[key], DictConfig):
+                walk(node[key], sub, f"{name}.")
+
+    walk(cfg, _known_key_tree(), "")
+
+
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
-    from hybridqcm.estimation.hybrid import CheckpointKindError, checkpoint_class
+    from hybridqcm.estimation.hybrid import CheckpointKindError, check_networks, load_network
 
+    check_known_keys(cfg)
+    common.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
     n_steps = int(cfg.n_steps)
@@ -151,11 +219,13 @@ def validate(cfg) -> dict:
         raise ConfigError("stages is empty: give at least one GN stage")
 
     # Checkpoints: present, readable, of the right kind — and the ones the experiment needs.
+    # Loaded once, through the one safe loader (models.checkpoint): weights_only, allow-list, strict keys.
     kinds = {"cnn_ckpt": "cnn", "unet_ckpt": "unet", "cae_ckpt": "cae"}
+    networks = {}
     for key, kind in kinds.items():
         if cfg.get(key):
             try:
-                checkpoint_class(cfg[key], kind, key)
+                networks[key] = load_network(cfg[key], kind, key)
             except CheckpointKindError as error:
                 raise ConfigError(str(error)) from None
     if cfg.init.cnn and not cfg.cnn_ckpt:
@@ -197,22 +267,38 @@ def validate(cfg) -> dict:
     import h5py
 
     with h5py.File(path, "r") as handle:
-        stored = int(handle[split]["accel"].shape[1])
-        n_total = int(handle[split]["accel"].shape[0])
+        accel = handle[split]["accel"]
+        if not isinstance(accel, h5py.Dataset) or accel.ndim != 3:
+            raise DatasetError(f"{path}: /{split}/accel is a {type(accel).__name__}"
+                               f"{'' if not isinstance(accel, h5py.Dataset) else f' of shape {accel.shape}'}, "
+                               f"not an array [M, n_steps, 3]")
+        stored = int(accel.shape[1])
+        n_total = int(accel.shape[0])
         h_file = float(handle.attrs["h"]) if "h" in handle.attrs else None
+        if n_total == 0:
+            raise DatasetError(f"{path}: /{split} is empty (0 samples); nothing to estimate")
+        if cfg.n_samples is not None and int(cfg.n_samples) > n_total:
+            raise ConfigError(f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
+                              f"(use n_samples<={n_total} or null for all)")
+        if has_params:
+            check_positive_params(path, split, handle[split]["params"], n_total if cfg.n_samples is None
+                                  else int(cfg.n_samples))
+    try:
+        check_networks(networks.get("cnn_ckpt") if cfg.init.cnn else None, networks.get("unet_ckpt"),
+                       networks.get("cae_ckpt"), h_file or 0.01)
+    except CheckpointKindError as error:
+        raise ConfigError(str(error)) from None
     needed = n_steps
     windows = {}
-    from hybridqcm.estimation.hybrid import load_network
-
     for key in ("cnn_ckpt", "unet_ckpt", "cae_ckpt"):
-        if cfg.get(key) and (key != "cnn_ckpt" or cfg.init.cnn):
-            windows[key] = int(load_network(cfg[key], kinds[key], key).hparams.window)
+        if key in networks and (key != "cnn_ckpt" or cfg.init.cnn):
+            windows[key] = int(networks[key].hparams.window)
     if cfg.init.cnn:
         needed = max(needed, windows.get("cnn_ckpt", n_steps))
     if needed > stored:
         what = "n_steps" if needed == n_steps else f"the CNN window ({needed})"
         raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
-    n_samples = n_total if cfg.n_samples is None else min(int(cfg.n_samples), n_total)
+    n_samples = n_total if cfg.n_samples is None else int(cfg.n_samples)
     model, initial_state = resolve_model(cfg, info)
     from hybridqcm.data.sensor import build_sensor
 
@@ -323,13 +409,14 @@ def run(cfg) -> dict:
 
     from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage, HybridEstimator
     from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
-    from hybridqcm.estimation.solver import STATUS_LABELS, build_solver
+    from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus, build_solver
     from hybridqcm.metrics import error_distribution_rows, write_error_distribution
 
     t_start = time.perf_counter()
     plan = validate(cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    common.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
+    runfolder.prepare_run_dir(run_dir, runfolder.ESTIMATE_ARTEFACTS, bool(cfg.get("overwrite", False)))
     inputs = build_inputs(cfg, plan)
     n_params = plan["n_params"]
     known_mask = torch.zeros(n_params, dtype=torch.bool)
@@ -429,31 +516,36 @@ def run(cfg) -> dict:
         table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
         title = f"{cfg.experiment_name}: {params.shape[0]} samples, N = {cfg.n_steps}, noise σ = {cfg.noise_sigma}"
         write_error_distribution(table_rows, run_dir, title=title)
-        err = ((params - true).abs() / true)[:, free]
+        # A diverged or non-finite sample counts as failed / not covered, never as a success.
+        failed = ~torch.isfinite(params).all(1) | (result.status == int(SolverStatus.DIVERGED))
+        err = ((params - true).abs() / true.abs())[:, free]
+        err = torch.where(failed[:, None] | ~torch.isfinite(err), torch.full_like(err, math.inf), err)
+        summary["failed_samples"] = int(failed.sum())
         summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
         summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
-        # calibration: fraction of true values inside the 95 % interval p̂ ± 1.96 σ; an infinite
+        # calibration: fraction of true values inside the 95 % interval; a failed sample or an infinite
         # interval (diverged, not identifiable) covers nothing: it is a failure, not a success.
         cal_rows = []
         for j, name in zip(free, free_names):
-            finite = torch.isfinite(std[:, j]) & torch.isfinite(params[:, j])
-            inside = (((params[:, j] - true[:, j]).abs() <= 1.96 * std[:, j]) & finite).double()
-            cal_rows.append([name, int(params.shape[0]), float(inside.mean()), float(std[:, j][finite].median() / true[:, j][finite].median()) if bool(finite.any()) else math.inf])
+            ok = ~failed & torch.isfinite(std[:, j]) & torch.isfinite(params[:, j])
+            cal_rows.append([name, int(params.shape[0]), coverage_95(params[:, j], true[:, j], std[:, j], failed),
+                             float(std[:, j][ok].median() / true[:, j][ok].median()) if bool(ok.any()) else math.inf])
         true_m3 = K3 / true[:, 1]
-        m3_finite = torch.isfinite(m3_high) & torch.isfinite(m3_low)
-        inside = ((true_m3 >= m3_low) & (true_m3 <= m3_high) & m3_finite).double()
+        m3_ok = ~failed & torch.isfinite(m3_high) & torch.isfinite(m3_low)
+        inside = ((true_m3 >= m3_low) & (true_m3 <= m3_high) & m3_ok).double()
         m3_width = (m3_high - m3_low) / true_m3
         cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()),
-                         float(m3_std[m3_finite].median() / true_m3[m3_finite].median()) if bool(m3_finite.any()) else math.inf])
+                         float(m3_std[m3_ok].median() / true_m3[m3_ok].median()) if bool(m3_ok.any()) else math.inf])
         atomic_write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
-        m3_err = (m3 - true_m3).abs() / true_m3
+        m3_err = (m3 - true_m3).abs() / true_m3.abs()
+        m3_err = torch.where(torch.isfinite(m3_err), m3_err, torch.full_like(m3_err, math.inf))
         summary["m3_mean_rel_err"] = float(m3_err.mean())
         summary["m3_p95_rel_err"] = float(m3_err.quantile(0.95))
         summary["m3_within_0.5pct"] = float((m3_err <= 0.005).double().mean())
         summary["m3_within_1pct"] = float((m3_err <= 0.01).double().mean())
         summary["m3_within_5pct"] = float((m3_err <= 0.05).double().mean())
         summary["m3_coverage_95"] = float(inside.mean())
-        summary["m3_interval_median_rel_width"] = float(m3_width[m3_finite].median()) if bool(m3_finite.any()) else math.inf
+        summary["m3_interval_median_rel_width"] = float(m3_width[m3_ok].median()) if bool(m3_ok.any()) else math.inf
         if cfg.plots:
             from hybridqcm.plots import close, plot_sorted_predictions
 
@@ -464,6 +556,8 @@ def run(cfg) -> dict:
                                           title=f"{cfg.experiment_name}: occupant mass"))
     summary["seconds_total"] = time.perf_counter() - t_start
     atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+    runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(),
+                                      [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt])
 
     print_table(f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()])
     if table_rows is not None:
@@ -484,7 +578,7 @@ def _hydra_entry(cfg) -> None:
 
     try:
         run(cfg)
-    except (ConfigError, DatasetError, FileNotFoundError) as error:
+    except (HybridQCMError, ConfigError, DatasetError, FileNotFoundError) as error:
         fail(error)
 
 

@@ -11,15 +11,19 @@ Examples:
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
 import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
+from hybridqcm.apps.common import (CONFIG_DIR, ConfigError, check_task_name, check_writable_dir, fail,
+                                   install_signal_handlers, interrupted_exit, print_table)
+from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.simulate import DEFAULT_WARMUP_S, check_physics, check_warmup, kmh_to_mps, write_dataset
-from hybridqcm.physics.parameters import PARAM_NAMES
+from hybridqcm.physics.parameters import PARAM_NAMES, is_stable, reference_params, system_matrix
 from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.road import RoadProfile
 
@@ -34,8 +38,38 @@ def _number(cfg: DictConfig, key: str, kind: type):
         raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {value!r}") from None
 
 
+def check_step(h: float, physics: str = "euler") -> None:
+    """h must keep the reference vehicle's Euler step map stable (spectral radius < 1) for Euler
+    physics — beyond that every prior draw is rejected as unstable and nothing could be simulated —
+    and, for continuous physics, sample its fastest mode above the Nyquist rate; ValueError otherwise."""
+    if physics == "continuous":
+        fastest = float(torch.linalg.eigvals(system_matrix(reference_params())).abs().max()) / (2 * math.pi)
+        if not h * fastest < 0.5:
+            raise ValueError(f"h={h}: sampling at {1 / h:g} Hz cannot resolve the reference vehicle's fastest mode "
+                             f"({fastest:.1f} Hz); use h < {0.5 / fastest:.3g} s")
+        return
+    if not is_stable(reference_params()[None], h=h).all():
+        raise ValueError(f"h={h}: the Euler step is unstable for the reference vehicle at this step size; "
+                         f"use a smaller h (the reference protocol uses h=0.01)")
+
+
+def check_splits(splits) -> None:
+    """Every split must simulate at least one profile (an all-zero split would be an empty group)."""
+    if not isinstance(splits, dict) or not splits:
+        raise ValueError(f"splits must map split names to {{profiles: {{A: n, ...}}}}, got {splits!r}")
+    for split, spec in splits.items():
+        profiles = (spec or {}).get("profiles") if isinstance(spec, dict) else None
+        if not isinstance(profiles, dict):
+            raise ValueError(f"splits.{split}.profiles must map road classes to counts, got {profiles!r}")
+        counts = [v for v in profiles.values() if isinstance(v, int) and not isinstance(v, bool)]
+        if len(counts) == len(profiles) and sum(counts) == 0:
+            raise ValueError(f"splits.{split}.profiles = {profiles}: every count is 0, so /{split} would be empty; "
+                             f"give it at least one profile or remove it with ~splits.{split}")
+
+
 def run(cfg: DictConfig) -> dict:
     output = Path(cfg.output)
+    check_task_name(cfg.get("task_name", "simulate"))
     if output.exists() and not cfg.overwrite:
         raise FileExistsError(f"output={output} exists; pass overwrite=true to replace it")
     for key in ("n_steps", "samples_per_profile", "profiles_per_chunk"):
@@ -47,6 +81,14 @@ def run(cfg: DictConfig) -> dict:
     physics = check_physics(str(cfg.physics))
     warmup_s = OmegaConf.to_container(cfg.window, resolve=True).get("warmup_s")
     warmup_s = check_warmup(DEFAULT_WARMUP_S[physics] if warmup_s is None else warmup_s)
+    check_step(float(cfg.h), physics)
+    check_splits(OmegaConf.to_container(cfg.splits, resolve=True))
+    summary_path = Path(cfg.paths.output_dir) / "summary.json"
+    check_writable_dir(summary_path.parent)
+    stale = sorted(output.parent.glob(f".{output.name}.*.partial"))
+    if stale:  # removed by DatasetWriter once it holds the write lock
+        print(f"note: removing {len(stale)} stale partial file(s) of killed runs: {', '.join(p.name for p in stale)}",
+              file=sys.stderr)
     options = OmegaConf.to_container(cfg.prior_options, resolve=True)
     # continuous physics: the prior checks the eigenvalues of A only (no Euler step map to keep stable)
     prior = build_prior(cfg.prior, h=float(cfg.h) if physics == "euler" else None,
@@ -68,9 +110,7 @@ def run(cfg: DictConfig) -> dict:
     ranges = [[name, f"{min(s['param_min'][i] for s in summary.values()):.4g}", f"{max(s['param_max'][i] for s in summary.values()):.4g}"]
               for i, name in enumerate(PARAM_NAMES)]
     print_table("parameter ranges", ["param", "min", "max"], ranges)
-    summary_path = Path(cfg.paths.output_dir) / "summary.json"
-    summary_path.parent.mkdir(parents=True, exist_ok=True)
-    summary_path.write_text(json.dumps({"output": str(output), **summary}, indent=2))
+    atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
     return summary
 
 
@@ -78,12 +118,26 @@ def run(cfg: DictConfig) -> dict:
 def _main(cfg: DictConfig) -> None:
     try:
         run(cfg)
-    except (ValueError, FileExistsError, OSError) as error:
+    except (ValueError, FileExistsError, OSError, ConfigError) as error:
         fail(error)
 
 
 def main() -> None:
-    _main()
+    install_signal_handlers()
+    try:
+        check_task_name_args(sys.argv[1:])
+    except ConfigError as error:
+        fail(error)
+    try:
+        _main()
+    except KeyboardInterrupt as error:
+        interrupted_exit(error)
+
+
+def check_task_name_args(args) -> None:
+    from hybridqcm.apps.common import check_task_name_overrides
+
+    check_task_name_overrides(args)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,10 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from hybridqcm.apps.runfolder import marker_matches
+
 BIN = Path(sys.executable).parent
+MARKED_APPS = ("qcm-train", "qcm-estimate")  # apps that write a completion marker (apps/runfolder.py)
 
 
 @dataclass
@@ -29,11 +32,17 @@ class Stage:
     setting: str = ""
     needs: list[str] = field(default_factory=list)
 
+    def task_overrides(self) -> list[str]:
+        """The overrides the app sees; a stage that is not done clears its folder's leftovers (overwrite=true)."""
+        return [*self.overrides, "overwrite=true"] if self.app in MARKED_APPS else list(self.overrides)
+
     def command(self) -> list[str]:
-        return [str(BIN / self.app), *self.overrides, f"hydra.run.dir={self.run_dir}"]
+        return [str(BIN / self.app), *self.task_overrides(), f"hydra.run.dir={self.run_dir}"]
 
     def is_done(self) -> bool:
-        return all((Path(self.run_dir) / f if not os.path.isabs(f) else Path(f)).exists() for f in self.done_when)
+        """Outputs present and, for train/estimate, the completion marker (written last) names these inputs."""
+        files = all((Path(self.run_dir) / f if not os.path.isabs(f) else Path(f)).exists() for f in self.done_when)
+        return files and (self.app not in MARKED_APPS or marker_matches(self.run_dir, self.task_overrides()))
 
 
 def _train(name, experiment, dataset, root, minutes, table=None, thesis=None, setting="", extra=()):

@@ -25,9 +25,10 @@ from typing import Any, Mapping, Sequence
 
 import yaml
 
-from hybridqcm.apps import common
+from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail
 from hybridqcm.atomic import atomic_write_text
+from hybridqcm.errors import HybridQCMError
 
 log = logging.getLogger("qcm-train")
 
@@ -76,12 +77,58 @@ def load_model(cfg, train: bool):
     """The model: instantiated from cfg.model, or loaded (and class-checked) from cfg.ckpt_path for evaluation."""
     from hydra.utils import get_class, instantiate
 
+    from hybridqcm.models.modules import MODULES
+
     model_cls = get_class(cfg.model._target_)
+    if model_cls.__name__ not in MODULES:
+        raise ConfigError(f"model._target_ = {cfg.model._target_!r} is not one of the project's models {sorted(MODULES)}")
     if cfg.get("ckpt_path"):
-        checked = model_cls.load_checked(str(cfg.ckpt_path))  # clear error for missing / foreign checkpoints
+        # The one safe loader: weights_only, allow-listed classes/targets, strict state_dict.
+        checked = model_cls.load_checked(str(cfg.ckpt_path))
         if not train:
             return checked
     return instantiate(cfg.model)
+
+
+def record_data_step(model, datamodule) -> None:
+    """Store the data's step h in the model's hparams (saved in its checkpoints, checked by the estimator)."""
+    simulator = getattr(datamodule, "simulator", None)
+    h = getattr(simulator, "h", None)
+    path = getattr(datamodule, "path", None)
+    if h is None and path:
+        from hybridqcm.data.hdf5 import dataset_info
+
+        h = dataset_info(path)["attrs"].get("h")
+    if h is not None:
+        model.hparams["h"] = float(h)
+
+
+def check_top_level_keys(cfg, config_dir: Path = CONFIG_DIR) -> None:
+    """Refuse top-level keys qcm-train does not know (e.g. `+foo=1`, otherwise silently ignored).
+
+    Known: configs/train.yaml's keys and groups, and what the training experiments, searches and debug configs set."""
+    known = set(yaml.safe_load((config_dir / "train.yaml").read_text()) or {})
+    for entry in (yaml.safe_load((config_dir / "train.yaml").read_text()) or {}).get("defaults", []):
+        known |= set(entry) if isinstance(entry, dict) else {str(entry)}
+    for folder in ("experiment", "hparams_search", "debug", "launcher"):
+        for path in (config_dir / folder).glob("*.yaml"):
+            data = yaml.safe_load(path.read_text()) or {}
+            if isinstance(data, dict) and data.get("task", "train") == "train":
+                known |= set(data)
+    unknown = sorted(str(k) for k in cfg.keys() if k not in known)
+    if unknown:
+        raise ConfigError(f"unknown setting {unknown[0]}={cfg[unknown[0]]!r} (qcm-train does not use it)")
+
+
+def check_logger_callbacks(cfg) -> None:
+    """Callbacks that need a logger (LearningRateMonitor) with logger=none: one line, before any work."""
+    callbacks = cfg.get("callbacks") or {}
+    loggers = [c for c in (cfg.get("logger") or {}).values() if c is not None and "_target_" in c]
+    needs = [name for name, c in callbacks.items()
+             if c is not None and str(c.get("_target_", "")).endswith("LearningRateMonitor")]
+    if needs and not loggers:
+        raise ConfigError(f"callbacks.{needs[0]} (LearningRateMonitor) needs a logger, but logger=none; "
+                          f"add ~callbacks.{needs[0]} or choose logger=tensorboard")
 
 
 def _instantiate_group(group: Mapping | None) -> list:
@@ -123,6 +170,8 @@ def _prepare(cfg) -> dict:
     if cfg.get("float32_matmul_precision"):
         torch.set_float32_matmul_precision(str(cfg.float32_matmul_precision))
 
+    check_top_level_keys(cfg)
+    check_logger_callbacks(cfg)
     model = load_model(cfg, train)
     if cfg.get("denoiser_ckpt"):
         from hybridqcm.models import DenoisingAutoencoder
@@ -133,6 +182,8 @@ def _prepare(cfg) -> dict:
     datamodule = build_datamodule(cfg.data, model.data_requirements(), train)
     stages = (["fit"] if train else []) + (["test"] if test else [])
     datamodule.check(stages)  # file/split/key/window errors now, not after training
+    if train:
+        record_data_step(model, datamodule)
     return {"model": model, "datamodule": datamodule, "train": train, "test": test}
 
 
@@ -142,10 +193,12 @@ def train(cfg) -> dict[str, float]:
     from hydra.utils import instantiate
 
     L.seed_everything(int(cfg.get("seed", 0)), workers=True)
+    common.check_task_name(cfg.get("task_name", "train"))
     parts = prepare(cfg)
     model, datamodule = parts["model"], parts["datamodule"]
-    out_dir = Path(cfg.paths.output_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = common.check_writable_dir(Path(cfg.paths.output_dir))
+    runfolder.prepare_run_dir(out_dir, runfolder.TRAIN_ARTEFACTS, bool(cfg.get("overwrite", False)),
+                              runfolder.TRAIN_GLOBS, inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
 
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -155,7 +208,7 @@ def train(cfg) -> dict[str, float]:
     train_seconds = None
     if parts["train"]:
         start = time.perf_counter()
-        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"), weights_only=True)
         train_seconds = time.perf_counter() - start
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
         log.info("training took %.1f s (%d steps)", train_seconds, trainer.global_step)
@@ -168,7 +221,7 @@ def train(cfg) -> dict[str, float]:
         if trainer.world_size > 1:
             # Spawned ranks keep their test outputs to themselves: test once, in this process, on one device.
             tester = instantiate(cfg.trainer, devices=1, num_nodes=1, strategy="auto", callbacks=[], logger=loggers or False)
-        results = tester.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=False)
+        results = tester.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=True)
         test_metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
         metrics.update(test_metrics)
         write_test_outputs(model, out_dir, tester)
@@ -182,6 +235,9 @@ def train(cfg) -> dict[str, float]:
             "device": str(model.device), "metrics": test_metrics,
         }
         atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
+    if trainer.global_rank == 0:
+        runfolder.write_completion_marker(out_dir, "qcm-train", runfolder.task_overrides(),
+                                          [getattr(datamodule, "path", None), cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
     return metrics
 
 
@@ -336,7 +392,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from hybridqcm.data.hdf5 import DatasetError
     from hybridqcm.models.modules import CheckpointMismatch
 
-    return (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError, InstantiationException, ValueError, KeyError)
+    return (HybridQCMError, ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError, InstantiationException,
+            ValueError, KeyError)
 
 
 def run(cfg) -> float | None:
@@ -348,7 +405,7 @@ def run(cfg) -> float | None:
         # Every input is validated in prepare(), which train() runs before any training step;
         # such errors print as one line. Anything raised later keeps its traceback.
         metrics = train(cfg)
-    except (ConfigError, DatasetError, CheckpointMismatch) as error:
+    except (HybridQCMError, ConfigError, DatasetError, CheckpointMismatch) as error:
         fail(error)
     metric = cfg.get("optimized_metric")
     if metric and metric in metrics:

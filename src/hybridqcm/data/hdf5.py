@@ -27,6 +27,8 @@ from typing import Iterable, Mapping
 import h5py
 import numpy as np
 
+from hybridqcm.interrupt import check_stop
+
 SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
 SUPPORTED_SCHEMAS = ("hybridqcm.dataset/1", SCHEMA)
@@ -46,8 +48,7 @@ LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
 TIME_KEYS = ("accel", "vel", "disp", "road")
 
 
-class DatasetError(ValueError):
-    """A dataset file that cannot be used; the message names the file, key and value at fault."""
+from hybridqcm.errors import DatasetError  # noqa: E402 - kept importable here (data.hdf5.DatasetError)
 
 
 def _trailing_shape(key: str, n_steps: int) -> tuple[int, ...]:
@@ -150,6 +151,10 @@ def dataset_info(path: str | os.PathLike) -> dict:
             if not isinstance(group, h5py.Group):
                 continue
             keys = sorted(group.keys())
+            for key in ("accel", "road"):
+                if key in group and not isinstance(group[key], h5py.Dataset):
+                    raise DatasetError(f"{path}: /{name}/{key} is a {type(group[key]).__name__}, not an array "
+                                       f"with one row per sample")
             first = next((group[k] for k in ("accel", "road") if k in group), None)
             splits[name] = {
                 "n_samples": int(first.shape[0]) if first is not None else 0,
@@ -243,6 +248,11 @@ class DatasetWriter:
 
     If the block raises (or the process dies), the target is untouched and the temporary
     file is removed (or, after a hard kill, left under a name that no reader takes for data).
+
+    Exclusive: a lock file `.<name>.lock` (O_EXCL, holding the writer's pid) makes a second
+    concurrent writer to the same path fail at once; with overwrite=False the finished file is
+    put in place with os.link, which fails if the path appeared meanwhile (never replaced).
+    Stale `.partial` files and locks of dead writers are removed and reported (`self.stale`).
     """
 
     def __init__(self, path: str | os.PathLike, attrs: Mapping | None = None, overwrite: bool = False,
@@ -258,12 +268,21 @@ class DatasetWriter:
         self.compression = compression
         self.compression_opts = compression_level if compression == "gzip" else None
         self.chunk_samples = chunk_samples
+        self.overwrite = bool(overwrite)
         self._handle: h5py.File | None = None
         self._tmp: Path | None = None
+        self._lock: Path | None = None
+        self.stale: list[Path] = []
 
     def __enter__(self) -> "DatasetWriter":
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
+        self._lock = acquire_write_lock(self.path)
+        self.stale = remove_stale_partials(self.path)
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
+        except BaseException:
+            self._release()
+            raise
         os.close(fd)
         self._tmp = Path(tmp)
         try:
@@ -276,8 +295,14 @@ class DatasetWriter:
                 self._handle.close()
                 self._handle = None
             self._tmp.unlink(missing_ok=True)
+            self._release()
             raise
         return self
+
+    def _release(self) -> None:
+        if self._lock is not None:
+            self._lock.unlink(missing_ok=True)
+            self._lock = None
 
     def create_split(self, split: str, n_samples: int, n_steps: int, keys: Iterable[str] = tuple(LAYOUT)) -> None:
         assert self._handle is not None, "use DatasetWriter as a context manager"
@@ -293,6 +318,7 @@ class DatasetWriter:
 
     def write(self, split: str, start: int, **arrays: np.ndarray) -> None:
         """Write rows [start, start + len) of each given key."""
+        check_stop()  # a Ctrl-C swallowed inside a GC callback is raised here, once per chunk
         assert self._handle is not None
         group = self._handle[split]
         for key, array in arrays.items():
@@ -318,8 +344,66 @@ class DatasetWriter:
             self._handle.close()
         finally:
             self._handle = None
-        if exc_type is None:
-            os.chmod(self._tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
-            os.replace(self._tmp, self.path)
-        else:
-            self._tmp.unlink(missing_ok=True)
+        try:
+            if exc_type is None:
+                os.chmod(self._tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
+                if self.overwrite:
+                    os.replace(self._tmp, self.path)
+                else:
+                    try:
+                        os.link(self._tmp, self.path)  # atomic create-if-absent: never replaces another's file
+                    except FileExistsError:
+                        raise FileExistsError(f"{self.path} appeared while this run was writing it; "
+                                              f"not replaced (pass overwrite=true to replace it)") from None
+                    finally:
+                        self._tmp.unlink(missing_ok=True)
+            else:
+                self._tmp.unlink(missing_ok=True)
+        finally:
+            self._release()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def acquire_write_lock(path: str | os.PathLike) -> Path:
+    """Create `.<name>.lock` beside `path` exclusively (O_EXCL) with our pid; FileExistsError if a live writer holds it.
+
+    A lock left by a dead process (same host) is removed and taken over."""
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    for _ in range(2):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid > 0 and not _pid_alive(pid):
+                lock.unlink(missing_ok=True)  # its writer died: the lock is stale
+                continue
+            raise FileExistsError(f"{path} is being written by another process (pid {pid or '?'}, lock {lock}); "
+                                  f"wait for it or choose another output") from None
+        with os.fdopen(fd, "w") as handle:
+            handle.write(f"{os.getpid()}\n")
+        return lock
+    raise FileExistsError(f"{path}: could not take the write lock {lock}")
+
+
+def remove_stale_partials(path: str | os.PathLike) -> list[Path]:
+    """Remove `.partial` files of `path` left by killed writers; call only while holding its write lock.
+
+    Holding the lock means no other writer of `path` is alive, so every partial of it is stale."""
+    path = Path(path)
+    stale = sorted(path.parent.glob(f".{path.name}.*.partial"))
+    for partial in stale:
+        partial.unlink(missing_ok=True)
+    return stale

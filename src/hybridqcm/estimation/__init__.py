@@ -4,12 +4,12 @@ from hybridqcm.estimation.sensitivity import (EulerSensitivity, accelerations_an
 from hybridqcm.estimation.solver import (SOLVERS, STATUS_LABELS, GaussNewton, LeastSquaresProblem, LevenbergMarquardt,
                                          NonlinearLeastSquares, SolverConfig, SolverResult, SolverStatus, build_solver)
 from hybridqcm.estimation.hybrid import (CheckpointKindError, GaussNewtonRefinement, GaussNewtonStage, HybridEstimator,
-                                         equation_error_params, load_network)
+                                         check_networks, equation_error_params, load_network)
 
 __all__ = [
     "EulerSensitivity", "accelerations_and_jacobian", "euler_accelerations", "euler_sensitivities",
     "SOLVERS", "STATUS_LABELS", "GaussNewton", "LeastSquaresProblem", "LevenbergMarquardt", "NonlinearLeastSquares",
     "SolverConfig", "SolverResult", "SolverStatus", "build_solver",
     "CheckpointKindError", "GaussNewtonRefinement", "GaussNewtonStage", "HybridEstimator", "equation_error_params",
-    "load_network",
+    "load_network", "check_networks",
 ]

@@ -21,6 +21,9 @@ import torch
 from lightning.pytorch import Callback, LightningModule
 from torch import Tensor
 
+from hybridqcm.errors import CheckpointError
+from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
+
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus
@@ -29,42 +32,53 @@ CHANNELS = ("a3", "a2", "a1")
 # Road-free (base-excitation) models: the measured channel that drives the model, the channels it
 # predicts, and how many of p1.. it holds (SPEC §9; physics.linear_models).
 BASE_EXCITATION = {"seat": ("a2", ("a3",), 2), "sprung": ("a1", ("a3", "a2"), 6)}
-KIND_CLASSES = {
-    "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
-    "unet": ("CompletionUNet",),
-    "cae": ("DenoisingAutoencoder",),
-}
+KIND_CLASSES = KINDS  # kind ("cnn" | "unet" | "cae") -> our LightningModule classes (models.checkpoint)
 
 
-class CheckpointKindError(ValueError):
-    """A checkpoint path that is missing, unreadable or holds the wrong kind of network."""
+class CheckpointKindError(CheckpointError):
+    """A checkpoint path that is missing, unreadable, refused or holds the wrong kind of network."""
 
 
 def checkpoint_class(path: str | os.PathLike, kind: str, config_key: str | None = None) -> str:
     """Name of the model class stored in ``path``; raises CheckpointKindError unless it fits ``kind``."""
-    from hybridqcm.models.modules import CheckpointMismatch, stored_model_class
-
-    key = f"{config_key}=" if config_key else ""
     try:
-        stored = stored_model_class(str(path))
-    except (FileNotFoundError, CheckpointMismatch) as error:
-        raise CheckpointKindError(f"{key}{error}") from None
-    allowed = KIND_CLASSES[kind]
-    if stored not in allowed:
-        raise CheckpointKindError(
-            f"{key}{path}: holds a {stored or 'non-hybridqcm'} checkpoint, but {kind} needs one of {list(allowed)}"
-        )
-    return stored
+        return read_checkpoint(path, kind, config_key).class_name
+    except CheckpointError as error:
+        raise CheckpointKindError(str(error)) from None
 
 
 def load_network(path: str | os.PathLike, kind: str, config_key: str | None = None) -> LightningModule:
-    """Load a CNN / U-Net / CAE checkpoint for inference (eval mode, CPU)."""
-    from hybridqcm.models import modules
+    """Load a CNN / U-Net / CAE checkpoint for inference (eval mode, CPU) via models.checkpoint.load_checkpoint."""
+    try:
+        return load_checkpoint(path, kind, config_key)
+    except CheckpointError as error:
+        raise CheckpointKindError(str(error)) from None
 
-    name = checkpoint_class(path, kind, config_key)
-    module = getattr(modules, name).load_from_checkpoint(str(path), map_location="cpu")
-    module.eval()
-    return module
+
+def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> None:
+    """What each network predicts must be what the estimator uses it for; CheckpointKindError otherwise.
+
+    CNN: inputs (a3, a2) -> targets (p1, p2); U-Net: (a3, pu_u) -> (a2, a1); CAE: (a3, a2).
+    All: trained at the data's step h (when given) under Euler physics the GN model shares."""
+    if cae is not None and list(cae.hparams.channels) != ["a3", "a2"]:
+        raise CheckpointKindError(f"cae_ckpt: denoiser channels {list(cae.hparams.channels)}, expected ['a3', 'a2']")
+    if unet is not None and (list(unet.hparams.input_channels) != ["a3", "pu_u"]
+                             or list(unet.hparams.target_channels) != ["a2", "a1"]):
+        raise CheckpointKindError("unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
+                                  f"{list(unet.hparams.input_channels)} -> {list(unet.hparams.target_channels)}")
+    if cnn is not None and list(cnn.hparams.input_channels) != ["a3", "a2"]:
+        raise CheckpointKindError(f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']")
+    if cnn is not None and list(cnn.hparams.target_channels) != ["p1", "p2"]:
+        raise CheckpointKindError(f"cnn_ckpt: estimator targets {list(cnn.hparams.target_channels)}, but the initialiser "
+                                  f"needs ['p1', 'p2']")
+    for key, net in (("cnn_ckpt", cnn), ("unet_ckpt", unet), ("cae_ckpt", cae)):
+        if net is None:
+            continue
+        physics = net.hparams.get("physics", "euler")
+        if physics != "euler":
+            raise CheckpointKindError(f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)")
+        if h is not None and abs(float(net.hparams.get("h", 0.01)) - float(h)) > 1e-9 * float(h):
+            raise CheckpointKindError(f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -163,14 +177,7 @@ class HybridEstimator(LightningModule):
         for name in known:
             known_mask[int(str(name).lstrip("p")) - 1] = True
         self.register_buffer("known_mask", known_mask, persistent=False)
-        if self.cae is not None and list(self.cae.hparams.channels) != ["a3", "a2"]:
-            raise CheckpointKindError(f"cae_ckpt: denoiser channels {list(self.cae.hparams.channels)}, expected ['a3', 'a2']")
-        if self.unet is not None and (list(self.unet.hparams.input_channels) != ["a3", "pu_u"]
-                                      or list(self.unet.hparams.target_channels) != ["a2", "a1"]):
-            raise CheckpointKindError("unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
-                                      f"{list(self.unet.hparams.input_channels)} -> {list(self.unet.hparams.target_channels)}")
-        if self.cnn is not None and list(self.cnn.hparams.input_channels) != ["a3", "a2"]:
-            raise CheckpointKindError(f"cnn_ckpt: estimator inputs {list(self.cnn.hparams.input_channels)}, expected ['a3', 'a2']")
+        check_networks(self.cnn, self.unet, self.cae, self.h)
 
     # -- what the pipeline needs ---------------------------------------------------------------
     @property

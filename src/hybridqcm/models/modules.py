@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import torch
@@ -30,6 +31,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torch import Tensor
 
 from hybridqcm.data.datamodules import apply_noise
+from hybridqcm.errors import CheckpointError
+from hybridqcm.models.networks import NETWORKS
 
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}
 
@@ -111,23 +114,45 @@ def one_cycle_lr(progress: float, max_lr: float, pct_start: float = 0.25, div_fa
     return end + (max_lr - end) * 0.5 * (1 + math.cos(math.pi * f))
 
 
-class CheckpointMismatch(ValueError):
-    """A checkpoint of another model class, or one that does not fit the requested use."""
+class CheckpointMismatch(CheckpointError):
+    """A checkpoint of another model class, or one that does not fit the requested use (a CheckpointError)."""
 
 
 def stored_model_class(path: str) -> str | None:
     """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint).
 
-    Raises FileNotFoundError for a missing file and CheckpointMismatch for an unreadable one."""
+    Read with weights_only=True (no pickled code runs). Raises FileNotFoundError for a missing
+    file and CheckpointMismatch for an unreadable or refused one."""
     import os
+
+    from hybridqcm.models import checkpoint  # deferred: checkpoint.py reaches MODULES of this module lazily
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: checkpoint file does not exist")
     try:
-        raw = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
-        raise CheckpointMismatch(f"{path}: not a readable torch checkpoint ({type(error).__name__}: {error})") from None
-    return raw.get("hybridqcm_class") if isinstance(raw, dict) else None
+        raw = checkpoint.read_raw(Path(path), str(path))
+    except CheckpointError as error:
+        raise CheckpointMismatch(str(error)) from None
+    stored = raw.get("hybridqcm_class")
+    return stored if isinstance(stored, str) else None
+
+
+def build_network(net_cfg: Mapping, overrides: Mapping | None = None) -> torch.nn.Module:
+    """The network of a module from its config {_target_: one of networks.NETWORKS, **kwargs}.
+
+    Built without Hydra: the target must name one of our network classes and no value may hold
+    another `_target_`, so hyper-parameters read from a checkpoint can never construct anything else."""
+    from hybridqcm.models.checkpoint import check_config_tree
+
+    cfg = dict(net_cfg)
+    target = cfg.pop("_target_", None)
+    if target not in NETWORKS:
+        raise CheckpointError(f"net._target_ = {target!r} is not one of our networks {sorted(NETWORKS)}")
+    check_config_tree(cfg, "net", "net")
+    if "_partial_" in cfg:
+        raise CheckpointError("net._partial_ is not allowed: the network is built once, with its sizes")
+    cfg.update(dict(overrides or {}))
+    return NETWORKS[target](**cfg)
 
 
 class QCMModule(LightningModule):
@@ -139,7 +164,7 @@ class QCMModule(LightningModule):
     def _setup_common(self, net: Mapping | None, n_in: int, n_out: int, net_overrides: Mapping | None = None) -> None:
         net_cfg = dict(self.default_net)
         net_cfg.update(dict(net or {}))
-        self.net = instantiate(net_cfg, **dict(net_overrides or {}))
+        self.net = build_network(net_cfg, net_overrides)
         self.register_buffer("in_mean", torch.zeros(n_in))
         self.register_buffer("in_std", torch.ones(n_in))
         self.register_buffer("out_mean", torch.zeros(n_out))
@@ -191,6 +216,10 @@ class QCMModule(LightningModule):
 
     # -- optimisation -------------------------------------------------------------------------------
     def configure_optimizers(self) -> Any:
+        from hybridqcm.models.checkpoint import check_config_tree
+
+        # hparams may come from a checkpoint: only torch optimizers / schedulers are instantiated.
+        check_config_tree({k: self.hparams.get(k) for k in ("optimizer", "scheduler")}, type(self).__name__)
         optimizer = instantiate(self.hparams.get("optimizer") or DEFAULT_OPTIMIZER)(params=self.parameters())
         schedule = self.hparams.get("lr_schedule")
         if schedule:
@@ -243,11 +272,25 @@ class QCMModule(LightningModule):
 
     @classmethod
     def load_checked(cls, path: str, map_location: str = "cpu") -> "QCMModule":
-        """load_from_checkpoint with a clear error for a missing file or a checkpoint of another class."""
+        """This class's checkpoint via the one safe loader (models.checkpoint.load_checkpoint); eval mode.
+
+        CheckpointMismatch (a CheckpointError) for a missing, refused or foreign checkpoint."""
+        from hybridqcm.models.checkpoint import load_checkpoint  # deferred: checkpoint.py imports MODULES from here
+
         stored = stored_model_class(path)
         if stored != cls.__name__:
             raise CheckpointMismatch(f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}")
-        return cls.load_from_checkpoint(path, map_location=map_location)
+        try:
+            module = load_checkpoint(path)
+        except CheckpointError as error:
+            raise CheckpointMismatch(str(error)) from None
+        return module.to(map_location)
+
+    def check_physics(self) -> None:
+        if self.hparams.get("physics", "euler") not in ("euler", "continuous"):
+            raise ValueError(f"physics must be 'euler' or 'continuous', got {self.hparams.get('physics')!r}")
+        if not float(self.hparams.get("h", 0.01)) > 0:
+            raise ValueError(f"h must be > 0, got {self.hparams.get('h')!r}")
 
     # -- logging helpers --------------------------------------------------------------------------------
     def _tensorboard(self):
@@ -432,13 +475,14 @@ class LabelledEstimator(ParameterEstimator):
                  lr_schedule: Mapping | None = None, window: int = 500, input_channels: Sequence[str] = ("a3", "a2"),
                  target_channels: Sequence[str] = ("p1", "p2"), scale_channel: int | None = 1,
                  target_transform: str = "log", loss: str = "l1", train_noise_max: float = 0.0,
-                 plot_every_n_epochs: int = 5) -> None:
+                 plot_every_n_epochs: int = 5, h: float = 0.01, physics: str = "euler") -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         super().__init__()
         if loss not in ("l1", "mse", "smooth_l1"):
             raise ValueError(f"loss must be 'l1', 'mse' or 'smooth_l1', got {loss!r}")
         self.save_hyperparameters()
+        self.check_physics()
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
     def data_requirements(self) -> dict:
@@ -463,7 +507,8 @@ class PhysicsResidualEstimator(ParameterEstimator):
                  lr_schedule: Mapping | None = None, window: int = 500, input_channels: Sequence[str] = ("a3", "a2"),
                  target_channels: Sequence[str] = ("p1", "p2"), scale_channel: int | None = 1,
                  target_transform: str = "log", loss: str = "residual", train_noise_max: float = 0.0,
-                 plot_every_n_epochs: int = 5, residual_norm: str = "energy", residual_root: bool = False) -> None:
+                 plot_every_n_epochs: int = 5, residual_norm: str = "energy", residual_root: bool = False,
+                 h: float = 0.01, physics: str = "euler") -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         if list(target_channels) != ["p1", "p2"]:
@@ -474,6 +519,7 @@ class PhysicsResidualEstimator(ParameterEstimator):
             raise ValueError(f"residual_norm must be 'energy' or 'balanced', got {residual_norm!r}")
         super().__init__()
         self.save_hyperparameters()
+        self.check_physics()
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
     def data_requirements(self) -> dict:
@@ -629,11 +675,13 @@ class DenoisingAutoencoder(_SignalModule):
 
     def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
                  lr_schedule: Mapping | None = None, channels: Sequence[str] = ("a3", "a2"), window: int = 500,
-                 scale_channel: int | None = 1, plot_every_n_epochs: int = 5) -> None:
+                 scale_channel: int | None = 1, plot_every_n_epochs: int = 5, h: float = 0.01,
+                 physics: str = "euler") -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         channels = list(channels)
         super().__init__()
         self.save_hyperparameters()
+        self.check_physics()
         self._setup_common(net, len(channels), len(channels), {"in_channels": len(channels)})
 
     def data_requirements(self) -> dict:
@@ -657,11 +705,12 @@ class CompletionUNet(_SignalModule):
     def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
                  lr_schedule: Mapping | None = None, input_channels: Sequence[str] = ("a3", "pu_u"),
                  target_channels: Sequence[str] = ("a2", "a1"), window: int = 512, scale_channel: int | None = 0,
-                 plot_every_n_epochs: int = 5) -> None:
+                 plot_every_n_epochs: int = 5, h: float = 0.01, physics: str = "euler") -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         super().__init__()
         self.save_hyperparameters()
+        self.check_physics()
         self._setup_common(net, len(input_channels), len(target_channels),
                            {"in_channels": len(input_channels), "out_channels": len(target_channels)})
 
@@ -683,5 +732,5 @@ class CompletionUNet(_SignalModule):
 MODULES = {cls.__name__: cls for cls in (LabelledEstimator, PhysicsResidualEstimator, DenoisingAutoencoder, CompletionUNet)}
 
 __all__ = ["LabelledEstimator", "PhysicsResidualEstimator", "DenoisingAutoencoder", "CompletionUNet", "QCMModule",
-           "ParameterEstimator", "CheckpointMismatch", "physics_residual", "physics_residual_loss",
+           "ParameterEstimator", "CheckpointMismatch", "build_network", "physics_residual", "physics_residual_loss",
            "balanced_residual_loss", "least_squares_p12", "one_cycle_lr", "MODULES"]

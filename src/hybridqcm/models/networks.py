@@ -166,4 +166,7 @@ def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 
 
+# The allow-list of networks a module (or a checkpoint's hyper-parameters) may build, by `_target_`.
+NETWORKS = {f"hybridqcm.models.networks.{cls.__name__}": cls for cls in (ParameterCNN, DenoisingCAE, UNet1d)}
+
 __all__ = ["ParameterCNN", "DenoisingCAE", "UNet1d", "SameConv1d", "SameConvTranspose1d", "count_parameters"]

@@ -1,0 +1,203 @@
+"""The one checkpoint loader: untrusted `.ckpt` files in, a LightningModule of ours out (or one line).
+
+A checkpoint is something users exchange ("send me your trained CNN"), so it is read as data,
+never executed:
+
+1. ``torch.load(weights_only=True)``: tensors and plain containers only, no pickled objects
+   (a pickle payload is refused before any of its code can run).
+2. The stored class name (``hybridqcm_class``) must be one of ours and fit the requested kind
+   (vocabulary: "cnn" | "unet" | "cae").
+3. The stored hyper-parameters are plain data checked against the class's ``__init__``
+   signature; every ``_target_`` anywhere in them must be on the allow-list (our network
+   classes, torch optimizers and LR schedulers), because the module builds its net with Hydra
+   ``instantiate`` from them. Nothing outside the allow-list is ever instantiated.
+4. The state_dict is loaded strictly: a missing, unexpected or mis-shaped key is refused.
+
+    load_checkpoint(path, kind, config_key=None) -> module in eval mode on the CPU
+    read_checkpoint(path, kind, config_key=None) -> CheckpointInfo (class, hparams; no module built)
+"""
+from __future__ import annotations
+
+import inspect
+import os
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from lightning import LightningModule
+
+from hybridqcm.errors import CheckpointError
+from hybridqcm.models.networks import NETWORKS
+
+KINDS: dict[str, tuple[str, ...]] = {
+    "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
+    "unet": ("CompletionUNet",),
+    "cae": ("DenoisingAutoencoder",),
+}
+NETWORK_TARGETS = frozenset(NETWORKS)
+# Optimizer / scheduler configs travel in hparams too (used only when training resumes).
+OPTIMIZER_PREFIXES = ("torch.optim.",)
+SPECIAL_KEYS = frozenset({"_target_", "_partial_"})
+PHYSICS = ("euler", "continuous")
+KIND_OF_CLASS = {name: kind for kind, names in KINDS.items() for name in names}
+
+
+@dataclass(frozen=True)
+class CheckpointInfo:
+    """What a checkpoint file holds, read as plain data: class name, hyper-parameters, state_dict."""
+
+    path: Path
+    class_name: str
+    kind: str
+    hparams: dict
+    state_dict: dict
+
+
+def _where(path, config_key: str | None) -> str:
+    return f"{config_key}={path}" if config_key else str(path)
+
+
+def _allowed_target(target: Any) -> bool:
+    if not isinstance(target, str):
+        return False
+    if target in NETWORK_TARGETS:
+        return True
+    if target.startswith(OPTIMIZER_PREFIXES) and target.count(".") in (2, 3) and target.replace(".", "").isidentifier():
+        module_name, _, attr = target.rpartition(".")
+        if module_name not in ("torch.optim", "torch.optim.lr_scheduler"):
+            return False
+        obj = getattr(torch.optim if module_name == "torch.optim" else torch.optim.lr_scheduler, attr, None)
+        return inspect.isclass(obj) and (issubclass(obj, torch.optim.Optimizer)
+                                         or issubclass(obj, torch.optim.lr_scheduler.LRScheduler))
+    return False
+
+
+def check_config_tree(value: Any, where: str, key: str = "hyper_parameters") -> None:
+    """Refuse any ``_target_`` outside the allow-list (and any other Hydra special key) anywhere in ``value``."""
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            name = f"{key}.{k}"
+            if isinstance(k, str) and k.startswith("_") and k.endswith("_"):
+                if k not in SPECIAL_KEYS:
+                    raise CheckpointError(f"{where}: {name} is refused (Hydra key {k} is not allowed in a checkpoint)")
+                if k == "_target_" and not _allowed_target(v):
+                    raise CheckpointError(f"{where}: {name} = {v!r} is not on the allow-list of networks "
+                                          f"{sorted(NETWORK_TARGETS)} and torch optimizers/schedulers; refused")
+            check_config_tree(v, where, name)
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            check_config_tree(v, where, f"{key}[{i}]")
+    elif not (value is None or isinstance(value, (bool, int, float, str, torch.Tensor))):
+        raise CheckpointError(f"{where}: {key} holds a {type(value).__name__}, not plain data; refused")
+
+
+def read_raw(path: Path, where: str) -> dict:
+    """The checkpoint dict, loaded with weights_only=True; CheckpointError (one line) for anything else."""
+    if not path.is_file():
+        raise CheckpointError(f"{where}: checkpoint file does not exist")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # noqa: BLE001 - any unreadable file is the same user error
+        text = str(error).strip()
+        culprit = next((line.strip() for line in text.splitlines() if "GLOBAL" in line), "")
+        if isinstance(error, pickle.UnpicklingError) and culprit:
+            # torch names the refused global ("Trying to load unsupported GLOBAL posix.system ...").
+            raise CheckpointError(f"{where}: refused, the file holds pickled objects other than tensors and plain "
+                                  f"data ({culprit[:160]})") from None
+        if isinstance(error, pickle.UnpicklingError):
+            detail = next((line.strip() for line in text.splitlines()[1:] if line.strip() and "error:" not in line
+                           and "Check the documentation" not in line and "Please file" not in line), "")
+            raise CheckpointError(f"{where}: not a readable torch checkpoint ({detail[:160] or 'unpickling failed'})") from None
+        first = text.splitlines()[0][:160] if text else ""
+        raise CheckpointError(f"{where}: not a readable torch checkpoint ({type(error).__name__}: {first})") from None
+    if not isinstance(raw, dict):
+        raise CheckpointError(f"{where}: not a Lightning checkpoint (a {type(raw).__name__}, not a dict)")
+    return raw
+
+
+def _model_classes() -> dict[str, type]:
+    # Deferred: modules.py uses this module (build_network, load_checked), so it cannot be imported at the top.
+    from hybridqcm.models.modules import MODULES
+
+    return dict(MODULES)
+
+
+def read_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key: str | None = None) -> CheckpointInfo:
+    """Read and check a checkpoint without building anything; raises CheckpointError (one line).
+
+    kind: "cnn" | "unet" | "cae" (None: any of our classes)."""
+    if kind is not None and kind not in KINDS:
+        raise CheckpointError(f"checkpoint kind {kind!r} is unknown; choose one of {sorted(KINDS)}")
+    path = Path(path)
+    where = _where(path, config_key)
+    raw = read_raw(path, where)
+    stored = raw.get("hybridqcm_class")
+    allowed = KINDS[kind] if kind else tuple(KIND_OF_CLASS)
+    if stored not in allowed:
+        what = f"a {stored}" if isinstance(stored, str) else "a non-hybridqcm"
+        need = f"{kind} needs one of {list(allowed)}" if kind else f"expected one of {list(allowed)}"
+        raise CheckpointError(f"{where}: holds {what} checkpoint, but {need}")
+    hparams = raw.get("hyper_parameters", {})
+    if not isinstance(hparams, Mapping):
+        raise CheckpointError(f"{where}: hyper_parameters is a {type(hparams).__name__}, not a mapping")
+    hparams = dict(hparams)
+    check_config_tree(hparams, where)
+    cls = _model_classes()[stored]
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self"}
+    unknown = sorted(set(hparams) - accepted)
+    if unknown:
+        raise CheckpointError(f"{where}: hyper_parameters {unknown} are not arguments of {stored}; refused")
+    physics = hparams.get("physics", "euler")
+    if physics not in PHYSICS:
+        raise CheckpointError(f"{where}: hyper_parameters.physics = {physics!r}; expected one of {list(PHYSICS)}")
+    state = raw.get("state_dict")
+    if not isinstance(state, Mapping) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise CheckpointError(f"{where}: state_dict is missing or holds non-tensor values")
+    return CheckpointInfo(path, stored, KIND_OF_CLASS[stored], hparams, dict(state))
+
+
+def _strict_shapes(module: LightningModule, state: Mapping[str, torch.Tensor], where: str, name: str) -> None:
+    own = module.state_dict()
+    bad = [f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}" for k, v in state.items() if k in own and v.shape != own[k].shape]
+    if bad:
+        raise CheckpointError(f"{where}: state_dict shapes do not match {name}: {bad[:3]}")
+
+
+def load_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key: str | None = None) -> LightningModule:
+    """The checkpoint's module (eval mode, CPU), built only from the allow-list; CheckpointError otherwise.
+
+    kind: "cnn" (LabelledEstimator, PhysicsResidualEstimator), "unet" (CompletionUNet),
+    "cae" (DenoisingAutoencoder), or None for any of them. config_key names the setting in
+    messages (e.g. "cnn_ckpt")."""
+    info = read_checkpoint(path, kind, config_key)
+    where = _where(info.path, config_key)
+    cls = _model_classes()[info.class_name]
+    # Shapes first: load_state_dict raises a multi-line RuntimeError on a shape mismatch.
+    try:
+        probe = cls(**info.hparams)
+    except Exception as error:  # noqa: BLE001
+        first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise CheckpointError(f"{where}: hyper_parameters do not build a {info.class_name} "
+                              f"({type(error).__name__}: {first})") from None
+    _strict_shapes(probe, info.state_dict, where, info.class_name)
+    result = probe.load_state_dict(info.state_dict, strict=False)
+    problems = []
+    if result.missing_keys:
+        problems.append(f"missing keys {result.missing_keys[:5]}{' ...' if len(result.missing_keys) > 5 else ''}")
+    if result.unexpected_keys:
+        problems.append(f"unexpected keys {result.unexpected_keys[:5]}{' ...' if len(result.unexpected_keys) > 5 else ''}")
+    if problems:
+        raise CheckpointError(f"{where}: state_dict does not match {info.class_name}: {'; '.join(problems)}")
+    probe.eval()
+    return probe
+
+
+def kind_of(module: LightningModule) -> str | None:
+    """The loader vocabulary's kind of one of our modules ("cnn" | "unet" | "cae"), None for others."""
+    return KIND_OF_CLASS.get(type(module).__name__)
+
+
+__all__ = ["KINDS", "NETWORK_TARGETS", "CheckpointInfo", "CheckpointError", "check_config_tree", "read_raw", "read_checkpoint",
+           "load_checkpoint", "kind_of"]

@@ -1,0 +1,107 @@
+"""Estimation on recordings the estimator's own model did not make: continuous-time physics from
+physics.continuous (an exact sum-of-sines response, not a time-stepper), windows cut mid-drive,
+additive sensor noise, files without the road. The truth comes from the file's params."""
+
+import csv
+import json
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+
+def _app(module, tmp_path, *overrides, timeout=600):
+    cmd = [sys.executable, "-m", f"hybridqcm.apps.{module}", *overrides, f"hydra.run.dir={tmp_path}"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+def _rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+@pytest.fixture(scope="module")
+def continuous(tmp_path_factory):
+    root = tmp_path_factory.mktemp("continuous")
+    proc = _app("simulate", root / "run", "preset=tiny", "physics=continuous", f"output={root / 'drive.h5'}",
+                "progress=false")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with h5py.File(root / "drive.h5", "r") as f:
+        assert f.attrs["physics"] == "continuous"
+        params = f["test/params"][:]
+    return root / "drive.h5", params
+
+
+def _relative_errors(rows, params, names):
+    est = np.array([[float(r[n]) for n in names] for r in rows])
+    true = params[[int(r["index"]) for r in rows]][:, [int(n[1:]) - 1 for n in names]]
+    return np.abs(est - true) / true
+
+
+def test_occupant_mass_without_road(continuous, tmp_path):
+    """Seat accelerometer pair only (a2 drives, a3 answers), mid-drive, noise-free: m3 within 0.5 %,
+    every sample converged, its 95 % interval around the estimate."""
+    path, params = continuous
+    proc = _app("estimate", tmp_path, "experiment=occupant_roadfree", f"data.path={path}", "progress=false")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(tmp_path / "estimates.csv")
+    assert list(rows[0])[:4] == ["index", "p1", "p2", "status"]
+    err = _relative_errors(rows, params, ["p1", "p2"])
+    assert (err[:, 1] <= 0.005).all() and (err[:, 0] <= 0.01).all()
+    assert {r["status"] for r in rows} == {"converged"}
+    for r in rows:
+        assert float(r["m3_low"]) <= float(r["m3"]) <= float(r["m3_high"])
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["model"] == "exact" and summary["base_excitation"] == "seat"
+
+
+def test_exp5_picks_the_exact_model_and_recovers_the_vehicle(continuous, tmp_path):
+    path, params = continuous
+    proc = _app("estimate", tmp_path, "experiment=exp5_random_init", f"data.path={path}", "progress=false", "plots=false")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert (summary["model"], summary["initial_state"]) == ("exact", "unknown")
+    rows = _rows(tmp_path / "estimates.csv")
+    names = ["p1", "p2", "p4", "p6", "p7", "p8", "p9", "p10"]
+    err = _relative_errors(rows, params, names)
+    assert ((err <= 0.01).all(1)).mean() >= 0.85
+    # whatever is not right is not called converged
+    wrong = (err > 0.05).any(1)
+    assert all(r["status"] != "converged" for r, w in zip(rows, wrong) if w)
+
+
+def test_the_euler_model_on_continuous_data_is_flagged_not_converged(continuous, tmp_path):
+    """The source's model fitted to continuous-time recordings is a different vehicle (SPEC § 9):
+    samples it gets wrong must say so."""
+    path, params = continuous
+    proc = _app("estimate", tmp_path, "experiment=exp5_random_init", f"data.path={path}", "model=euler",
+                "initial_state=unknown", "progress=false", "plots=false", "restarts.count=0")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(tmp_path / "estimates.csv")
+    err = _relative_errors(rows, params, [f"p{i}" for i in range(1, 11)])
+    wrong = (err > 0.05).any(1)
+    assert wrong.mean() >= 0.5
+    assert all(r["status"] != "converged" for r, w in zip(rows, wrong) if w)
+
+
+def test_roadfree_on_a_file_without_road_and_with_an_unrecorded_channel(continuous, tmp_path):
+    """A logger's file: accel only (a1 never recorded: NaN), no road, no params, no physics attribute."""
+    path, params = continuous
+    with h5py.File(path, "r") as f:
+        accel = f["test/accel"][:]
+        h = float(f.attrs["h"])
+    accel[:, :, 2] = np.nan
+    logger = tmp_path / "logger.h5"
+    with h5py.File(logger, "w") as f:
+        f.attrs.update({"schema": "hybridqcm.dataset/2", "h": h, "created_by": "a logger"})
+        f.create_dataset("test/accel", data=accel)
+    proc = _app("estimate", tmp_path / "run", "experiment=occupant_roadfree", f"data.path={logger}", "progress=false")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = _rows(tmp_path / "run" / "estimates.csv")
+    err = _relative_errors(rows, params, ["p2"])
+    assert (err <= 0.005).all()
+    # the road-driven experiments need the road: one line, exit 2
+    proc = _app("estimate", tmp_path / "run2", "experiment=exp5_random_init", f"data.path={logger}", "progress=false")
+    assert proc.returncode == 2 and "road" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
