@@ -128,7 +128,7 @@ def contract(module: QCMModule, time_steps: int, h: float | None = None) -> dict
     return {
         "schema": CONTRACT_SCHEMA, "model_class": type(module).__name__, "kind": module.kind, "api": api,
         "input": {"name": "accel", "shape": ["batch", len(inputs), time_steps], "dtype": "float32",
-                  "channels": inputs, "units": "m/s^2 (raw, unnormalised; pu_u = p_u * road height, m/s^2)",
+                  "channels": inputs, "units": "m/s^2 (raw, unnormalised" + ("; pu_u = p_u * road height u)" if "pu_u" in inputs else ")"),
                   "layout": "[batch, channels, time]"},
         "output": output, "dynamic_axes": ["batch"], "window": window, "time_steps": time_steps, "h": h,
         "target_names": outputs,
