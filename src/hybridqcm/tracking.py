@@ -56,8 +56,9 @@ def hparams_of(cfg) -> dict[str, Any]:
     try:
         from hydra.core.hydra_config import HydraConfig
 
-        choices = HydraConfig.get().runtime.choices
-        params["choices"] = {k: v for k, v in choices.items() if not k.startswith("hydra/") and v is not None}
+        choices = OmegaConf.to_container(HydraConfig.get().runtime.choices)
+        params["choices"] = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in choices.items()
+                             if k != "hydra" and not k.startswith("hydra/") and v is not None}  # callbacks=[a,b] -> "a,b"
     except (ImportError, ValueError):  # composed outside a Hydra run (tests, API use)
         pass
     return params
