@@ -26,8 +26,10 @@ CONFIG_DIR = Path(os.environ.get("HYBRIDQCM_CONFIG_DIR", Path(__file__).resolve(
 def fail(error: BaseException | str, code: int = 2) -> NoReturn:
     """Print a one-line error (no traceback: the message names the file, key and value) and exit."""
     from rich.console import Console
+    from rich.markup import escape
 
-    Console(stderr=True).print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
+    # escape: messages quote shapes and install commands ("[batch, 2, N]", ".[tracking]") that rich would eat as markup
+    Console(stderr=True).print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
     sys.exit(code)
 
 

@@ -169,6 +169,9 @@ def _prepare(cfg) -> dict:
         raise ConfigError("denoiser_ckpt applies at evaluation: use it with train=false ckpt_path=CKPT")
     if cfg.get("float32_matmul_precision"):
         torch.set_float32_matmul_precision(str(cfg.float32_matmul_precision))
+    from hybridqcm.tracking import check_logger_packages
+
+    check_logger_packages(cfg.get("logger"))  # a missing optional logger package fails now, naming its extra
 
     check_top_level_keys(cfg)
     check_logger_callbacks(cfg)
@@ -224,6 +227,9 @@ def train(cfg) -> dict[str, float]:
         results = tester.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=True)
         test_metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
         metrics.update(test_metrics)
+        from hybridqcm.tracking import hparams_of, log_test_hparams
+
+        log_test_hparams(loggers, hparams_of(cfg), test_metrics)  # TensorBoard HPARAMS: this run's row
         write_test_outputs(model, out_dir, tester)
         summary = {
             "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],

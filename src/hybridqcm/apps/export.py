@@ -1,0 +1,218 @@
+"""qcm-export: a trained network checkpoint -> TorchScript (.pt) + ONNX (.onnx) + contract (.json).
+
+    qcm-export outputs/demo/exp2_physics/checkpoints/last.ckpt --data data/demo.h5 --out exports/
+    qcm-export CKPT --format torchscript            # without onnx / onnxruntime installed
+
+The exported graph is the checkpoint's physical-unit inference (models/export.py): raw
+accelerations [batch, channels, time] in m/s² in, parameters or signals out, normalisation
+inside, batch axis dynamic. Each export is checked against the checkpoint's own `estimate` /
+`denoise` / `complete` on held-out recordings (`--data`, default split test) or, without a data
+file, on synthetic smooth signals; a deviation beyond --tol fails the command (exit 1).
+Bad input (missing file, foreign checkpoint, missing package) exits 2 with a one-line error.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Sequence
+
+from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm.atomic import atomic_write_text
+
+FORMATS = ("torchscript", "onnx")
+SPEC_H = 0.01  # the step size the networks are trained at (SPEC §5) when neither the data nor the checkpoint says
+
+
+class ParityError(RuntimeError):
+    """An export whose outputs deviate from the checkpoint's own inference beyond the tolerance."""
+
+
+def _load(path: str):
+    """The checkpoint's LightningModule on the CPU, in eval mode. The one place checkpoints are read here."""
+    from hybridqcm.models.modules import MODULES, stored_model_class
+
+    name = stored_model_class(path)
+    if name not in MODULES:
+        raise ConfigError(f"{path}: holds a {name or 'non-hybridqcm'} model; qcm-export takes one of {sorted(MODULES)}")
+    return MODULES[name].load_from_checkpoint(path, map_location="cpu").eval()
+
+
+def _temporary(path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def _publish(tmp: Path, path: Path) -> Path:
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+    return path
+
+
+def parity_inputs(model, time_steps: int, data: str | None, split: str, n: int, seed: int = 0):
+    """Inputs [n, C, time_steps] float32 in m/s²: held-out recordings from `data`, else smooth synthetic signals.
+
+    Synthetic: white noise smoothed over ~10 steps, scaled to ~1 m/s² RMS; it exercises the graph
+    (every operation and the per-sample scaling), not the physics."""
+    import numpy as np
+    import torch
+
+    from hybridqcm.models.export import io_names
+
+    inputs, _ = io_names(model)
+    if data:
+        from hybridqcm.data.channels import required_keys, select_channels
+        from hybridqcm.data.hdf5 import read_split
+
+        keys = sorted(required_keys(inputs))
+        arrays = read_split(data, split, keys=keys, n_steps=time_steps, index=slice(0, n))
+        return torch.from_numpy(np.ascontiguousarray(select_channels(arrays, inputs, dtype=np.float32))), arrays.get("h")
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.randn(n, len(inputs), time_steps + 9, generator=generator)
+    smooth = noise.unfold(-1, 10, 1).mean(-1)[..., :time_steps]
+    return (smooth / smooth.pow(2).mean(-1, keepdim=True).sqrt()).float(), None
+
+
+def export(ckpt: str, out_dir: str | Path | None = None, stem: str | None = None, formats: Sequence[str] = FORMATS,
+           time_steps: int | None = None, data: str | None = None, split: str = "test", n_check: int = 64,
+           tol: float = 1e-5) -> dict:
+    """Write the exports and the JSON contract; returns the contract (with a `parity` entry per format).
+
+    Raises ConfigError for bad input and ParityError when an export deviates beyond `tol` (the
+    files are then left in place for inspection, the contract records the deviation)."""
+    import torch
+
+    from hybridqcm.models.export import PhysicalGraph, contract, export_time_steps, parity_error, reference_output
+
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown or not formats:
+        raise ConfigError(f"--format {list(formats)}: choose from {list(FORMATS)}")
+    if "onnx" in formats:
+        missing = [m for m in ("onnx", "onnxruntime", "onnxscript") if importlib.util.find_spec(m) is None]
+        if missing:
+            raise ConfigError(f"--format onnx needs the package(s) {missing}: pip install -e '.[export]' "
+                              f"(or --format torchscript)")
+    model = _load(ckpt)
+    try:
+        steps = export_time_steps(model, time_steps)
+    except ValueError as error:
+        raise ConfigError(f"--time-steps {time_steps}: {error}") from None
+    out = Path(out_dir) if out_dir else Path(ckpt).parent
+    out.mkdir(parents=True, exist_ok=True)
+    stem = stem or Path(ckpt).stem
+
+    x, h = parity_inputs(model, steps, data, split, n_check)
+    graph = PhysicalGraph(model).eval()
+    reference = reference_output(model, x)
+    sidecar = contract(model, steps, float(h) if h is not None else SPEC_H)
+    sidecar["h_source"] = f"attrs of {data}" if h is not None else "SPEC default (no --data given)"
+    sidecar.update({"checkpoint": str(Path(ckpt).resolve()), "files": {}, "parity": {}})
+    sidecar["parity_inputs"] = (f"{len(x)} recordings of {data} /{split}" if data else f"{len(x)} synthetic smooth signals")
+    sidecar["parity_measure"] = ("max |Δp| / |p| per element" if model.kind == "estimator"
+                                 else "max |Δ| / RMS of the reference channel")
+    example = x[: min(2, len(x))]
+    with torch.no_grad():
+        if "torchscript" in formats:
+            path = out / f"{stem}.pt"
+            with warnings.catch_warnings():
+                # The time axis is fixed at export by design (padding is computed from it); the tracer says so per layer.
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                traced = torch.jit.trace(graph, example, check_trace=False)
+            tmp = _temporary(path)
+            torch.jit.save(traced, str(tmp))
+            _publish(tmp, path)
+            loaded = torch.jit.load(str(path))
+            sidecar["files"]["torchscript"] = path.name
+            sidecar["parity"]["torchscript"] = parity_error(model, reference, loaded(x))
+        if "onnx" in formats:
+            path = out / f"{stem}.onnx"
+            sidecar["files"]["onnx"] = path.name
+            sidecar["parity"]["onnx"] = _export_onnx(graph, example, x, path, model, reference)
+    sidecar["tolerance"] = tol
+    atomic_write_text(out / f"{stem}.json", json.dumps(sidecar, indent=2) + "\n")
+    worst = {k: v for k, v in sidecar["parity"].items() if not v <= tol}
+    if worst:
+        raise ParityError(f"{ckpt}: export deviates from the checkpoint beyond {tol:g}: {worst} "
+                           f"({sidecar['parity_measure']}); files left in {out}")
+    return sidecar
+
+
+def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
+    """torch.onnx (dynamo) export with a dynamic batch axis; returns the ONNX Runtime parity error."""
+    import logging
+
+    import onnxruntime
+    import torch
+
+    from hybridqcm.models.export import parity_error
+
+    tmp = _temporary(path).with_suffix(".onnx")
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(graph, (example,), str(tmp), input_names=["accel"],
+                              output_names=["params" if model.kind == "estimator" else "signals"],
+                              dynamic_shapes={"x": {0: torch.export.Dim("batch")}}, dynamo=True, verbose=False,
+                              external_data=False)
+        _publish(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+        for leftover in path.parent.glob(f".{path.name}.*"):
+            leftover.unlink(missing_ok=True)
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (result,) = session.run(None, {"accel": x.numpy()})
+    return parity_error(model, reference, torch.from_numpy(result))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="qcm-export", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Export a trained network (CNN estimator, CAE denoiser, U-Net completion) to TorchScript and ONNX.\n"
+                    "Input: raw accelerations [batch, channels, time] float32 in m/s² (normalisation inside);\n"
+                    "output: parameters [batch, P] float64 (estimators) or signals [batch, 2, time] in m/s².\n"
+                    "Writes STEM.pt, STEM.onnx and STEM.json (the input/output contract and the parity check).",
+        epilog="example: qcm-export outputs/demo/exp2_physics/checkpoints/last.ckpt --data data/demo.h5 --out exports/")
+    parser.add_argument("ckpt", help="checkpoint (.ckpt) written by qcm-train")
+    parser.add_argument("--out", default=None, help="output folder (default: the checkpoint's folder)")
+    parser.add_argument("--name", default=None, help="file stem of the exports (default: the checkpoint's stem)")
+    parser.add_argument("--format", nargs="+", default=list(FORMATS), choices=FORMATS, dest="formats",
+                        help="what to write (default: both; onnx needs pip install -e '.[export]')")
+    parser.add_argument("--time-steps", type=int, default=None,
+                        help="length of the time axis of the denoiser / U-Net export (default: the training window; "
+                             "estimators always take exactly their window)")
+    parser.add_argument("--data", default=None, help="HDF5 dataset whose recordings check parity (default: synthetic signals)")
+    parser.add_argument("--split", default="test", help="split of --data to take held-out recordings from (default: test)")
+    parser.add_argument("--n-check", type=int, default=64, help="recordings in the parity check (default: 64)")
+    parser.add_argument("--tol", type=float, default=1e-5, help="largest relative deviation accepted (default: 1e-5)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    from hybridqcm.data.hdf5 import DatasetError
+    from hybridqcm.models.modules import CheckpointMismatch
+
+    args = build_parser().parse_args(argv)
+    if args.n_check < 1:
+        fail(f"--n-check {args.n_check}: must be >= 1")
+    try:
+        sidecar = export(args.ckpt, args.out, args.name, args.formats, args.time_steps, args.data, args.split,
+                         args.n_check, args.tol)
+    except (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError) as error:
+        fail(error)
+    except ParityError as error:
+        fail(error, code=1)
+    out = Path(args.out) if args.out else Path(args.ckpt).parent
+    parity = ", ".join(f"{k} {v:.2e}" for k, v in sidecar["parity"].items())
+    print(f"{sidecar['model_class']}: {', '.join(str(out / f) for f in sidecar['files'].values())} + "
+          f"{out / ((args.name or Path(args.ckpt).stem) + '.json')}; parity ({sidecar['parity_measure']}): {parity}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
