@@ -39,7 +39,7 @@ def accuracy() -> None:
     from scipy.integrate import solve_ivp
 
     from hybridqcm.estimation.exact import exact_outputs
-    from hybridqcm.estimation.synthetic import synthetic_samples
+    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics import reference_params, road_gain, system_matrix
     from hybridqcm.physics.linear_models import QuarterCarRoad
 
@@ -88,7 +88,7 @@ def main() -> None:
 
     from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
     from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
-    from hybridqcm.estimation.synthetic import synthetic_samples
+    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics.linear_models import QuarterCarRoad
 
     data = synthetic_samples(args.samples, n_steps=args.steps, seed=0)

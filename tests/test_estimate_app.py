@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 from hybridqcm.apps.common import CONFIG_DIR
 from hybridqcm.apps.estimate import ConfigError, build_inputs, check_experiment_overrides, validate
 from hybridqcm.data.hdf5 import DatasetError
-from hybridqcm.estimation.synthetic import synthetic_samples, train_tiny_checkpoints, write_dataset
+from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints, write_dataset
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +79,11 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
     assert [r["param"] for r in _rows(tmp_path / "calibration.csv")][-1] == "m3"
     assert (tmp_path / "plots" / "sorted_p3.png").exists() and (tmp_path / "plots" / "sorted_m3.png").exists()
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 0, "tensors": 0}).Reload()
+    assert "estimation/sorted_m3" in events.Tags()["images"]  # plots and table beside the GN losses
+    assert any(tag.startswith("estimation/error_distribution") for tag in events.Tags()["tensors"])
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["all_within_1pct"] >= 0.9  # noise-free: GN recovers all ten parameters
     assert "within 1 %" in proc.stdout

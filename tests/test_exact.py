@@ -11,7 +11,7 @@ from scipy.integrate import solve_ivp
 from hybridqcm.estimation.exact import (HOLDS, discrete_maps, exact_outputs, exact_sensitivities, expm_taylor,
                                         expm_with_tangents, spline_matrix)
 from hybridqcm.estimation.sensitivity import euler_accelerations
-from hybridqcm.estimation.synthetic import synthetic_samples
+from hybridqcm.testing import synthetic_samples
 from hybridqcm.physics import params_to_matrices, reference_params, road_gain, system_matrix
 from hybridqcm.physics.linear_models import (LinearModel, QuarterCarRoad, SeatBaseExcitation,
                                              SprungBaseExcitation)

@@ -7,7 +7,7 @@ import torch
 from hybridqcm.estimation.hybrid import (CheckpointKindError, GaussNewtonRefinement, GaussNewtonStage, HybridEstimator,
                                          equation_error_params, load_network)
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
-from hybridqcm.estimation.synthetic import synthetic_samples, train_tiny_checkpoints
+from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
 
 H = 0.01
 

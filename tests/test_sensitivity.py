@@ -5,7 +5,7 @@ import torch
 
 from hybridqcm.estimation.sensitivity import (EulerSensitivity, accelerations_and_jacobian, euler_accelerations,
                                               euler_sensitivities)
-from hybridqcm.estimation.synthetic import synthetic_samples
+from hybridqcm.testing import synthetic_samples
 from hybridqcm.physics import simulate
 from hybridqcm.physics.integrators import SemiExplicitEuler
 

@@ -7,7 +7,7 @@ import torch
 
 from hybridqcm.estimation.solver import (GaussNewton, LeastSquaresProblem, LevenbergMarquardt, SolverConfig,
                                          SolverStatus, build_solver)
-from hybridqcm.estimation.synthetic import synthetic_samples
+from hybridqcm.testing import synthetic_samples
 
 H = 0.01
 

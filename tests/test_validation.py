@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_dir
 from hybridqcm.apps.common import CONFIG_DIR, check_task_name
 from hybridqcm.apps.estimate import coverage_95, validate
 from hybridqcm.errors import ConfigError, DatasetError
-from hybridqcm.estimation.synthetic import synthetic_samples, write_dataset
+from hybridqcm.testing import synthetic_samples, write_dataset
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 

@@ -554,6 +554,11 @@ def run(cfg) -> dict:
                                               run_dir / "plots" / f"sorted_{name}.png", title=f"{cfg.experiment_name}: {name}"))
             close(plot_sorted_predictions(m3.numpy(), true_m3.numpy(), "m3 [kg]", run_dir / "plots" / "sorted_m3.png",
                                           title=f"{cfg.experiment_name}: occupant mass"))
+        if cfg.tensorboard:  # the table and the plots beside the GN losses, in one TensorBoard run
+            from hybridqcm.tracking import log_estimation_to_tensorboard
+
+            log_estimation_to_tensorboard(run_dir / "tb", table_rows, sorted((run_dir / "plots").glob("*.png")),
+                                          title=title)
     summary["seconds_total"] = time.perf_counter() - t_start
     atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
     runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(),
