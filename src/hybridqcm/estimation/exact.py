@@ -50,6 +50,7 @@ from torch import Tensor
 from hybridqcm.physics.linear_models import LinearModel
 
 HOLDS = ("spline", "foh", "zoh")
+SPLINE_DEGREES = (3, 5)
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
 _TAYLOR_THETA = 0.25
@@ -57,8 +58,10 @@ _TAYLOR_DEGREE = 11
 
 
 # ----------------------------------------------------------------------------- validation
-def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, substeps: int) -> Tensor:
-    """Validate and return inputs as [b, T, m] (a [b, T] input is accepted for one-input models)."""
+def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, substeps: int, start: int = 0,
+           n_steps: int | None = None, spline_degree: int = 5) -> tuple[Tensor, int]:
+    """Validate; return inputs as [b, T_in, m] (a [b, T_in] input is accepted for one-input models)
+    and the window length n_steps (default T_in - start)."""
     if not isinstance(model, LinearModel):
         raise ValueError(f"exact: model must be a LinearModel, got {type(model).__name__}")
     if hold not in HOLDS:
@@ -79,13 +82,39 @@ def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, subst
     if x0 is not None and (x0.ndim != 2 or x0.shape != (batch, n)):
         raise ValueError(f"exact: x0 must be [batch={batch}, {n}] ({', '.join(model.state_names)}) or None, "
                          f"got {tuple(x0.shape)}")
-    return inputs
+    if spline_degree not in SPLINE_DEGREES:
+        raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
+    n_in = inputs.shape[1]
+    if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < n_in:
+        raise ValueError(f"exact: start must be an integer in [0, {n_in}) for {n_in} input samples, got {start!r}")
+    if n_steps is None:
+        n_steps = n_in - start
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1 or start + n_steps > n_in:
+        raise ValueError(f"exact: n_steps must be an integer in [1, {n_in - start}] (start={start}, "
+                         f"{n_in} input samples), got {n_steps!r}")
+    return inputs, n_steps
 
 
 # ----------------------------------------------------------------------------- input hold
 @lru_cache(maxsize=32)
-def _spline_matrix_cached(n_samples: int, substeps: int) -> Tensor:
-    T, m = n_samples, substeps
+def _spline_matrix_cached(n_samples: int, substeps: int, degree: int) -> Tensor:
+    if degree == 3 or n_samples < degree + 1:  # too few samples for degree 5: the cubic below
+        return _cubic_spline_matrix(n_samples, substeps)
+    import numpy as np
+    from scipy.interpolate import make_interp_spline
+
+    # B-spline of odd degree k interpolating the identity: knots at the samples with (k-1)/2 interior
+    # knots dropped at each end (not-a-knot), so column i is the spline through the unit vector e_i
+    T = n_samples
+    grid = np.arange(T, dtype=np.float64)
+    fine = np.arange((T - 1) * substeps + 1, dtype=np.float64) / substeps
+    matrix = make_interp_spline(grid, np.eye(T), k=degree)(fine)
+    matrix[::substeps] = np.eye(T)  # at the knots the spline is the sample itself (removes round-off)
+    return torch.from_numpy(np.ascontiguousarray(matrix)).to(_DTYPE)
+
+
+def _cubic_spline_matrix(T: int, m: int) -> Tensor:
+    """The not-a-knot cubic spline (natural for T = 3, linear for T <= 2) at m sub-steps per interval."""
     eye = torch.eye(T, dtype=_DTYPE)
     if T < 3:  # one interval at most: the spline is the straight line
         second = torch.zeros(T, T, dtype=_DTYPE)
@@ -114,22 +143,42 @@ def _spline_matrix_cached(n_samples: int, substeps: int) -> Tensor:
     return torch.cat(rows)
 
 
-def spline_matrix(n_samples: int, substeps: int) -> Tensor:
-    """[(T-1) m + 1, T] map from T uniform samples to the not-a-knot cubic spline at m sub-steps
-    per interval (row k m + j is t_k + j h/m); natural spline for T = 3, linear for T <= 2."""
-    return _spline_matrix_cached(int(n_samples), int(substeps))
+def spline_matrix(n_samples: int, substeps: int, degree: int = 5) -> Tensor:
+    """[(T-1) m + 1, T] map from T uniform samples to the interpolating spline of odd ``degree``
+    (3 or 5, not-a-knot end conditions) at m sub-steps per interval (row k m + j is t_k + j h/m).
+    Degree 5 is scipy's make_interp_spline(k=5) applied to the identity; with fewer than 6 samples
+    it falls back to the cubic, which is natural for T = 3 and linear for T <= 2. Cached per (T, m, k).
+    A spline of degree k reproduces polynomials of degree <= k exactly."""
+    return _spline_matrix_cached(int(n_samples), int(substeps), int(degree))
 
 
-def _sub_samples(inputs: Tensor, hold: str, substeps: int) -> Tensor:
-    """inputs [b, T, m] -> s [m_sub+1, m, T-1, b] (batch innermost, a strided view):
-    s[j, c, k] = w_c(t_k + j h/m_sub), the spline for "spline", the samples themselves otherwise."""
-    batch, T, n_in = inputs.shape
+@lru_cache(maxsize=64)
+def _window_spline(n_in: int, substeps: int, degree: int, start: int, n_steps: int) -> tuple[Tensor, int, int]:
+    """Rows of spline_matrix(n_in, substeps, degree) for the fine samples of the window
+    start .. start + n_steps - 1, restricted to the input columns lo:hi whose weights are not
+    negligible there (the weights decay geometrically away from the window, 0.43^|k| for the quintic;
+    dropped columns weigh < 1e-18 of the largest, below round-off)."""
+    rows = spline_matrix(n_in, substeps, degree)[start * substeps:(start + n_steps - 1) * substeps + 1]
+    live = (rows.abs().amax(0) > 1e-18 * rows.abs().amax()).nonzero()
+    lo, hi = int(live.min()), int(live.max()) + 1
+    return rows[:, lo:hi].contiguous(), lo, hi
+
+
+def _sub_samples(inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None,
+                 degree: int = 5) -> Tensor:
+    """inputs [b, T_in, m] -> s [m_sub+1, m, n_steps-1, b] (batch innermost, a strided view):
+    s[j, c, k] = w_c(t_{start+k} + j h/m_sub), the spline through all T_in samples for "spline",
+    the samples themselves otherwise."""
+    batch, n_in, n_ch = inputs.shape
+    n_steps = n_in - start if n_steps is None else n_steps
     m_sub = substeps if hold == "spline" else 1
-    columns = inputs.permute(1, 2, 0).reshape(T, n_in * batch)  # [T, (c, b)]
     if m_sub > 1:  # one GEMM for the whole batch
-        columns = torch.mm(spline_matrix(T, m_sub).to(inputs.device), columns)
-    fine = columns.contiguous()  # [(T-1) m_sub + 1, (c, b)]
-    return fine.as_strided((m_sub + 1, n_in, T - 1, batch), (n_in * batch, batch, m_sub * n_in * batch, 1))
+        weights, lo, hi = _window_spline(n_in, m_sub, degree, start, n_steps)
+        columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
+        fine = torch.mm(weights.to(inputs.device), columns)  # [(n_steps-1) m_sub + 1, (c, b)]
+    else:
+        fine = inputs[:, start:start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
+    return fine.as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (n_ch * batch, batch, m_sub * n_ch * batch, 1))
 
 
 def _forcing(lam: Tensor, s: Tensor) -> Tensor:
@@ -340,53 +389,62 @@ def _input_term(inputs: Tensor, weights: Tensor) -> Tensor:
     return torch.bmm(inputs, weights)
 
 
-def _prepare(model, params, x0, inputs, h, hold, substeps):
-    inputs = _check(model, params, x0, inputs, h, hold, substeps).to(_DTYPE)
+def _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree):
+    inputs, n_steps = _check(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    inputs = inputs.to(_DTYPE)
     params = params.to(_DTYPE)
     x0 = None if x0 is None else x0.to(_DTYPE)
-    return params, x0, inputs
+    return params, x0, inputs, n_steps
 
 
 @torch.no_grad()
 def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
-                  hold: str = "spline", substeps: int = 4) -> Tensor:
-    """params [b, P], x0 [b, n] (None = rest), inputs [b, T, m] -> y [b, T, o] (float64).
+                  hold: str = "spline", substeps: int = 4, start: int = 0, n_steps: int | None = None,
+                  spline_degree: int = 5) -> Tensor:
+    """params [b, P], x0 [b, n] (None = rest), inputs [b, T_in, m] -> y [b, n_steps, o] (float64).
 
-    x0 is the state at t_0 (the first sample) in the model's state coordinates.
+    The outputs are for the samples start .. start + n_steps - 1 (n_steps default T_in - start) and
+    x0 is the state at sample ``start`` in the model's state coordinates. The spline hold
+    interpolates all T_in samples, so samples outside the window (margins) make the held input
+    near the window's edges as accurate as inside it.
     """
-    params, x0, inputs = _prepare(model, params, x0, inputs, h, hold, substeps)
-    batch, T, _ = inputs.shape
+    params, x0, inputs, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    batch = inputs.shape[0]
     n = model.n_state
     _, _, C, E = model.matrices(params)
     if T > 1:
         phi, lam = _maps(model, params, h, hold, substeps, False)
-        forcing = _forcing(lam, _sub_samples(inputs, hold, substeps))  # [T-1, n, b]
+        forcing = _forcing(lam, _sub_samples(inputs, hold, substeps, start, T, spline_degree))  # [T-1, n, b]
     else:
         phi, forcing = None, None
+    window = inputs[:, start:start + T]
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
     x_time = states.permute(2, 0, 1)  # [b, T, n]
-    return torch.bmm(x_time, C.transpose(1, 2)).add_(_input_term(inputs, E.transpose(1, 2)))
+    return torch.bmm(x_time, C.transpose(1, 2)).add_(_input_term(window, E.transpose(1, 2)))
 
 
 @torch.no_grad()
 def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
-                        hold: str = "spline", substeps: int = 4, with_x0: bool = True) -> Tensor:
+                        hold: str = "spline", substeps: int = 4, with_x0: bool = True, start: int = 0,
+                        n_steps: int | None = None, spline_degree: int = 5) -> Tensor:
     """Prediction and Jacobian in one forward pass.
 
-    -> [b, T, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
-    [..., 1 + P + i] = dy/dx0_i. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
+    -> [b, n_steps, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
+    [..., 1 + P + i] = dy/dx0_i (x0 = the state at sample ``start``). Window and margins as in
+    exact_outputs. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
     """
-    params, x0, inputs = _prepare(model, params, x0, inputs, h, hold, substeps)
-    batch, T, _ = inputs.shape
+    params, x0, inputs, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    batch = inputs.shape[0]
     n, o, n_params = model.n_state, model.n_output, model.n_params
     _, _, C, E = model.matrices(params)
     _, _, dC, dE = model.matrix_derivatives(params)
     if T > 1:
         phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # tangents wide
-        s = _sub_samples(inputs, hold, substeps)
+        s = _sub_samples(inputs, hold, substeps, start, T, spline_degree)
         forcing = _forcing(lam, s)  # [T-1, n, b]
     else:
         phi = forcing = None
+    inputs = inputs[:, start:start + T]
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
     x_time = states.permute(2, 0, 1).contiguous()  # [b, T, n]
 
