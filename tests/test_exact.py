@@ -50,8 +50,10 @@ def _model_case(name, samples):
     return SprungBaseExcitation(), p[:, :6], accel[..., 2:3]
 
 
-def _reference_outputs(model, p, x0, w, h, hold, substeps):
-    """Plain differentiable implementation: torch.linalg.matrix_exp per sub-step, explicit loop."""
+def _reference_outputs(model, p, x0, w, h, hold, substeps, start=0, n_steps=None, degree=5, states=None):
+    """Plain differentiable implementation: torch.linalg.matrix_exp per sub-step, explicit loop over
+    the window start .. start + n_steps - 1 (the spline through all samples); ``states``, a list,
+    receives x_k."""
     A, B, C, E = model.matrices(p)
     n, m = model.n_state, model.n_input
     m_sub = substeps if hold == "spline" else 1
@@ -64,13 +66,16 @@ def _reference_outputs(model, p, x0, w, h, hold, substeps):
     F = torch.linalg.matrix_exp(M)
     phi, F1, F2 = F[:, :n, :n], F[:, :n, n:n + m], F[:, :n, n + m:]
     g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
-    T = w.shape[1]
-    fine = torch.einsum("st,btc->bsc", spline_matrix(T, m_sub), w) if hold == "spline" else w
+    T_in = w.shape[1]
+    T = T_in - start if n_steps is None else n_steps
+    fine = torch.einsum("st,btc->bsc", spline_matrix(T_in, m_sub, degree), w) if hold == "spline" else w
     x = x0 if x0 is not None else torch.zeros(p.shape[0], n, dtype=F64)
     ys = []
-    for k in range(T):
+    for k in range(start, start + T):
+        if states is not None:
+            states.append(x)
         ys.append(torch.einsum("bon,bn->bo", C, x) + torch.einsum("bom,bm->bo", E, w[:, k]))
-        for j in range(m_sub if k < T - 1 else 0):
+        for j in range(m_sub if k < start + T - 1 else 0):
             x = (torch.einsum("bij,bj->bi", phi, x) + torch.einsum("bij,bj->bi", g0, fine[:, k * m_sub + j])
                  + torch.einsum("bij,bj->bi", g1, fine[:, k * m_sub + j + 1]))
     return torch.stack(ys, 1)
@@ -278,6 +283,93 @@ def test_spline_matrix_reproduces_cubics():
     assert spline_matrix(T, m).shape == ((T - 1) * m + 1, T)
 
 
+@pytest.mark.parametrize("degree", [3, 5])
+def test_spline_matrix_reproduces_polynomials_of_its_degree(degree):
+    T, m = 14, 4
+    t = torch.arange(T, dtype=F64)
+    fine_t = torch.arange((T - 1) * m + 1, dtype=F64) / m
+    g = torch.Generator().manual_seed(degree)
+    for deg in range(degree + 2):
+        coef = torch.randn(deg + 1, generator=g, dtype=F64) * 0.5 ** torch.arange(deg + 1)
+        poly = lambda s: sum(c * (s - 6) ** i for i, c in enumerate(coef))  # noqa: B023, E731
+        err = (spline_matrix(T, m, degree) @ poly(t) - poly(fine_t)).abs().amax() / poly(fine_t).abs().amax()
+        if deg <= degree:
+            assert err < 1e-12, (deg, float(err))
+        else:  # one degree higher is not reproduced: the check can fail
+            assert err > 1e-6, (deg, float(err))
+
+
+def test_own_cubic_is_scipys_not_a_knot_cubic():
+    from scipy.interpolate import make_interp_spline
+
+    for T in (4, 7, 20):
+        fine = np.arange((T - 1) * 3 + 1) / 3
+        reference = make_interp_spline(np.arange(T, dtype=float), np.eye(T), k=3)(fine)
+        torch.testing.assert_close(spline_matrix(T, 3, 3), torch.tensor(reference), rtol=0, atol=1e-13)
+    # too few samples for the quintic: it falls back to the cubic
+    torch.testing.assert_close(spline_matrix(5, 3, 5), spline_matrix(5, 3, 3), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+def test_window_is_the_full_run_restarted_from_its_state(samples, hold):
+    """Outputs (and Jacobian) for start/n_steps = the full run's samples, restarted from its state at
+    `start`; the spline uses every input sample, so nothing depends on where the window lies."""
+    model, p, w = _model_case("quarter", samples)
+    x0 = _x0(3, 6, seed=3)
+    states = []
+    full = _reference_outputs(model, p, x0, w, H, hold, 4, states=states)
+    start, n_steps = 11, 20
+    window = exact_outputs(model, p, states[start], w, H, hold, 4, start=start, n_steps=n_steps)
+    assert window.shape == (3, n_steps, 3)
+    scale = full.abs().amax()
+    torch.testing.assert_close(window, full[:, start:start + n_steps], rtol=0, atol=1e-11 * scale)
+    sens = exact_sensitivities(model, p, states[start], w, H, hold, 4, start=start, n_steps=n_steps)
+    torch.testing.assert_close(sens[..., 0], window, rtol=0, atol=1e-12 * scale)
+    x_s = states[start]
+    jac_p = torch.func.jacrev(lambda q: _reference_outputs(model, q, x_s, w, H, hold, 4, start, n_steps))(p)
+    jac_x = torch.func.jacrev(lambda x: _reference_outputs(model, p, x, w, H, hold, 4, start, n_steps))(x_s)
+    reference = torch.cat([torch.stack([jac_p[i, :, :, i] for i in range(3)]),
+                           torch.stack([jac_x[i, :, :, i] for i in range(3)])], -1)
+    err = (sens[..., 1:] - reference).abs().amax((0, 1, 2))
+    assert (err <= 1e-9 * reference.abs().amax((0, 1, 2)) + 1e-14).all()
+    # the default window is everything from start on
+    torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=start),
+                               full[:, start:], rtol=0, atol=1e-11 * scale)
+
+
+def test_margins_remove_the_edge_error_against_continuous_time():
+    """Mid-drive window of the continuous simulator: held input through the window's samples only
+    (spline end conditions at the edges) vs through 20 extra samples each side."""
+    from hybridqcm.physics.continuous import simulate_continuous
+    from hybridqcm.physics.prior import build_prior
+    from hybridqcm.physics.road import RoadProfile
+
+    g = torch.Generator().manual_seed(4)
+    params = build_prior("thesis", h=None).sample(4, g).params.to(F64)
+    road = RoadProfile(n_waves=200)
+    amplitude, phase = road.draw(torch.randint(0, 3, (4,), generator=g), g)
+    margin, T = 20, 100
+    out = simulate_continuous(params, amplitude, phase, road.omega * (30 / 3.6), T + 2 * margin, H,
+                              torch.full((4,), 3.0))
+    x_start = torch.cat([out.vel[:, margin], out.disp[:, margin]], -1)  # (v3 v2 v1 q3 q2 q1) at the window start
+    truth = out.accel[:, margin:margin + T]
+    u = out.road[..., None]
+    model = QuarterCarRoad()
+    worst = {}
+    for degree in (3, 5):
+        bare = exact_outputs(model, params, x_start, u[:, margin:margin + T], H, substeps=16, spline_degree=degree)
+        wide = exact_outputs(model, params, x_start, u, H, substeps=16, start=margin, n_steps=T, spline_degree=degree)
+        scale = truth.abs().amax(1, keepdim=True)  # per sample and channel
+        bare_err = ((bare - truth).abs() / scale).amax((0, 2))  # worst relative error per step [T]
+        wide_err = ((wide - truth).abs() / scale).amax((0, 2))
+        edge = torch.cat([bare_err[:5], bare_err[-5:]]).amax()
+        assert edge > 5 * bare_err[20:80].amax(), (degree, bare_err.tolist())  # the problem: the edges
+        assert wide_err.amax() < edge / (3 if degree == 3 else 10), (degree, float(wide_err.amax()), float(edge))
+        assert wide_err.amax() < 2 * bare_err[20:80].amax()  # the edges now as good as the interior
+        worst[degree] = float(wide_err.amax())
+    assert worst[5] < worst[3] / 3, worst  # and the quintic beats the cubic (this road reaches 25 Hz)
+
+
 # ----------------------------------------------------------------------------- base-excitation models
 def test_seat_transmissibility_closed_form():
     model = SeatBaseExcitation()
@@ -313,7 +405,8 @@ def test_bad_input_raises_one_line_errors(samples):
     bad = [
         dict(params=p[:, :9]), dict(inputs=w[:2]), dict(inputs=w[..., 0, None, None]), dict(x0=torch.zeros(3, 5)),
         dict(h=0.0), dict(h=-0.01), dict(h=float("nan")), dict(hold="cubic"), dict(substeps=0), dict(substeps=1.5),
-        dict(inputs=torch.zeros(3, 0, 1)),
+        dict(inputs=torch.zeros(3, 0, 1)), dict(start=-1), dict(start=40), dict(n_steps=0), dict(n_steps=41),
+        dict(start=30, n_steps=11), dict(start=1.0), dict(spline_degree=4), dict(spline_degree=7),
     ]
     for fn in (exact_outputs, exact_sensitivities):
         for override in bad:
