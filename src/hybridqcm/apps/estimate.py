@@ -322,6 +322,11 @@ def validate(cfg) -> dict:
     needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
+    if initial_state == "unknown":
+        # With x0 unknown a short continuation window has up to 6 more unknowns than it can pin
+        # down (diverging or stopping in local minima): such stages are skipped.
+        shortest = int(cfg.get("min_window_unknown_state", 30))
+        stages = [s for s in stages if s["n_steps"] is None or s["n_steps"] >= shortest] or stages[-1:]
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
@@ -447,6 +452,7 @@ def run(cfg) -> dict:
         reweight = plan["model"] == "exact"
     refinement = GaussNewtonRefinement(stages, known=known_mask, pu_known=bool(cfg.pu_known), h=plan["h"],
                                        response=response, reweight=reweight,
+                                       peer_factor=cfg.get("misfit_peer_factor", 10.0),
                                        log_dir=run_dir / "tb" if cfg.tensorboard else None,
                                        restarts=int(cfg.restarts.count), restart_threshold=threshold,
                                        restart_sigma=float(cfg.restarts.sigma), seed=int(cfg.seed),
