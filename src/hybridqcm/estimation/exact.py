@@ -210,16 +210,16 @@ def _iprod(S: Tensor, dS: Tensor | None, T: Tensor, dT: Tensor | None) -> tuple[
         out.addcmul_(S[:, l, None, :], T[l])
     if dS is None and dT is None:
         return out, None
-    rows = (dS if dS is not None else dT).shape[0] if dS is not None else dT.shape[0]
-    n_dir = (dS if dS is not None else dT).shape[1]
-    dout = torch.zeros(rows, n_dir, T.shape[1], T.shape[2], dtype=S.dtype, device=S.device)
     if dS is not None:
-        for l in range(k):
-            dout.addcmul_(dS[:, :, l, None, :], T[l][None])
+        dout = dS[:, :, 0, None, :] * T[0]
+        for l in range(1, k):
+            dout.addcmul_(dS[:, :, l, None, :], T[l])
     if dT is not None:
-        S_top = S[:rows]
-        for l in range(dT.shape[0]):
-            dout.addcmul_(S_top[:, l, None, None, :], dT[l][None])
+        S_top = S[:dT.shape[0] if dS is None else dS.shape[0]]
+        if dS is None:
+            dout = S_top[:, 0, None, None, :] * dT[0]
+        for l in range(0 if dS is not None else 1, dT.shape[0]):
+            dout.addcmul_(S_top[:, l, None, None, :], dT[l])
     return out, dout
 
 
@@ -456,30 +456,25 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     else:
         phi = forcing = None
     states = _primal_states(phi, forcing, x0, batch, n, T, params.device)
-    out = torch.empty(batch, T, o, 1 + n_params + (n if with_x0 else 0), dtype=_DTYPE, device=params.device)
-    out[..., 0] = _outputs_inner(states, window, C, E).permute(2, 0, 1)
+    primal = _outputs_inner(states, window, C, E)  # [T, o, b]
 
-    if with_x0:  # dy_k/dx0 = C Phi^k, rows stacked over k and filled by doubling
-        rows = out[..., 1 + n_params:]
-        rows[:, 0] = C
-        power, filled = phi.permute(2, 0, 1).contiguous(), 1
-        while filled < T:
-            block = min(filled, T - filled)
-            rows[:, filled:filled + block] = torch.bmm(rows[:, :block].reshape(batch, block * o, n),
-                                                       power).view(batch, block, o, n)
-            filled += block
-            if filled < T:
-                power = torch.bmm(power, power)
-
-    # dy_k/dp = C dx_k + dC x_k + dE w_k with dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLam_j s_{k,j}:
-    # [i, j, b] blocks with per-sample scalars, multiply-adds on data that stays in cache; each
-    # step's [o, j, b] block is transposed into the batch-first result while still in cache
+    # dy_k/dp = C dx_k + dC x_k + dE w_k with dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLam_j s_{k,j},
+    # and dy_k/dx0 = H_k = C Phi^k, H_{k+1} = H_k Phi: [i, j, b] blocks with per-sample scalars,
+    # multiply-adds on data that stays in cache. Each step's [o, 1 + P + n, b] block is transposed
+    # into the batch-first result while it is still in cache (one transposition of the whole result
+    # at the end costs 3x more).
+    n_col = 1 + n_params + (n if with_x0 else 0)
+    out = torch.empty(batch, T, o, n_col, dtype=_DTYPE, device=params.device)
+    out_rows = out.view(batch, T, o * n_col)
     dc_cols = dC.permute(3, 2, 1, 0).contiguous().unbind(0)  # [l][o, j, b]
     de_cols = dE.permute(3, 2, 1, 0).contiguous().unbind(0)  # [c][o, j, b]
     w_rows = window.permute(1, 2, 0).contiguous()  # [T, c, b]
     x_rows = states.unbind(0)
-    tangent = torch.empty(o, n_params, batch, dtype=_DTYPE, device=params.device)
+    blocks = [torch.empty(o, n_col, batch, dtype=_DTYPE, device=params.device) for _ in range(2)]  # ping-pong
+    if with_x0:
+        blocks[1][:, 1 + n_params:] = C.permute(1, 2, 0)  # H_0, moved to blocks[0] at k = 0 below
     if T > 1:
+        phi_rows = phi.unbind(0)  # [l][j, b]: row l of every Phi
         phi_cols = phi.permute(1, 0, 2)[:, :, None, :].contiguous().unbind(0)  # [l][i, 1, b]
         dphi_cols = dphi.permute(2, 0, 1, 3).contiguous().unbind(0)  # [l][i, j, b]
         dlam_t = dlam.permute(0, 3, 1, 2, 4).contiguous()  # [q, c, i, j, b]
@@ -488,6 +483,9 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     z = torch.zeros(n, n_params, batch, dtype=_DTYPE, device=params.device)  # dx_k/dp, [i, j, b]
     z_next = torch.empty_like(z)
     for k in range(T):
+        block, previous = blocks[k % 2], blocks[(k + 1) % 2]
+        block[:, 0] = primal[k]
+        tangent = block[:, 1:1 + n_params]
         if k:
             x_prev, z_rows = x_rows[k - 1].unbind(0), z.unbind(0)
             torch.mul(dphi_cols[0], x_prev[0], out=z_next)
@@ -498,14 +496,24 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
             for weight, samples in forcing_terms:
                 z_next.addcmul_(weight, samples[k - 1])
             z, z_next = z_next, z
-        x_k, w_k, z_rows = x_rows[k].unbind(0), w_rows[k].unbind(0), z.unbind(0)
-        torch.mul(dc_cols[0], x_k[0], out=tangent)
-        for l in range(1, n):
+            z_rows = z.unbind(0)
+            torch.mul(c_cols[0], z_rows[0], out=tangent)
+            for l in range(1, n):
+                tangent.addcmul_(c_cols[l], z_rows[l])
+        else:
+            tangent.zero_()
+        x_k, w_k = x_rows[k].unbind(0), w_rows[k].unbind(0)
+        for l in range(n):
             tangent.addcmul_(dc_cols[l], x_k[l])
         for c in range(n_in):
             tangent.addcmul_(de_cols[c], w_k[c])
-        if k:
-            for l in range(n):
-                tangent.addcmul_(c_cols[l], z_rows[l])
-        out[:, k, :, 1:1 + n_params] = tangent.permute(2, 0, 1)
+        if with_x0:
+            H, H_prev = block[:, 1 + n_params:], previous[:, 1 + n_params:]
+            if k:
+                torch.mul(H_prev[:, 0, None, :], phi_rows[0], out=H)
+                for l in range(1, n):
+                    H.addcmul_(H_prev[:, l, None, :], phi_rows[l])
+            else:
+                H.copy_(H_prev)
+        out_rows[:, k] = block.view(o * n_col, batch).t().contiguous()  # 2-D copies: PyTorch's fast paths
     return out
