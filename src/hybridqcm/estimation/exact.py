@@ -152,28 +152,33 @@ def spline_matrix(n_samples: int, substeps: int, degree: int = 5) -> Tensor:
     return _spline_matrix_cached(int(n_samples), int(substeps), int(degree))
 
 
+# Input samples further than this from the window are not used by the spline hold: an interpolating
+# spline's weights decay geometrically with the distance, 0.43^d for the quintic and 0.27^d for the
+# cubic, so they weigh < 1e-23 there (the spline over the samples actually used differs from the one
+# over all T_in samples, end conditions included, below round-off), and the cost of a window does
+# not grow with the length of the recording.
+_SPLINE_REACH = 64
+
+
 @lru_cache(maxsize=64)
-def _window_spline(n_in: int, substeps: int, degree: int, start: int, n_steps: int) -> tuple[Tensor, int, int]:
-    """Rows of spline_matrix(n_in, substeps, degree) for the fine samples of the window
-    start .. start + n_steps - 1, restricted to the input columns lo:hi whose weights are not
-    negligible there (the weights decay geometrically away from the window, 0.43^|k| for the quintic;
-    dropped columns weigh < 1e-18 of the largest, below round-off)."""
-    rows = spline_matrix(n_in, substeps, degree)[start * substeps:(start + n_steps - 1) * substeps + 1]
-    live = (rows.abs().amax(0) > 1e-18 * rows.abs().amax()).nonzero()
-    lo, hi = int(live.min()), int(live.max()) + 1
-    return rows[:, lo:hi].contiguous(), lo, hi
+def _window_spline(n_local: int, substeps: int, degree: int, start: int, n_steps: int) -> Tensor:
+    """Rows of spline_matrix(n_local, substeps, degree) for the fine samples of the window
+    start .. start + n_steps - 1, [(n_steps - 1) m + 1, n_local]."""
+    rows = spline_matrix(n_local, substeps, degree)[start * substeps:(start + n_steps - 1) * substeps + 1]
+    return rows.contiguous()
 
 
 def _sub_samples(inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None,
                  degree: int = 5) -> Tensor:
     """inputs [b, T_in, m] -> s [m_sub+1, m, n_steps-1, b] (batch innermost, a strided view):
-    s[j, c, k] = w_c(t_{start+k} + j h/m_sub), the spline through all T_in samples for "spline",
-    the samples themselves otherwise."""
+    s[j, c, k] = w_c(t_{start+k} + j h/m_sub), the spline through the samples (all of them up to
+    _SPLINE_REACH beyond each end of the window) for "spline", the samples themselves otherwise."""
     batch, n_in, n_ch = inputs.shape
     n_steps = n_in - start if n_steps is None else n_steps
     m_sub = substeps if hold == "spline" else 1
     if m_sub > 1:  # one GEMM for the whole batch
-        weights, lo, hi = _window_spline(n_in, m_sub, degree, start, n_steps)
+        lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
+        weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps)
         columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
         fine = torch.mm(weights.to(inputs.device), columns)  # [(n_steps-1) m_sub + 1, (c, b)]
     else:
