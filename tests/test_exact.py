@@ -440,3 +440,18 @@ def test_long_recording_uses_only_the_samples_near_the_window():
     cut = exact_outputs(QuarterCarRoad(), p, x0, u[:, start - 70:start + n_steps + 70], H, start=70, n_steps=n_steps)
     torch.testing.assert_close(long, cut, rtol=0, atol=1e-14 * cut.abs().amax())
     assert long.shape == (1, n_steps, 3)
+
+
+def test_per_sample_output_derivatives_take_the_general_path(samples):
+    """A model without constant derivative matrices (jacfwd, one per sample) gives the same
+    Jacobian as the linear model's shared-matrix shortcut."""
+
+    class GenericQuarterCar(QuarterCarRoad):
+        linear_in_params = False
+
+    model, p, w = _model_case("quarter", samples)
+    x0 = _x0(3, 6, seed=4)
+    assert GenericQuarterCar().matrix_derivatives(p)[2].stride(0) != 0
+    shortcut = exact_sensitivities(model, p, x0, w, H)
+    general = exact_sensitivities(GenericQuarterCar(), p, x0, w, H)
+    torch.testing.assert_close(general, shortcut, rtol=1e-12, atol=1e-12 * shortcut.abs().amax())
