@@ -332,7 +332,9 @@ def test_window_is_the_full_run_restarted_from_its_state(samples, hold):
                            torch.stack([jac_x[i, :, :, i] for i in range(3)])], -1)
     err = (sens[..., 1:] - reference).abs().amax((0, 1, 2))
     assert (err <= 1e-9 * reference.abs().amax((0, 1, 2)) + 1e-14).all()
-    # the default window is everything from start on
+    # numpy integers are accepted; the default window is everything from start on
+    torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=np.int64(start),
+                                             n_steps=np.int64(n_steps)), window, rtol=0, atol=0)
     torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=start),
                                full[:, start:], rtol=0, atol=1e-11 * scale)
 

@@ -53,6 +53,7 @@ of the result is transposed (a 2-D transpose, PyTorch's fast path) into the batc
 from __future__ import annotations
 
 import math
+import numbers
 from functools import lru_cache
 
 import torch
@@ -96,14 +97,14 @@ def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, subst
     if spline_degree not in SPLINE_DEGREES:
         raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
     n_in = inputs.shape[1]
-    if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < n_in:
+    if isinstance(start, bool) or not isinstance(start, numbers.Integral) or not 0 <= start < n_in:
         raise ValueError(f"exact: start must be an integer in [0, {n_in}) for {n_in} input samples, got {start!r}")
     if n_steps is None:
         n_steps = n_in - start
-    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1 or start + n_steps > n_in:
+    if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral) or not 1 <= n_steps <= n_in - start:
         raise ValueError(f"exact: n_steps must be an integer in [1, {n_in - start}] (start={start}, "
                          f"{n_in} input samples), got {n_steps!r}")
-    return inputs, n_steps
+    return inputs, int(n_steps)
 
 
 # ----------------------------------------------------------------------------- input hold
@@ -426,7 +427,7 @@ def _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, splin
     inputs = inputs.to(_DTYPE)
     params = params.to(_DTYPE)
     x0 = None if x0 is None else x0.to(_DTYPE)
-    return params, x0, inputs, n_steps
+    return params, x0, inputs, int(start), n_steps
 
 
 @torch.no_grad()
@@ -440,7 +441,8 @@ def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs:
     interpolates all T_in samples, so samples outside the window (margins) make the held input
     near the window's edges as accurate as inside it.
     """
-    params, x0, inputs, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps,
+                                            spline_degree)
     batch = inputs.shape[0]
     _, _, C, E = model.matrices(params)
     if T > 1:
@@ -463,7 +465,8 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     [..., 1 + P + i] = dy/dx0_i (x0 = the state at sample ``start``). Window and margins as in
     exact_outputs. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
     """
-    params, x0, inputs, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps,
+                                            spline_degree)
     batch = inputs.shape[0]
     n, o, n_params, n_in = model.n_state, model.n_output, model.n_params, model.n_input
     _, _, C, E = model.matrices(params)
