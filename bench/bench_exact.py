@@ -1,7 +1,7 @@
 """Exact-discretisation layer vs the Euler layer on the same batch (the Gauss-Newton model cost).
 
     PYTHONPATH=src .venv/bin/python bench/bench_exact.py [--samples 17000] [--steps 100] [--chunk 512]
-        [--threads 1] [--hold spline] [--substeps 4] [--repeats 3]
+        [--threads 1] [--hold spline] [--substeps 4] [--degree 5] [--margin 0] [--repeats 3]
 
 Synthetic quarter-car samples (thesis prior, ISO 8608 roads); every layer runs over the whole
 batch in chunks of --chunk samples with torch.set_num_threads(--threads), as the solver does.
@@ -63,10 +63,12 @@ def accuracy() -> None:
     reference = torch.tensor(np.stack(reference))
     w = road(torch.tensor(t))[None, :, None].expand(2, T, 1)
     print("relative L2 error vs continuous time (all / a3 / a2 / a1):")
-    for hold, m in (("zoh", 1), ("foh", 1), ("spline", 1), ("spline", 2), ("spline", 4), ("spline", 8)):
-        err = exact_outputs(QuarterCarRoad(), params, None, w, h, hold, m) - reference
+    cases = [("zoh", 1, 5), ("foh", 1, 5)] + [("spline", m, k) for k in (3, 5) for m in (1, 2, 4, 8)]
+    for hold, m, k in cases:
+        err = exact_outputs(QuarterCarRoad(), params, None, w, h, hold, m, spline_degree=k) - reference
         parts = [float(err[..., c].norm() / reference[..., c].norm()) for c in range(3)]
-        print(f"  {hold:6s} substeps={m}: {float(err.norm() / reference.norm()):.2e}  "
+        label = f"{hold} k={k}" if hold == "spline" else hold
+        print(f"  {label:10s} substeps={m}: {float(err.norm() / reference.norm()):.2e}  "
               + " / ".join(f"{x:.2e}" for x in parts))
 
 
@@ -79,6 +81,9 @@ def main() -> None:
     parser.add_argument("--hold", default="spline")
     parser.add_argument("--substeps", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--degree", type=int, default=5, help="spline degree (3 or 5)")
+    parser.add_argument("--margin", type=int, default=0,
+                        help="input samples on each side of the --steps window (start=margin)")
     parser.add_argument("--accuracy", action="store_true", help="print hold errors vs continuous time instead")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -91,31 +96,32 @@ def main() -> None:
     from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics.linear_models import QuarterCarRoad
 
-    data = synthetic_samples(args.samples, n_steps=args.steps, seed=0)
+    data = synthetic_samples(args.samples, n_steps=args.steps + 2 * args.margin, seed=0)
     params, road = data["params"].to(torch.float64), data["road"].to(torch.float64)
     x0 = torch.zeros(args.samples, 6, dtype=torch.float64)
     model = QuarterCarRoad()
     chunks = [(params[i:i + args.chunk], road[i:i + args.chunk], x0[i:i + args.chunk])
               for i in range(0, args.samples, args.chunk)]
     h = 0.01
+    window = dict(start=args.margin, n_steps=args.steps, spline_degree=args.degree)
 
     def run(kind: str):
         def go():
             for p, u, x in chunks:
                 if kind == "exact_sens":
-                    exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps)
+                    exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps, **window)
                 elif kind == "exact_out":
-                    exact_outputs(model, p, x, u[..., None], h, args.hold, args.substeps)
+                    exact_outputs(model, p, x, u[..., None], h, args.hold, args.substeps, **window)
                 elif kind == "euler_sens":
-                    euler_sensitivities(p, u, h)
+                    euler_sensitivities(p, u[:, args.margin:args.margin + args.steps], h)
                 else:
-                    euler_accelerations(p, u, h)
+                    euler_accelerations(p, u[:, args.margin:args.margin + args.steps], h)
         return go
 
     run("exact_sens")()  # warm-up (spline matrix cache, allocator)
     t = {kind: _best(run(kind), args.repeats) for kind in ("exact_sens", "exact_out", "euler_sens", "euler_acc")}
     print(f"{args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
-          f"hold={args.hold} substeps={args.substeps}")
+          f"hold={args.hold} substeps={args.substeps} degree={args.degree} margin={args.margin}")
     print(f"  exact_sensitivities [b,T,3,17] {t['exact_sens']:.3f} s   "
           f"euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   ratio {t['exact_sens'] / t['euler_sens']:.2f}")
     print(f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "

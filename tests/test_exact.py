@@ -332,7 +332,9 @@ def test_window_is_the_full_run_restarted_from_its_state(samples, hold):
                            torch.stack([jac_x[i, :, :, i] for i in range(3)])], -1)
     err = (sens[..., 1:] - reference).abs().amax((0, 1, 2))
     assert (err <= 1e-9 * reference.abs().amax((0, 1, 2)) + 1e-14).all()
-    # the default window is everything from start on
+    # numpy integers are accepted; the default window is everything from start on
+    torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=np.int64(start),
+                                             n_steps=np.int64(n_steps)), window, rtol=0, atol=0)
     torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=start),
                                full[:, start:], rtol=0, atol=1e-11 * scale)
 
@@ -426,3 +428,32 @@ def test_single_sample_and_two_dimensional_input(samples):
     torch.testing.assert_close(exact_outputs(model, p, None, w[..., 0], H), exact_outputs(model, p, None, w, H))
     maps = discrete_maps(model, p, H, "spline", 4)
     assert maps[0].shape == (3, 6, 6) and maps[1].shape == (3, 5, 6, 1)
+
+
+def test_long_recording_uses_only_the_samples_near_the_window():
+    """A window deep inside a long input equals the same window cut with 70 samples each side
+    (beyond the spline's reach the weights are below round-off), and costs no [T_in, T_in] matrix."""
+    T_in, start, n_steps = 20000, 12345, 50
+    u = road(torch.arange(T_in, dtype=F64) * H)[None, :, None] + 1e-3 * torch.randn(
+        1, T_in, 1, generator=torch.Generator().manual_seed(9), dtype=F64)
+    p = reference_params()[None]
+    x0 = _x0(1, 6, seed=1)
+    long = exact_outputs(QuarterCarRoad(), p, x0, u, H, start=start, n_steps=n_steps)
+    cut = exact_outputs(QuarterCarRoad(), p, x0, u[:, start - 70:start + n_steps + 70], H, start=70, n_steps=n_steps)
+    torch.testing.assert_close(long, cut, rtol=0, atol=1e-14 * cut.abs().amax())
+    assert long.shape == (1, n_steps, 3)
+
+
+def test_per_sample_output_derivatives_take_the_general_path(samples):
+    """A model without constant derivative matrices (jacfwd, one per sample) gives the same
+    Jacobian as the linear model's shared-matrix shortcut."""
+
+    class GenericQuarterCar(QuarterCarRoad):
+        linear_in_params = False
+
+    model, p, w = _model_case("quarter", samples)
+    x0 = _x0(3, 6, seed=4)
+    assert GenericQuarterCar().matrix_derivatives(p)[2].stride(0) != 0
+    shortcut = exact_sensitivities(model, p, x0, w, H)
+    general = exact_sensitivities(GenericQuarterCar(), p, x0, w, H)
+    torch.testing.assert_close(general, shortcut, rtol=1e-12, atol=1e-12 * shortcut.abs().amax())
