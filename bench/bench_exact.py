@@ -15,6 +15,7 @@ prints instead the relative L2 error of each hold against the continuous-time re
 (scipy solve_ivp, DOP853, rtol 1e-12) of the reference vehicle and one thesis-prior draw to a
 road of three low-frequency sines, T = 100, h = 0.01, from rest.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,9 +40,9 @@ def accuracy() -> None:
     from scipy.integrate import solve_ivp
 
     from hybridqcm.estimation.exact import exact_outputs
-    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics import reference_params, road_gain, system_matrix
     from hybridqcm.physics.linear_models import QuarterCarRoad
+    from hybridqcm.testing import synthetic_samples
 
     sines = ((0.010, 0.7, 0.3), (0.006, 1.9, 1.1), (0.003, 3.1, 2.0))  # metres, Hz, phase
 
@@ -57,8 +58,15 @@ def accuracy() -> None:
         A = system_matrix(p).numpy()
         b = np.zeros(6)
         b[2] = float(road_gain(p))
-        sol = solve_ivp(lambda s, x: A @ x + b * road(s), (0.0, t[-1]), np.zeros(6), method="DOP853",
-                        t_eval=t, rtol=1e-12, atol=1e-15)
+        sol = solve_ivp(
+            lambda s, x, A=A, b=b: A @ x + b * road(s),
+            (0.0, t[-1]),
+            np.zeros(6),
+            method="DOP853",
+            t_eval=t,
+            rtol=1e-12,
+            atol=1e-15,
+        )
         reference.append(sol.y.T @ A[:3].T + np.outer(road(t), b[:3]))
     reference = torch.tensor(np.stack(reference))
     w = road(torch.tensor(t))[None, :, None].expand(2, T, 1)
@@ -68,8 +76,10 @@ def accuracy() -> None:
         err = exact_outputs(QuarterCarRoad(), params, None, w, h, hold, m, spline_degree=k) - reference
         parts = [float(err[..., c].norm() / reference[..., c].norm()) for c in range(3)]
         label = f"{hold} k={k}" if hold == "spline" else hold
-        print(f"  {label:10s} substeps={m}: {float(err.norm() / reference.norm()):.2e}  "
-              + " / ".join(f"{x:.2e}" for x in parts))
+        print(
+            f"  {label:10s} substeps={m}: {float(err.norm() / reference.norm()):.2e}  "
+            + " / ".join(f"{x:.2e}" for x in parts)
+        )
 
 
 def main() -> None:
@@ -82,8 +92,9 @@ def main() -> None:
     parser.add_argument("--substeps", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--degree", type=int, default=5, help="spline degree (3 or 5)")
-    parser.add_argument("--margin", type=int, default=0,
-                        help="input samples on each side of the --steps window (start=margin)")
+    parser.add_argument(
+        "--margin", type=int, default=0, help="input samples on each side of the --steps window (start=margin)"
+    )
     parser.add_argument("--accuracy", action="store_true", help="print hold errors vs continuous time instead")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -93,15 +104,17 @@ def main() -> None:
 
     from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
     from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
-    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics.linear_models import QuarterCarRoad
+    from hybridqcm.testing import synthetic_samples
 
     data = synthetic_samples(args.samples, n_steps=args.steps + 2 * args.margin, seed=0)
     params, road = data["params"].to(torch.float64), data["road"].to(torch.float64)
     x0 = torch.zeros(args.samples, 6, dtype=torch.float64)
     model = QuarterCarRoad()
-    chunks = [(params[i:i + args.chunk], road[i:i + args.chunk], x0[i:i + args.chunk])
-              for i in range(0, args.samples, args.chunk)]
+    chunks = [
+        (params[i : i + args.chunk], road[i : i + args.chunk], x0[i : i + args.chunk])
+        for i in range(0, args.samples, args.chunk)
+    ]
     h = 0.01
     window = dict(start=args.margin, n_steps=args.steps, spline_degree=args.degree)
 
@@ -113,19 +126,26 @@ def main() -> None:
                 elif kind == "exact_out":
                     exact_outputs(model, p, x, u[..., None], h, args.hold, args.substeps, **window)
                 elif kind == "euler_sens":
-                    euler_sensitivities(p, u[:, args.margin:args.margin + args.steps], h)
+                    euler_sensitivities(p, u[:, args.margin : args.margin + args.steps], h)
                 else:
-                    euler_accelerations(p, u[:, args.margin:args.margin + args.steps], h)
+                    euler_accelerations(p, u[:, args.margin : args.margin + args.steps], h)
+
         return go
 
     run("exact_sens")()  # warm-up (spline matrix cache, allocator)
     t = {kind: _best(run(kind), args.repeats) for kind in ("exact_sens", "exact_out", "euler_sens", "euler_acc")}
-    print(f"{args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
-          f"hold={args.hold} substeps={args.substeps} degree={args.degree} margin={args.margin}")
-    print(f"  exact_sensitivities [b,T,3,17] {t['exact_sens']:.3f} s   "
-          f"euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   ratio {t['exact_sens'] / t['euler_sens']:.2f}")
-    print(f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "
-          f"euler_accelerations [b,T,3]    {t['euler_acc']:.3f} s   ratio {t['exact_out'] / t['euler_acc']:.2f}")
+    print(
+        f"{args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
+        f"hold={args.hold} substeps={args.substeps} degree={args.degree} margin={args.margin}"
+    )
+    print(
+        f"  exact_sensitivities [b,T,3,17] {t['exact_sens']:.3f} s   "
+        f"euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   ratio {t['exact_sens'] / t['euler_sens']:.2f}"
+    )
+    print(
+        f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "
+        f"euler_accelerations [b,T,3]    {t['euler_acc']:.3f} s   ratio {t['exact_out'] / t['euler_acc']:.2f}"
+    )
 
 
 if __name__ == "__main__":

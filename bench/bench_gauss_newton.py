@@ -27,8 +27,8 @@ import time
 def _data(n: int, steps: int, seed: int = 0):
     import torch
 
-    from hybridqcm.testing import synthetic_samples
     from hybridqcm.physics import reference_params
+    from hybridqcm.testing import synthetic_samples
 
     s = synthetic_samples(n, n_steps=steps, seed=seed)
     g = torch.Generator().manual_seed(seed + 1)
@@ -48,8 +48,12 @@ def run_ours(n, steps, threads):
     result = solver.solve(problem, init)
     total = time.perf_counter() - t0
     # seconds[0]: the first iteration, all samples active (later ones only the unconverged)
-    return {"iteration_s": result.seconds[0], "iterations_s": result.seconds, "solve_3_iterations_s": total,
-            "peak_rss_before_solve_mb": rss_before}
+    return {
+        "iteration_s": result.seconds[0],
+        "iterations_s": result.seconds,
+        "solve_3_iterations_s": total,
+        "peak_rss_before_solve_mb": rss_before,
+    }
 
 
 def run_autograd(n, steps, threads, subset=256):
@@ -97,14 +101,25 @@ def run_scipy(n, steps, threads, subset=8):
     t0 = time.perf_counter()
     njev = nfev = 0
     for i in range(subset):
-        res = least_squares(lambda p: (model(p, road[i]) - accel[i]).ravel(), init[i].numpy(), method="trf",
-                            x_scale="jac", max_nfev=200)
+        res = least_squares(
+            lambda p, i=i: (model(p, road[i]) - accel[i]).ravel(),
+            init[i].numpy(),
+            method="trf",
+            x_scale="jac",
+            max_nfev=200,
+        )
         njev += res.njev
         nfev += res.nfev
     dt = time.perf_counter() - t0
     per_iteration = dt / max(njev, 1)  # one iteration (Jacobian + step) of one sample
-    return {"solve_subset_s": dt, "subset": subset, "njev": njev, "nfev": nfev,
-            "iteration_s": per_iteration * n, "solve_all_s": dt / subset * n}
+    return {
+        "solve_subset_s": dt,
+        "subset": subset,
+        "njev": njev,
+        "nfev": nfev,
+        "iteration_s": per_iteration * n,
+        "solve_all_s": dt / subset * n,
+    }
 
 
 def child(mode, n, steps, threads):
@@ -126,9 +141,22 @@ def main():
         return
     results = {}
     for mode in ("ours", "autograd", "scipy"):
-        proc = subprocess.run([sys.executable, __file__, "--child", mode, "--samples", str(args.samples),
-                               "--steps", str(args.steps), "--threads", str(args.threads)],
-                              capture_output=True, text=True)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--child",
+                mode,
+                "--samples",
+                str(args.samples),
+                "--steps",
+                str(args.steps),
+                "--threads",
+                str(args.threads),
+            ],
+            capture_output=True,
+            text=True,
+        )
         if proc.returncode != 0:
             print(proc.stderr[-2000:])
             raise SystemExit(f"{mode} failed")
@@ -143,12 +171,18 @@ def main():
     ]
     for name, r in rows:
         print(f"{name:<44} {r['iteration_s']:>14.3f} {r['iteration_s'] / ours:>8.1f} {r['peak_rss_mb']:>12.0f}")
-    print(f"ours: iterations 1-3 took {[round(x, 3) for x in results['ours']['iterations_s']]} s "
-          f"(later ones only on unconverged samples)")
-    print(f"ours: peak RSS {results['ours']['peak_rss_before_solve_mb']:.0f} MB already before the solve (data "
-          f"generation), {results['ours']['peak_rss_mb']:.0f} MB after")
-    print(f"scipy: {results['scipy']['njev']} Jacobians for {results['scipy']['subset']} samples; "
-          f"solving all {args.samples} one at a time would take {results['scipy']['solve_all_s']:.0f} s")
+    print(
+        f"ours: iterations 1-3 took {[round(x, 3) for x in results['ours']['iterations_s']]} s "
+        f"(later ones only on unconverged samples)"
+    )
+    print(
+        f"ours: peak RSS {results['ours']['peak_rss_before_solve_mb']:.0f} MB already before the solve (data "
+        f"generation), {results['ours']['peak_rss_mb']:.0f} MB after"
+    )
+    print(
+        f"scipy: {results['scipy']['njev']} Jacobians for {results['scipy']['subset']} samples; "
+        f"solving all {args.samples} one at a time would take {results['scipy']['solve_all_s']:.0f} s"
+    )
     print("source study (V100 GPU): 29.6 s per iteration over 17 000 samples")
 
 

@@ -10,6 +10,7 @@ Error = ||a_method - a_exact|| / ||a_exact|| over all steps and the three accele
 median and max over samples; likewise for the displacements.
 Time: `simulate` on 1000 samples x 500 steps, best of `--repeat`.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,15 +32,15 @@ SPEED = 30 / 3.6
 
 def exact_zoh(params: torch.Tensor, force: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact (accel, disp) [M, N, 3] of the continuous system with the wheel forcing held over each step."""
-    A = system_matrix(params).numpy()                          # [M, 6, 6]
+    A = system_matrix(params).numpy()  # [M, 6, 6]
     Phi = scipy.linalg.expm(A * h)
-    Gamma = np.linalg.solve(A, Phi - np.eye(6))[:, :, 2]       # [M, 6]: response to a unit v1-forcing
+    Gamma = np.linalg.solve(A, Phi - np.eye(6))[:, :, 2]  # [M, 6]: response to a unit v1-forcing
     M, N = force.shape
     x = np.zeros((M, 6))
     states = np.empty((M, N, 6))
     for k in range(N):
         states[:, k] = x
-        x = np.einsum("mij,mj->mi", Phi, x) + Gamma * force[:, k:k + 1]
+        x = np.einsum("mij,mj->mi", Phi, x) + Gamma * force[:, k : k + 1]
     D, S = (m.numpy() for m in params_to_matrices(params))
     v, q = states[..., :3], states[..., 3:]
     accel = np.einsum("mij,mkj->mki", D, v) + np.einsum("mij,mkj->mki", S, q)
@@ -62,8 +63,10 @@ def main() -> int:
         torch.set_num_threads(args.threads)
     n_acc = 50 if args.quick else args.samples
     n_time = 200 if args.quick else 1000
-    print(f"hybridqcm bench_integrators{' (quick)' if args.quick else ''}: torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads; load average before {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(
+        f"hybridqcm bench_integrators{' (quick)' if args.quick else ''}: torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads; load average before {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+    )
 
     g = torch.Generator().manual_seed(0)
     params = build_prior("thesis", h=0.01).sample(max(n_acc, n_time), g).params
@@ -88,18 +91,26 @@ def main() -> int:
             start = time.perf_counter()
             simulate(params[:n_time], road, 0.01, method)
             best = min(best, time.perf_counter() - start)
-        seconds[method] = best * 1000 / n_time   # per 1000 samples
+        seconds[method] = best * 1000 / n_time  # per 1000 samples
 
-    print(f"\naccuracy vs exact ZOH solution, {n_acc} thesis-prior samples, 5 s on class A-C roads; "
-          f"relative L2 error of the accelerations (median / max over samples)")
-    header = f"{'method':<22}" + "".join(f"{f'h = {h:g}':>22}" for h in hs) + f"{'disp err h=0.01 (med)':>24}" \
-             f"{'order':>8}{'s / 1000x500 (h=0.01)':>24}{'vs semi-expl.':>15}"
+    print(
+        f"\naccuracy vs exact ZOH solution, {n_acc} thesis-prior samples, 5 s on class A-C roads; "
+        f"relative L2 error of the accelerations (median / max over samples)"
+    )
+    header = (
+        f"{'method':<22}" + "".join(f"{f'h = {h:g}':>22}" for h in hs) + f"{'disp err h=0.01 (med)':>24}"
+        f"{'order':>8}{'s / 1000x500 (h=0.01)':>24}{'vs semi-expl.':>15}"
+    )
     print(header)
     for method in METHODS:
-        cells = "".join(f"{f'{np.median(errors[method, h][0]):.2e} / {errors[method, h][0].max():.1e}':>22}" for h in hs)
+        cells = "".join(
+            f"{f'{np.median(errors[method, h][0]):.2e} / {errors[method, h][0].max():.1e}':>22}" for h in hs
+        )
         order = np.log2(np.median(errors[method, hs[1]][0]) / np.median(errors[method, hs[2]][0]))
-        print(f"{method:<22}{cells}{np.median(errors[method, 0.01][1]):24.2e}{order:8.2f}"
-              f"{seconds[method]:24.3f}{seconds[method] / seconds['semi_explicit_euler']:14.1f}x")
+        print(
+            f"{method:<22}{cells}{np.median(errors[method, 0.01][1]):24.2e}{order:8.2f}"
+            f"{seconds[method]:24.3f}{seconds[method] / seconds['semi_explicit_euler']:14.1f}x"
+        )
     print(f"\nload average after {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 

@@ -9,6 +9,7 @@ and writing the full reference dataset.
 Prints absolute figures and ratios side by side, plus the machine load (other processes may share
 the CPU; the load average is printed before and after).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,7 +50,7 @@ def inputs(n_samples: int, n_steps: int, seed: int = 0) -> tuple[torch.Tensor, t
 def batched(params: torch.Tensor, road: torch.Tensor, batch: int) -> float:
     start = time.perf_counter()
     for first in range(0, params.shape[0], batch):
-        simulate(params[first:first + batch], road[first:first + batch], H)
+        simulate(params[first : first + batch], road[first : first + batch], H)
     return time.perf_counter() - start
 
 
@@ -57,7 +58,7 @@ def per_sample_torch(params: torch.Tensor, road: torch.Tensor) -> float:
     """The same `simulate`, called once per sample (batch of 1)."""
     start = time.perf_counter()
     for i in range(params.shape[0]):
-        simulate(params[i:i + 1], road[i:i + 1], H)
+        simulate(params[i : i + 1], road[i : i + 1], H)
     return time.perf_counter() - start
 
 
@@ -89,8 +90,10 @@ def bench_integrator(n_samples: int, n_steps: int, batch: int, n_loop: int) -> N
     t_numpy = per_sample_numpy(params[:n_loop], road[:n_loop]) * n_samples / n_loop
     print(f"{'method':<48}{'seconds':>12}{'sample-steps/s':>16}{'slower than batched':>22}")
     print(f"{f'batched simulate (chunks of {batch})':<48}{t_batched:12.2f}{rate:16.3g}{1.0:21.1f}x")
-    for name, t in ((f"simulate per sample (timed {n_loop}, extrapolated)", t_torch1),
-                    (f"numpy loop per sample (timed {n_loop}, extrapolated)", t_numpy)):
+    for name, t in (
+        (f"simulate per sample (timed {n_loop}, extrapolated)", t_torch1),
+        (f"numpy loop per sample (timed {n_loop}, extrapolated)", t_numpy),
+    ):
         print(f"{name:<48}{t:12.1f}{n_samples * n_steps / t:16.3g}{t / t_batched:21.1f}x")
 
 
@@ -121,27 +124,45 @@ def _reference_protocol() -> tuple[dict, int]:
 
 def bench_write(scale: float, directory: Path) -> None:
     profiles, per_profile = _reference_protocol()
-    splits = {s: {"profiles": {c: max(1, round(n * scale)) for c, n in p["profiles"].items()}} for s, p in profiles.items()}
+    splits = {
+        s: {"profiles": {c: max(1, round(n * scale)) for c, n in p["profiles"].items()}} for s, p in profiles.items()
+    }
     total = sum(sum(s["profiles"].values()) for s in splits.values()) * per_profile
     path = directory / "reference.h5"
     print(f"\n== write_dataset: {total} samples x 512 steps, both splits, gzip level 1, thesis prior, seed 0")
     start = time.perf_counter()
-    summaries = write_dataset(path, splits, build_prior("thesis", h=H), RoadProfile(), n_steps=512, h=H, speed_mps=SPEED,
-                              samples_per_profile=per_profile, seed=0, progress=False)
+    summaries = write_dataset(
+        path,
+        splits,
+        build_prior("thesis", h=H),
+        RoadProfile(),
+        n_steps=512,
+        h=H,
+        speed_mps=SPEED,
+        samples_per_profile=per_profile,
+        seed=0,
+        progress=False,
+    )
     seconds = time.perf_counter() - start
     info = dataset_info(path)
-    size = path.stat().st_size / 2 ** 20
-    print(f"wall time {seconds:.1f} s (target < 60 s at full scale), {total / seconds:.0f} samples/s, file {size:.0f} MiB")
+    size = path.stat().st_size / 2**20
+    print(
+        f"wall time {seconds:.1f} s (target < 60 s at full scale), {total / seconds:.0f} samples/s, file {size:.0f} MiB"
+    )
     for split, summary in summaries.items():
-        print(f"  {split}: {info['splits'][split]['n_samples']} samples, {summary.seconds:.1f} s, "
-              f"prior acceptance {100 * summary.acceptance_rate:.2f} % ({summary.n_drawn} candidates)")
+        print(
+            f"  {split}: {info['splits'][split]['n_samples']} samples, {summary.seconds:.1f} s, "
+            f"prior acceptance {100 * summary.acceptance_rate:.2f} % ({summary.n_drawn} candidates)"
+        )
     path.unlink()
 
 
 def bench_physics(scale: float, directory: Path) -> None:
     """write_dataset with physics=euler (from rest) and physics=continuous (mid-drive, warm-up 2-20 s), side by side."""
     profiles, per_profile = _reference_protocol()
-    splits = {s: {"profiles": {c: max(1, round(n * scale)) for c, n in p["profiles"].items()}} for s, p in profiles.items()}
+    splits = {
+        s: {"profiles": {c: max(1, round(n * scale)) for c, n in p["profiles"].items()}} for s, p in profiles.items()
+    }
     total = sum(sum(s["profiles"].values()) for s in splits.values()) * per_profile
     print(f"\n== physics: {total} samples x 512 steps, both splits, gzip level 1, thesis prior, seed 0")
     print(f"{'physics':<40}{'seconds':>10}{'samples/s':>12}{'ratio':>8}")
@@ -149,8 +170,20 @@ def bench_physics(scale: float, directory: Path) -> None:
     for physics, warmup, prior_h in (("euler", (0.0, 0.0), H), ("continuous", (2.0, 20.0), None)):
         path = directory / f"{physics}.h5"
         start = time.perf_counter()
-        write_dataset(path, splits, build_prior("thesis", h=prior_h), RoadProfile(), n_steps=512, h=H, speed_mps=SPEED,
-                      samples_per_profile=per_profile, seed=0, progress=False, physics=physics, warmup_s=warmup)
+        write_dataset(
+            path,
+            splits,
+            build_prior("thesis", h=prior_h),
+            RoadProfile(),
+            n_steps=512,
+            h=H,
+            speed_mps=SPEED,
+            samples_per_profile=per_profile,
+            seed=0,
+            progress=False,
+            physics=physics,
+            warmup_s=warmup,
+        )
         times[physics] = time.perf_counter() - start
         path.unlink()
         label = f"{physics} (warm-up {warmup[0]:g}-{warmup[1]:g} s)"
@@ -165,15 +198,23 @@ def main() -> int:
     parser.add_argument("--batch", type=int, default=3400, help="integrator batch size (samples per simulate call)")
     parser.add_argument("--write-only", action="store_true", help="only the dataset-writing benchmark")
     parser.add_argument("--physics-only", action="store_true", help="only the euler vs continuous dataset comparison")
-    parser.add_argument("--scale", type=float, default=None, help="fraction of the reference protocol for --physics-only")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: torch's choice); 1 gives steadier figures on a shared CPU")
+    parser.add_argument(
+        "--scale", type=float, default=None, help="fraction of the reference protocol for --physics-only"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch intra-op threads (default: torch's choice); 1 gives steadier figures on a shared CPU",
+    )
     parser.add_argument("--dir", type=Path, default=None, help="where to write the temporary dataset")
     args = parser.parse_args()
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    print(f"hybridqcm bench_simulate {'(quick)' if args.quick else '(full scale)'}: torch {torch.__version__}, "
-          f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()}")
+    print(
+        f"hybridqcm bench_simulate {'(quick)' if args.quick else '(full scale)'}: torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads, {platform.processor() or platform.machine()}"
+    )
     print(f"before: {load()}")
     n = 3400 if args.quick else 34000
     if args.physics_only:

@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 
-
 def _reference_samples(path, n: int, seed: int):
     """First n test samples (N = 100, float64) and the exp-5 random start p_ref (1 + 0.1 δ); returns
     (accel, road, true params, the generator after that draw, init)."""
@@ -29,8 +28,11 @@ def _reference_samples(path, n: int, seed: int):
     data = read_split(path, "test", ("accel", "road", "params"), n_steps=100, index=slice(0, n))
     accel, road, true = (torch.from_numpy(data[k].astype(np.float64)) for k in ("accel", "road", "params"))
     g = torch.Generator().manual_seed(seed)
-    init = reference_params().expand(true.shape[0], 10) * (1 + 0.1 * torch.randn(true.shape[0], 10, generator=g, dtype=torch.float64))
+    init = reference_params().expand(true.shape[0], 10) * (
+        1 + 0.1 * torch.randn(true.shape[0], 10, generator=g, dtype=torch.float64)
+    )
     return accel, road, true, g, init
+
 
 def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dict]:
 
@@ -57,20 +59,37 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
     designs = {
         "source: CNN init + 10 GN iterations on the completed system": ([stage("c", "all", 10)], 0),
         "guarded completed stage 10, a3 60, 5 restarts (earlier exp10 design; exp10 now skips the completed pass)": (
-            [GaussNewtonStage("completed", build_solver("gauss_newton", max_iterations=10), "all", None, True),
-             stage("a3", "observed", 60)], 5),
+            [
+                GaussNewtonStage("completed", build_solver("gauss_newton", max_iterations=10), "all", None, True),
+                stage("a3", "observed", 60),
+            ],
+            5,
+        ),
     }
     rows = []
     for name, (stages, restarts) in designs.items():
-        callback = GaussNewtonRefinement(stages, known=known, pu_known=True, restarts=restarts, observed=["a3"], seed=seed,
-                                         restart_mass_factors=[1.0, 1.0, 0.6, 1.6, 0.4])
+        callback = GaussNewtonRefinement(
+            stages,
+            known=known,
+            pu_known=True,
+            restarts=restarts,
+            observed=["a3"],
+            seed=seed,
+            restart_mass_factors=[1.0, 1.0, 0.6, 1.6, 0.4],
+        )
         t0 = time.perf_counter()
         record = callback.refine(outputs)
         err = ((record["params"] - true).abs() / true)[:, ~known]
-        rows.append({"design": name, "all_within_1pct": float((err <= 0.01).all(1).double().mean()),
-                     "all_within_10pct": float((err <= 0.10).all(1).double().mean()),
-                     "all_within_25pct": float((err <= 0.25).all(1).double().mean()),
-                     "max_err": float(err.max()), "seconds": time.perf_counter() - t0})
+        rows.append(
+            {
+                "design": name,
+                "all_within_1pct": float((err <= 0.01).all(1).double().mean()),
+                "all_within_10pct": float((err <= 0.10).all(1).double().mean()),
+                "all_within_25pct": float((err <= 0.25).all(1).double().mean()),
+                "max_err": float(err.max()),
+                "seconds": time.perf_counter() - t0,
+            }
+        )
     return rows
 
 
@@ -96,8 +115,14 @@ def solver_variants(path: str, n: int, seed: int = 0) -> list[dict]:
         t0 = time.perf_counter()
         result = build_solver(method, max_iterations=30, **settings).solve(problem, init)
         err = (result.params - true).abs() / true
-        rows.append({"variant": name, "all_within_1pct": float((err <= 0.01).all(1).double().mean()),
-                     "status": result.status_counts(), "seconds": time.perf_counter() - t0})
+        rows.append(
+            {
+                "variant": name,
+                "all_within_1pct": float((err <= 0.01).all(1).double().mean()),
+                "status": result.status_counts(),
+                "seconds": time.perf_counter() - t0,
+            }
+        )
     return rows
 
 
@@ -117,13 +142,17 @@ def main() -> None:
     torch.set_num_threads(1)
     if args.study == "solver-variants":
         for row in solver_variants(args.data, args.samples, args.seed):
-            print(f"{row['variant']:<45} all 10 within 1 %: {100 * row['all_within_1pct']:6.2f} %  "
-                  f"{row['status']}  {row['seconds']:.1f} s")
+            print(
+                f"{row['variant']:<45} all 10 within 1 %: {100 * row['all_within_1pct']:6.2f} %  "
+                f"{row['status']}  {row['seconds']:.1f} s"
+            )
         return
     for row in exp10_completion(args.data, args.samples, args.error, args.seed):
-        print(f"{row['design']}\n    all 8 within 1 %: {100 * row['all_within_1pct']:.2f} %, within 10 %: "
-              f"{100 * row['all_within_10pct']:.2f} %, within 25 %: {100 * row['all_within_25pct']:.2f} %, "
-              f"max error {100 * row['max_err']:.3g} %, {row['seconds']:.1f} s")
+        print(
+            f"{row['design']}\n    all 8 within 1 %: {100 * row['all_within_1pct']:.2f} %, within 10 %: "
+            f"{100 * row['all_within_10pct']:.2f} %, within 25 %: {100 * row['all_within_25pct']:.2f} %, "
+            f"max error {100 * row['max_err']:.3g} %, {row['seconds']:.1f} s"
+        )
 
 
 if __name__ == "__main__":

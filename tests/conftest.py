@@ -4,6 +4,7 @@
 `write_dataset` (train: 48 samples, test: 40 samples, 512 steps, thesis prior, seed 0);
 any test may read it, none may modify it.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,8 +14,8 @@ import pytest
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 TINY_SPLITS = {
-    "train": {"profiles": {"A": 3, "B": 2, "C": 1}},   # 6 profiles x 8 draws = 48 samples
-    "test": {"profiles": {"A": 2, "B": 2, "C": 1}},    # 5 profiles x 8 draws = 40 samples
+    "train": {"profiles": {"A": 3, "B": 2, "C": 1}},  # 6 profiles x 8 draws = 48 samples
+    "test": {"profiles": {"A": 2, "B": 2, "C": 1}},  # 5 profiles x 8 draws = 40 samples
 }
 TINY_SAMPLES_PER_PROFILE = 8
 TINY_N_STEPS = 512
@@ -30,9 +31,16 @@ def write_tiny_dataset(path: Path, seed: int = TINY_SEED, **overrides) -> dict:
     from hybridqcm.physics.road import RoadProfile
 
     kwargs = dict(
-        splits=TINY_SPLITS, prior=build_prior("thesis", h=TINY_H), road_profile=RoadProfile(),
-        n_steps=TINY_N_STEPS, h=TINY_H, speed_mps=TINY_SPEED_MPS, samples_per_profile=TINY_SAMPLES_PER_PROFILE,
-        seed=seed, progress=False, profiles_per_chunk=2,
+        splits=TINY_SPLITS,
+        prior=build_prior("thesis", h=TINY_H),
+        road_profile=RoadProfile(),
+        n_steps=TINY_N_STEPS,
+        h=TINY_H,
+        speed_mps=TINY_SPEED_MPS,
+        samples_per_profile=TINY_SAMPLES_PER_PROFILE,
+        seed=seed,
+        progress=False,
+        profiles_per_chunk=2,
     )
     kwargs.update(overrides)
     return write_dataset(path, **kwargs)

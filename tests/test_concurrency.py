@@ -1,4 +1,5 @@
 """Concurrent and interrupted runs: nothing is silently replaced, nothing half-written is left behind."""
+
 from __future__ import annotations
 
 import json
@@ -63,8 +64,16 @@ def test_lock_of_a_dead_writer_and_its_partial_are_cleaned(tmp_path):
 
 
 def _simulate(tmp_path: Path, output: Path, name: str, *extra: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-c", "from hybridqcm.apps.simulate import main; main()", "preset=tiny", f"output={output}",
-           "progress=false", f"hydra.run.dir={tmp_path / name}", *extra]
+    cmd = [
+        sys.executable,
+        "-c",
+        "from hybridqcm.apps.simulate import main; main()",
+        "preset=tiny",
+        f"output={output}",
+        "progress=false",
+        f"hydra.run.dir={tmp_path / name}",
+        *extra,
+    ]
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
 
 
@@ -85,8 +94,15 @@ def test_two_concurrent_qcm_simulate_runs_exactly_one_succeeds(tmp_path):
 def test_signal_stops_qcm_simulate_and_leaves_no_partial(tmp_path, signum):
     output = tmp_path / "big.h5"
     # Enough work to be interrupted mid-way (the reference split sizes, a few s per chunk).
-    proc = _simulate(tmp_path, output, "run", "samples_per_profile=85", "n_steps=512",
-                     "splits.train.profiles={A:200,B:140,C:60}", "splits.test.profiles={A:100,B:70,C:30}")
+    proc = _simulate(
+        tmp_path,
+        output,
+        "run",
+        "samples_per_profile=85",
+        "n_steps=512",
+        "splits.train.profiles={A:200,B:140,C:60}",
+        "splits.test.profiles={A:100,B:70,C:30}",
+    )
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(".big.h5.*.partial")):
         assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()

@@ -1,4 +1,5 @@
 """The console of our entry points with stdout in a file: each line once, tables whole, no third-party chatter."""
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,9 @@ _PREFIX = re.compile(r"^(\[[^\]]*\]\[[^\]]*\]\[[A-Z]+\] - |[A-Z]+: )")
 def _run_to_file(command: list[str], log: Path) -> str:
     """Run with stdout and stderr redirected to a file (not a terminal, as in `make demo > demo.log`)."""
     with open(log, "w") as out:
-        result = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, timeout=400,
-                                cwd=Path(__file__).resolve().parents[1])
+        result = subprocess.run(
+            command, stdout=out, stderr=subprocess.STDOUT, timeout=400, cwd=Path(__file__).resolve().parents[1]
+        )
     text = log.read_text()
     assert result.returncode == 0, text[-3000:]
     return text
@@ -35,23 +37,45 @@ def _repeated_lines(text: str) -> list[str]:
 
 
 def test_repeated_line_detector_catches_a_record_printed_by_two_handlers():
-    twice = ("INFO: GPU available: False, used: False\n"
-             "[2026-01-01 00:00:00,000][lightning.pytorch.utilities.rank_zero][INFO] - GPU available: False, used: False\n"
-             "┏━━┳━━┓\n\n┏━━┳━━┓\n|---|---|\n|---|---|\n")
+    twice = (
+        "INFO: GPU available: False, used: False\n"
+        "[2026-01-01 00:00:00,000][lightning.pytorch.utilities.rank_zero][INFO] - GPU available: False, used: False\n"
+        "┏━━┳━━┓\n\n┏━━┳━━┓\n|---|---|\n|---|---|\n"
+    )
     assert _repeated_lines(twice) == ["GPU available: False, used: False"]
 
 
 def test_simulate_and_train_print_each_line_once_and_tables_whole(tmp_path):
     # A long output path is a long table title: in a log file it must stay on one line.
     dataset = tmp_path / ("a_long_folder_name_that_does_not_fit_in_eighty_columns_" * 2) / "tiny.h5"
-    simulate = _run_to_file([sys.executable, "-m", "hybridqcm.apps.simulate", "preset=tiny", f"output={dataset}",
-                             f"hydra.run.dir={tmp_path / 'sim'}"], tmp_path / "simulate.log")
+    simulate = _run_to_file(
+        [
+            sys.executable,
+            "-m",
+            "hybridqcm.apps.simulate",
+            "preset=tiny",
+            f"output={dataset}",
+            f"hydra.run.dir={tmp_path / 'sim'}",
+        ],
+        tmp_path / "simulate.log",
+    )
     assert str(dataset) in simulate.splitlines()
     assert "prior acceptance" in simulate and "peak \\|a\\| (a3 a2 a1) m/s²" in simulate
     run_dir = tmp_path / "train"
-    train = _run_to_file([sys.executable, "-m", "hybridqcm.apps.train", "experiment=exp2_physics", f"data.path={dataset}",
-                          "debug=fdr", "model.net.channels=[8,8]", "model.net.hidden=[16,8]", f"hydra.run.dir={run_dir}"],
-                         tmp_path / "train.log")
+    train = _run_to_file(
+        [
+            sys.executable,
+            "-m",
+            "hybridqcm.apps.train",
+            "experiment=exp2_physics",
+            f"data.path={dataset}",
+            "debug=fdr",
+            "model.net.channels=[8,8]",
+            "model.net.hidden=[16,8]",
+            f"hydra.run.dir={run_dir}",
+        ],
+        tmp_path / "train.log",
+    )
     for log in (simulate, train):
         assert _repeated_lines(log) == []
     assert "GPU available" in train  # Lightning's INFO lines are kept, once ...
@@ -67,9 +91,25 @@ def test_comparison_tables_keep_every_column_in_a_log_file(tmp_path):
     run_dir = tmp_path / "bad"
     write_error_distribution(error_distribution_rows(truth * 1000.0, truth, [f"p{i + 1}" for i in range(10)]), run_dir)
     manifest = tmp_path / "manifest.json"
-    manifest.write_text(json.dumps({"pipeline": "test", "dataset": "x.h5", "stages": [
-        {"name": "exp5_bad", "app": "qcm-estimate", "run_dir": str(run_dir), "table": "5.11", "setting": "s",
-         "command": "qcm-estimate ...", "seconds": 1.0}]}))
+    manifest.write_text(
+        json.dumps(
+            {
+                "pipeline": "test",
+                "dataset": "x.h5",
+                "stages": [
+                    {
+                        "name": "exp5_bad",
+                        "app": "qcm-estimate",
+                        "run_dir": str(run_dir),
+                        "table": "5.11",
+                        "setting": "s",
+                        "command": "qcm-estimate ...",
+                        "seconds": 1.0,
+                    }
+                ],
+            }
+        )
+    )
     code = f"from hybridqcm.apps.results import print_summary; print_summary({str(manifest)!r})"
     text = _run_to_file([sys.executable, "-c", code], tmp_path / "summary.log")
     rows = [line for line in text.splitlines() if re.match(r"\| p\d+ ", line)]

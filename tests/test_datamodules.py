@@ -1,4 +1,5 @@
 """Datamodules and channel selection: HDF5 (splits, window, noise, statistics, errors) and streaming (sharding)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,9 +16,19 @@ from hybridqcm.physics import RoadProfile, build_prior
 
 def make_tiny_dataset(path, n_steps: int = 512, seed: int = 0):
     """48 train samples (6 profiles x 8) and 32 test samples (4 x 8)."""
-    write_dataset(path, {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-                  build_prior("thesis", h=0.01), RoadProfile(n_waves=200), n_steps=n_steps, h=0.01, speed_mps=30 / 3.6,
-                  samples_per_profile=8, seed=seed, progress=False, compression=None)
+    write_dataset(
+        path,
+        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
+        build_prior("thesis", h=0.01),
+        RoadProfile(n_waves=200),
+        n_steps=n_steps,
+        h=0.01,
+        speed_mps=30 / 3.6,
+        samples_per_profile=8,
+        seed=seed,
+        progress=False,
+        compression=None,
+    )
     return path
 
 
@@ -28,7 +39,9 @@ def tiny(tmp_path_factory):
 
 def test_channels_select_and_pu_u():
     generator = torch.Generator().manual_seed(0)
-    arrays = simulate_samples(build_prior("thesis"), RoadProfile(n_waves=100), torch.tensor([0, 1]), 50, 0.01, 8.3, generator)
+    arrays = simulate_samples(
+        build_prior("thesis"), RoadProfile(n_waves=100), torch.tensor([0, 1]), 50, 0.01, 8.3, generator
+    )
     x = select_channels(arrays, ["a3", "v2", "q1", "pu_u", "u"])
     assert x.shape == (2, 5, 50)
     assert torch.equal(x[:, 0], arrays["accel"][..., 0]) and torch.equal(x[:, 1], arrays["vel"][..., 1])
@@ -46,10 +59,11 @@ def test_channels_select_and_pu_u():
 
 
 def test_hdf5_datamodule_splits_window_stats(tiny):
-    dm = HDF5DataModule(tiny, inputs=["a3", "a2"], targets=["p1", "p2"], aux=["v3"], window=100, val_fraction=0.34,
-                        batch_size=8, seed=3)
+    dm = HDF5DataModule(
+        tiny, inputs=["a3", "a2"], targets=["p1", "p2"], aux=["v3"], window=100, val_fraction=0.34, batch_size=8, seed=3
+    )
     dm.setup()
-    train, val, test = dm.data_train.tensors, dm.data_val.tensors, dm.data_test.tensors
+    train, val = dm.data_train.tensors, dm.data_val.tensors
     assert train["x"].shape[1:] == (2, 100) and train["aux"].dtype == torch.float32
     assert len(dm.data_train) + len(dm.data_val) == 48 and len(dm.data_test) == 32
     # Validation takes whole road profiles: no profile on both sides.
@@ -69,11 +83,11 @@ def test_hdf5_noise_fresh_for_train_fixed_for_eval(tiny):
     dm.setup()
     clean = dm.data_train.tensors["x"][:4]
     first, second = dm.data_train.__getitems__([0, 1, 2, 3])["x"], dm.data_train.__getitems__([0, 1, 2, 3])["x"]
-    assert not torch.equal(first, second)                                   # fresh noise every batch
-    ratio = (first / clean - 1)[..., 5:]                                    # a = 0 at rest
-    assert 0.05 < ratio.std() < 0.2                                         # multiplicative, sigma ~ 0.1
+    assert not torch.equal(first, second)  # fresh noise every batch
+    ratio = (first / clean - 1)[..., 5:]  # a = 0 at rest
+    assert 0.05 < ratio.std() < 0.2  # multiplicative, sigma ~ 0.1
     v1, v2 = dm.data_test.__getitems__([0, 1])["x"], dm.data_test.__getitems__([0, 1])["x"]
-    assert torch.equal(v1, v2)                                              # evaluation noise is fixed
+    assert torch.equal(v1, v2)  # evaluation noise is fixed
     assert torch.equal(apply_noise(clean, 0.0), clean)
 
 
@@ -90,12 +104,17 @@ def test_hdf5_errors_name_file_key_value(tiny, tmp_path):
     partial = tmp_path / "partial.h5"
     with DatasetWriter(partial) as writer:
         writer.create_split("train", 4, 50, keys=("accel", "road", "params"))
-        writer.write("train", 0, accel=np.ones((4, 50, 3), np.float32), road=np.zeros((4, 50), np.float32),
-                     params=np.ones((4, 10)))
+        writer.write(
+            "train",
+            0,
+            accel=np.ones((4, 50, 3), np.float32),
+            road=np.zeros((4, 50), np.float32),
+            params=np.ones((4, 10)),
+        )
     with pytest.raises(DatasetError, match=r"partial\.h5.*lacks.*'disp'.*'vel'"):
         HDF5DataModule(partial, aux=["a3", "v3", "v2", "q3", "q2"], window=50, val_fraction=0.25).setup("fit")
     dm = HDF5DataModule(partial, window=50, val_fraction=0.25)
-    dm.setup("fit")                                                          # what the task needs is there
+    dm.setup("fit")  # what the task needs is there
     with pytest.raises(DatasetError, match="split 'test' not found"):
         dm.setup("test")
 
@@ -105,15 +124,16 @@ def _stream_params(dm: StreamingDataModule, loader: DataLoader) -> torch.Tensor:
 
 
 def test_streaming_distinct_samples_per_worker_and_epoch():
-    dm = StreamingDataModule(window=20, batch_size=8, samples_per_epoch=32, val_samples=8, test_samples=8,
-                             num_workers=2, seed=5)
+    dm = StreamingDataModule(
+        window=20, batch_size=8, samples_per_epoch=32, val_samples=8, test_samples=8, num_workers=2, seed=5
+    )
     dm.setup("fit")
     loader = dm.train_dataloader()
     epoch1 = _stream_params(dm, loader)
     epoch2 = _stream_params(dm, loader)
-    assert epoch1.shape == (32, 10)                                          # 4 batches split over 2 workers
+    assert epoch1.shape == (32, 10)  # 4 batches split over 2 workers
     both = torch.cat([epoch1, epoch2])
-    assert torch.unique(both, dim=0).shape[0] == 64                          # no repeats across workers or epochs
+    assert torch.unique(both, dim=0).shape[0] == 64  # no repeats across workers or epochs
     # Without workers the per-pass counter gives fresh samples too.
     dm0 = StreamingDataModule(window=20, batch_size=8, samples_per_epoch=16, val_samples=8, num_workers=0, seed=5)
     dm0.setup("fit")
@@ -129,7 +149,7 @@ def test_streaming_ranks_shard(monkeypatch):
         monkeypatch.setattr(SimulatedStream, "_rank", staticmethod(lambda rank=rank: (rank, 2)))
         dm.data_train._passes = 0
         batches = list(dm.data_train)
-        assert len(batches) == 2                                             # half of the 4 batches per rank
+        assert len(batches) == 2  # half of the 4 batches per rank
         seen.append(torch.cat([b["params"] for b in batches]))
     assert torch.unique(torch.cat(seen), dim=0).shape[0] == 16
 

@@ -26,8 +26,10 @@ def checkpoints(tmp_path_factory):
 def files(tmp_path_factory):
     root = tmp_path_factory.mktemp("estimate_files")
     samples = synthetic_samples(8, n_steps=160, seed=4)
-    out = {"no_params": write_dataset(root / "no_params.h5", samples, with_params=False),
-           "good": write_dataset(root / "good.h5", samples)}
+    out = {
+        "no_params": write_dataset(root / "no_params.h5", samples, with_params=False),
+        "good": write_dataset(root / "good.h5", samples),
+    }
     # A file that lacks the road (another producer's partial file)
     with h5py.File(root / "no_road.h5", "w") as f:
         f.attrs["schema"] = "hybridqcm.dataset/1"
@@ -90,10 +92,20 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
 
 
 def test_exp10_hybrid_with_noise_and_denoiser(tiny_dataset, checkpoints, tmp_path):
-    proc = _run_app(tmp_path, "experiment=exp10_hybrid", f"data.path={tiny_dataset}", "n_samples=8",
-                    f"cnn_ckpt={checkpoints['cnn']}", f"unet_ckpt={checkpoints['unet']}", f"cae_ckpt={checkpoints['cae']}",
-                    "noise_sigma=0.05", "seed=3", "plots=false", "restarts.count=1",
-                    "stages=[{name:completed,channels:all,max_iterations:2},{name:a3,channels:observed,max_iterations:5}]")
+    proc = _run_app(
+        tmp_path,
+        "experiment=exp10_hybrid",
+        f"data.path={tiny_dataset}",
+        "n_samples=8",
+        f"cnn_ckpt={checkpoints['cnn']}",
+        f"unet_ckpt={checkpoints['unet']}",
+        f"cae_ckpt={checkpoints['cae']}",
+        "noise_sigma=0.05",
+        "seed=3",
+        "plots=false",
+        "restarts.count=1",
+        "stages=[{name:completed,channels:all,max_iterations:2},{name:a3,channels:observed,max_iterations:5}]",
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = _rows(tmp_path / "estimates.csv")
     with h5py.File(tiny_dataset) as f:
@@ -102,12 +114,26 @@ def test_exp10_hybrid_with_noise_and_denoiser(tiny_dataset, checkpoints, tmp_pat
         assert float(r["p3"]) == true[i, 2] and float(r["p5"]) == true[i, 4]
         assert float(r["std_p3"]) == 0.0
         assert all(np.isfinite(float(r[f"p{j}"])) for j in range(1, 11))
-    assert [r["param"] for r in _rows(tmp_path / "error_distribution.csv")] == ["p1", "p2", "p4", "p6", "p7", "p8", "p9", "p10"]
+    assert [r["param"] for r in _rows(tmp_path / "error_distribution.csv")] == [
+        "p1",
+        "p2",
+        "p4",
+        "p6",
+        "p7",
+        "p8",
+        "p9",
+        "p10",
+    ]
 
 
 def test_inference_without_params(files, tmp_path):
-    proc = _run_app(tmp_path, "experiment=exp5_random_init", f"data.path={files['no_params']}",
-                    "stages=[{name:gn,channels:all,max_iterations:3}]", "restarts.count=0")
+    proc = _run_app(
+        tmp_path,
+        "experiment=exp5_random_init",
+        f"data.path={files['no_params']}",
+        "stages=[{name:gn,channels:all,max_iterations:3}]",
+        "restarts.count=0",
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(_rows(tmp_path / "estimates.csv")) == 8
     assert not (tmp_path / "error_distribution.csv").exists()
@@ -132,8 +158,16 @@ def test_missing_and_wrong_kind_checkpoints(files, checkpoints, tmp_path):
     with pytest.raises(ConfigError, match="cnn_ckpt=.*CompletionUNet checkpoint, but cnn needs"):
         validate(_cfg(base + [f"cnn_ckpt={checkpoints['unet']}"]))
     with pytest.raises(ConfigError, match="unet_ckpt=.*DenoisingAutoencoder"):
-        validate(_cfg(["experiment=exp10_hybrid", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}",
-                       f"unet_ckpt={checkpoints['cae']}"]))
+        validate(
+            _cfg(
+                [
+                    "experiment=exp10_hybrid",
+                    f"data.path={files['good']}",
+                    f"cnn_ckpt={checkpoints['cnn']}",
+                    f"unet_ckpt={checkpoints['cae']}",
+                ]
+            )
+        )
     with pytest.raises(ConfigError, match="give cnn_ckpt=PATH"):
         validate(_cfg(base))
     proc = _run_app(tmp_path, *base, f"cnn_ckpt={tmp_path / 'missing.ckpt'}")
@@ -163,11 +197,21 @@ def test_cnn_window_longer_than_file(files, checkpoints):
     plan = validate(_cfg(["experiment=exp6_cnn_init", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}"]))
     assert plan["n_read_steps"] == 128
     with pytest.raises(DatasetError, match="n_steps = 200 steps but /test/accel stores 160"):
-        validate(_cfg(["experiment=exp6_cnn_init", f"data.path={files['good']}", f"cnn_ckpt={checkpoints['cnn']}",
-                       "n_steps=200"]))
+        validate(
+            _cfg(
+                [
+                    "experiment=exp6_cnn_init",
+                    f"data.path={files['good']}",
+                    f"cnn_ckpt={checkpoints['cnn']}",
+                    "n_steps=200",
+                ]
+            )
+        )
 
 
-@pytest.mark.parametrize("name", ["exp5_random_init", "exp6_cnn_init", "exp7_known_p3p5", "exp8_occupant_only", "exp10_hybrid"])
+@pytest.mark.parametrize(
+    "name", ["exp5_random_init", "exp6_cnn_init", "exp7_known_p3p5", "exp8_occupant_only", "exp10_hybrid"]
+)
 def test_experiments_compose(name):
     cfg = _cfg([f"experiment={name}"])
     assert cfg.task == "estimate" and cfg.experiment_name == name.split("_")[0]

@@ -1,4 +1,5 @@
 """Exact discretisation layer: Jacobian (FD, autograd), continuous-time references, closed forms."""
+
 from __future__ import annotations
 
 import math
@@ -8,13 +9,19 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from hybridqcm.estimation.exact import (HOLDS, discrete_maps, exact_outputs, exact_sensitivities, expm_taylor,
-                                        expm_with_tangents, spline_matrix)
+from hybridqcm.estimation.exact import (
+    HOLDS,
+    discrete_maps,
+    exact_outputs,
+    exact_sensitivities,
+    expm_taylor,
+    expm_with_tangents,
+    spline_matrix,
+)
 from hybridqcm.estimation.sensitivity import euler_accelerations
-from hybridqcm.testing import synthetic_samples
 from hybridqcm.physics import params_to_matrices, reference_params, road_gain, system_matrix
-from hybridqcm.physics.linear_models import (LinearModel, QuarterCarRoad, SeatBaseExcitation,
-                                             SprungBaseExcitation)
+from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
+from hybridqcm.testing import synthetic_samples
 
 H = 0.01
 F64 = torch.float64
@@ -60,11 +67,16 @@ def _reference_outputs(model, p, x0, w, h, hold, substeps, start=0, n_steps=None
     tau = h / m_sub
     b = p.shape[0]
     zeros = lambda r, c: torch.zeros(b, r, c, dtype=F64)  # noqa: E731
-    M = torch.cat([torch.cat([A * tau, B * tau, zeros(n, m)], -1),
-                   torch.cat([zeros(m, n + m), torch.eye(m, dtype=F64).expand(b, m, m)], -1),
-                   zeros(m, n + 2 * m)], -2)
+    M = torch.cat(
+        [
+            torch.cat([A * tau, B * tau, zeros(n, m)], -1),
+            torch.cat([zeros(m, n + m), torch.eye(m, dtype=F64).expand(b, m, m)], -1),
+            zeros(m, n + 2 * m),
+        ],
+        -2,
+    )
     F = torch.linalg.matrix_exp(M)
-    phi, F1, F2 = F[:, :n, :n], F[:, :n, n:n + m], F[:, :n, n + m:]
+    phi, F1, F2 = F[:, :n, :n], F[:, :n, n : n + m], F[:, :n, n + m :]
     g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
     T_in = w.shape[1]
     T = T_in - start if n_steps is None else n_steps
@@ -76,8 +88,11 @@ def _reference_outputs(model, p, x0, w, h, hold, substeps, start=0, n_steps=None
             states.append(x)
         ys.append(torch.einsum("bon,bn->bo", C, x) + torch.einsum("bom,bm->bo", E, w[:, k]))
         for j in range(m_sub if k < start + T - 1 else 0):
-            x = (torch.einsum("bij,bj->bi", phi, x) + torch.einsum("bij,bj->bi", g0, fine[:, k * m_sub + j])
-                 + torch.einsum("bij,bj->bi", g1, fine[:, k * m_sub + j + 1]))
+            x = (
+                torch.einsum("bij,bj->bi", phi, x)
+                + torch.einsum("bij,bj->bi", g0, fine[:, k * m_sub + j])
+                + torch.einsum("bij,bj->bi", g1, fine[:, k * m_sub + j + 1])
+            )
     return torch.stack(ys, 1)
 
 
@@ -96,10 +111,13 @@ def test_quarter_car_matrices_agree_with_parameters(samples):
         torch.testing.assert_close(E, expected_b[:, :3], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("model", [QuarterCarRoad(), QuarterCarRoad(True), SeatBaseExcitation(),
-                                   SprungBaseExcitation()], ids=lambda m: m.name)
+@pytest.mark.parametrize(
+    "model",
+    [QuarterCarRoad(), QuarterCarRoad(True), SeatBaseExcitation(), SprungBaseExcitation()],
+    ids=lambda m: m.name,
+)
 def test_linear_derivatives_match_jacfwd(model, samples):
-    p = samples["params"][:, :model.n_params]
+    p = samples["params"][:, : model.n_params]
     closed = model.matrix_derivatives(p)
     generic = LinearModel.matrix_derivatives.__get__(model)  # same method, forced through jacfwd below
     model.linear_in_params = False
@@ -124,7 +142,10 @@ def test_euler_convention_rows_match_euler_layer(samples):
 # ----------------------------------------------------------------------------- matrix exponential
 def test_expm_taylor_and_tangents_against_torch():
     g = torch.Generator().manual_seed(1)
-    M = torch.randn(5, 8, 8, generator=g, dtype=F64) * torch.tensor([0.1, 1.0, 6.0, 30.0, 0.0], dtype=F64)[:, None, None]
+    M = (
+        torch.randn(5, 8, 8, generator=g, dtype=F64)
+        * torch.tensor([0.1, 1.0, 6.0, 30.0, 0.0], dtype=F64)[:, None, None]
+    )
     dM = torch.randn(5, 3, 8, 8, generator=g, dtype=F64)
     ref = torch.linalg.matrix_exp(M)
     torch.testing.assert_close(expm_taylor(M), ref, rtol=1e-12, atol=1e-13 * ref.abs().amax())
@@ -157,8 +178,9 @@ def test_jacobian_matches_autograd_through_matrix_exp(samples, case, hold):
     torch.testing.assert_close(out[..., 0], ref, rtol=1e-10, atol=1e-10 * ref.abs().amax())
     jac_p = torch.func.jacrev(lambda q: _reference_outputs(model, q, x0, w, H, hold, 3))(p)
     jac_x = torch.func.jacrev(lambda x: _reference_outputs(model, p, x, w, H, hold, 3))(x0)
-    reference = torch.cat([torch.stack([jac_p[i, :, :, i] for i in range(2)]),
-                           torch.stack([jac_x[i, :, :, i] for i in range(2)])], -1)
+    reference = torch.cat(
+        [torch.stack([jac_p[i, :, :, i] for i in range(2)]), torch.stack([jac_x[i, :, :, i] for i in range(2)])], -1
+    )
     scale = reference.abs().amax((0, 1, 2))
     err = (out[..., 1:] - reference).abs().amax((0, 1, 2))
     assert (err <= 1e-9 * scale + 1e-14).all(), f"relative errors {(err / scale).tolist()}"
@@ -174,8 +196,9 @@ def test_jacobian_matches_finite_differences(samples, hold):
         plus, minus = p.clone(), p.clone()
         plus[:, j] += step
         minus[:, j] -= step
-        fd = (exact_outputs(model, plus, x0, w, H, hold) - exact_outputs(model, minus, x0, w, H, hold)) / (
-            2 * step)[:, None, None]
+        fd = (exact_outputs(model, plus, x0, w, H, hold) - exact_outputs(model, minus, x0, w, H, hold)) / (2 * step)[
+            :, None, None
+        ]
         assert (out[..., 1 + j] - fd).abs().amax() <= 1e-6 * fd.abs().amax(), f"p{j + 1}"
     for i in range(6):
         plus, minus = x0.clone(), x0.clone()
@@ -195,8 +218,9 @@ def _continuous_quarter_car(p: torch.Tensor, t: np.ndarray) -> np.ndarray:
     gain = float(road_gain(p))
     b = np.zeros(6)
     b[2] = gain
-    sol = solve_ivp(lambda s, x: A @ x + b * road(s), (t[0], t[-1]), np.zeros(6), method="DOP853",
-                    t_eval=t, rtol=1e-12, atol=1e-15)
+    sol = solve_ivp(
+        lambda s, x: A @ x + b * road(s), (t[0], t[-1]), np.zeros(6), method="DOP853", t_eval=t, rtol=1e-12, atol=1e-15
+    )
     x = sol.y.T
     return x @ A[:3].T + np.outer(road(t), b[:3])
 
@@ -205,7 +229,7 @@ def test_holds_converge_to_the_continuous_solution():
     p = torch.stack([reference_params(), synthetic_samples(1, n_steps=2, seed=7)["params"][0]])
     T = 100
     t = np.arange(T) * H
-    reference = torch.tensor(np.stack([_continuous_quarter_car(p[i:i + 1][0], t) for i in range(2)]))
+    reference = torch.tensor(np.stack([_continuous_quarter_car(p[i : i + 1][0], t) for i in range(2)]))
     w = road(torch.tensor(t))[None, :, None].expand(2, T, 1)
     model = QuarterCarRoad()
 
@@ -245,12 +269,12 @@ def test_foh_is_exact_for_piecewise_linear_input():
     A, B, C, E = model.matrices(p)
     x, expected = x0.clone(), []
     for k in range(T):
-        expected.append(torch.einsum("bon,bn->bo", C, x) + E[:, :, 0] * knots[:, k:k + 1])
+        expected.append(torch.einsum("bon,bn->bo", C, x) + E[:, :, 0] * knots[:, k : k + 1])
         if k == T - 1:
             break
         rate = (knots[:, k + 1] - knots[:, k]) / H
         beta = -torch.linalg.solve(A, B[..., 0] * rate[:, None])
-        alpha = torch.linalg.solve(A, beta - B[..., 0] * knots[:, k:k + 1])
+        alpha = torch.linalg.solve(A, beta - B[..., 0] * knots[:, k : k + 1])
         x = torch.einsum("bij,bj->bi", torch.linalg.matrix_exp(A * H), x - alpha) + alpha + beta * H
     expected = torch.stack(expected, 1)
     y = exact_outputs(model, p, x0, knots[..., None], H, "foh")
@@ -322,21 +346,27 @@ def test_window_is_the_full_run_restarted_from_its_state(samples, hold):
     window = exact_outputs(model, p, states[start], w, H, hold, 4, start=start, n_steps=n_steps)
     assert window.shape == (3, n_steps, 3)
     scale = full.abs().amax()
-    torch.testing.assert_close(window, full[:, start:start + n_steps], rtol=0, atol=1e-11 * scale)
+    torch.testing.assert_close(window, full[:, start : start + n_steps], rtol=0, atol=1e-11 * scale)
     sens = exact_sensitivities(model, p, states[start], w, H, hold, 4, start=start, n_steps=n_steps)
     torch.testing.assert_close(sens[..., 0], window, rtol=0, atol=1e-12 * scale)
     x_s = states[start]
     jac_p = torch.func.jacrev(lambda q: _reference_outputs(model, q, x_s, w, H, hold, 4, start, n_steps))(p)
     jac_x = torch.func.jacrev(lambda x: _reference_outputs(model, p, x, w, H, hold, 4, start, n_steps))(x_s)
-    reference = torch.cat([torch.stack([jac_p[i, :, :, i] for i in range(3)]),
-                           torch.stack([jac_x[i, :, :, i] for i in range(3)])], -1)
+    reference = torch.cat(
+        [torch.stack([jac_p[i, :, :, i] for i in range(3)]), torch.stack([jac_x[i, :, :, i] for i in range(3)])], -1
+    )
     err = (sens[..., 1:] - reference).abs().amax((0, 1, 2))
     assert (err <= 1e-9 * reference.abs().amax((0, 1, 2)) + 1e-14).all()
     # numpy integers are accepted; the default window is everything from start on
-    torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=np.int64(start),
-                                             n_steps=np.int64(n_steps)), window, rtol=0, atol=0)
-    torch.testing.assert_close(exact_outputs(model, p, states[start], w, H, hold, 4, start=start),
-                               full[:, start:], rtol=0, atol=1e-11 * scale)
+    torch.testing.assert_close(
+        exact_outputs(model, p, states[start], w, H, hold, 4, start=np.int64(start), n_steps=np.int64(n_steps)),
+        window,
+        rtol=0,
+        atol=0,
+    )
+    torch.testing.assert_close(
+        exact_outputs(model, p, states[start], w, H, hold, 4, start=start), full[:, start:], rtol=0, atol=1e-11 * scale
+    )
 
 
 def test_margins_remove_the_edge_error_against_continuous_time():
@@ -351,15 +381,16 @@ def test_margins_remove_the_edge_error_against_continuous_time():
     road = RoadProfile(n_waves=200)
     amplitude, phase = road.draw(torch.randint(0, 3, (4,), generator=g), g)
     margin, T = 20, 100
-    out = simulate_continuous(params, amplitude, phase, road.omega * (30 / 3.6), T + 2 * margin, H,
-                              torch.full((4,), 3.0))
+    out = simulate_continuous(
+        params, amplitude, phase, road.omega * (30 / 3.6), T + 2 * margin, H, torch.full((4,), 3.0)
+    )
     x_start = torch.cat([out.vel[:, margin], out.disp[:, margin]], -1)  # (v3 v2 v1 q3 q2 q1) at the window start
-    truth = out.accel[:, margin:margin + T]
+    truth = out.accel[:, margin : margin + T]
     u = out.road[..., None]
     model = QuarterCarRoad()
     worst = {}
     for degree in (3, 5):
-        bare = exact_outputs(model, params, x_start, u[:, margin:margin + T], H, substeps=16, spline_degree=degree)
+        bare = exact_outputs(model, params, x_start, u[:, margin : margin + T], H, substeps=16, spline_degree=degree)
         wide = exact_outputs(model, params, x_start, u, H, substeps=16, start=margin, n_steps=T, spline_degree=degree)
         scale = truth.abs().amax(1, keepdim=True)  # per sample and channel
         bare_err = ((bare - truth).abs() / scale).amax((0, 2))  # worst relative error per step [T]
@@ -378,7 +409,7 @@ def test_seat_transmissibility_closed_form():
     p = torch.tensor([[7.7, 1237.0], [12.0, 800.0]], dtype=F64)
     omega = 2 * math.pi * torch.tensor([1.5, 4.0], dtype=F64)
     p1, p2 = p.unbind(-1)
-    denominator = -omega**2 + 1j * p1 * omega + p2
+    denominator = -(omega**2) + 1j * p1 * omega + p2
     Z = -1 / denominator  # steady-state phasor of z for a2 = sin(omega t) = Im(e^{i omega t})
     H_closed = (1j * p1 * omega + p2) / denominator
     x0 = torch.stack([(1j * omega * Z).imag, Z.imag], -1)  # start on the steady state: no transient
@@ -405,10 +436,25 @@ def test_sprung_model_reproduces_quarter_car_simulation():
 def test_bad_input_raises_one_line_errors(samples):
     model, p, w = _model_case("quarter", samples)
     bad = [
-        dict(params=p[:, :9]), dict(inputs=w[:2]), dict(inputs=w[..., 0, None, None]), dict(x0=torch.zeros(3, 5)),
-        dict(h=0.0), dict(h=-0.01), dict(h=float("nan")), dict(hold="cubic"), dict(substeps=0), dict(substeps=1.5),
-        dict(inputs=torch.zeros(3, 0, 1)), dict(start=-1), dict(start=40), dict(n_steps=0), dict(n_steps=41),
-        dict(start=30, n_steps=11), dict(start=1.0), dict(spline_degree=4), dict(spline_degree=7),
+        dict(params=p[:, :9]),
+        dict(inputs=w[:2]),
+        dict(inputs=w[..., 0, None, None]),
+        dict(x0=torch.zeros(3, 5)),
+        dict(h=0.0),
+        dict(h=-0.01),
+        dict(h=float("nan")),
+        dict(hold="cubic"),
+        dict(substeps=0),
+        dict(substeps=1.5),
+        dict(inputs=torch.zeros(3, 0, 1)),
+        dict(start=-1),
+        dict(start=40),
+        dict(n_steps=0),
+        dict(n_steps=41),
+        dict(start=30, n_steps=11),
+        dict(start=1.0),
+        dict(spline_degree=4),
+        dict(spline_degree=7),
     ]
     for fn in (exact_outputs, exact_sensitivities):
         for override in bad:
@@ -435,11 +481,12 @@ def test_long_recording_uses_only_the_samples_near_the_window():
     (beyond the spline's reach the weights are below round-off), and costs no [T_in, T_in] matrix."""
     T_in, start, n_steps = 20000, 12345, 50
     u = road(torch.arange(T_in, dtype=F64) * H)[None, :, None] + 1e-3 * torch.randn(
-        1, T_in, 1, generator=torch.Generator().manual_seed(9), dtype=F64)
+        1, T_in, 1, generator=torch.Generator().manual_seed(9), dtype=F64
+    )
     p = reference_params()[None]
     x0 = _x0(1, 6, seed=1)
     long = exact_outputs(QuarterCarRoad(), p, x0, u, H, start=start, n_steps=n_steps)
-    cut = exact_outputs(QuarterCarRoad(), p, x0, u[:, start - 70:start + n_steps + 70], H, start=70, n_steps=n_steps)
+    cut = exact_outputs(QuarterCarRoad(), p, x0, u[:, start - 70 : start + n_steps + 70], H, start=70, n_steps=n_steps)
     torch.testing.assert_close(long, cut, rtol=0, atol=1e-14 * cut.abs().amax())
     assert long.shape == (1, n_steps, 3)
 

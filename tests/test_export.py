@@ -1,4 +1,5 @@
 """qcm-export: TorchScript and ONNX exports reproduce the checkpoints' own inference; contract; CLI errors."""
+
 from __future__ import annotations
 
 import json
@@ -26,9 +27,14 @@ def checkpoints(data, trained):
     return {name: run / "checkpoints" / "last.ckpt" for name, run in runs.items()}
 
 
-@pytest.mark.parametrize("experiment, model_class, n_out", [
-    ("exp2_physics", "PhysicsResidualEstimator", 2), ("exp4_denoiser", "DenoisingAutoencoder", 2),
-    ("exp9_unet", "CompletionUNet", 2)])
+@pytest.mark.parametrize(
+    "experiment, model_class, n_out",
+    [
+        ("exp2_physics", "PhysicsResidualEstimator", 2),
+        ("exp4_denoiser", "DenoisingAutoencoder", 2),
+        ("exp9_unet", "CompletionUNet", 2),
+    ],
+)
 def test_exports_match_checkpoint_on_held_out_recordings(checkpoints, data, tmp_path, experiment, model_class, n_out):
     sidecar = export(str(checkpoints[experiment]), tmp_path, "net", data=str(data["tiny"]), split="test", n_check=32)
     assert sidecar["model_class"] == model_class
@@ -86,35 +92,59 @@ def test_contract_names_units_and_window(checkpoints):
 
 
 def test_cli_synthetic_signals_and_time_steps(checkpoints, tmp_path):
-    command = [sys.executable, "-m", "hybridqcm.apps.export", str(checkpoints["exp4_denoiser"]), "--out", str(tmp_path),
-               "--format", "torchscript", "--time-steps", "300", "--n-check", "8"]
+    command = [
+        sys.executable,
+        "-m",
+        "hybridqcm.apps.export",
+        str(checkpoints["exp4_denoiser"]),
+        "--out",
+        str(tmp_path),
+        "--format",
+        "torchscript",
+        "--time-steps",
+        "300",
+        "--n-check",
+        "8",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     sidecar = json.loads((tmp_path / "last.json").read_text())
-    assert sidecar["time_steps"] == 300 and sidecar["parity"]["torchscript"] <= 1e-5 and "synthetic" in sidecar["parity_inputs"]
+    assert (
+        sidecar["time_steps"] == 300
+        and sidecar["parity"]["torchscript"] <= 1e-5
+        and "synthetic" in sidecar["parity_inputs"]
+    )
     assert not (tmp_path / "last.onnx").exists()
     scripted = torch.jit.load(str(tmp_path / "last.pt"))
     assert scripted(torch.randn(3, 2, 300)).shape == (3, 2, 300)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["/nonexistent/x.ckpt"], "does not exist"),
-    (["{bad}"], "not a readable torch checkpoint"),
-    (["{ckpt}", "--time-steps", "100"], "reads exactly window"),
-    (["{ckpt}", "--data", "/nonexistent.h5"], "nonexistent.h5"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["/nonexistent/x.ckpt"], "does not exist"),
+        (["{bad}"], "not a readable torch checkpoint"),
+        (["{ckpt}", "--time-steps", "100"], "reads exactly window"),
+        (["{ckpt}", "--data", "/nonexistent.h5"], "nonexistent.h5"),
+    ],
+)
 def test_cli_bad_input_is_one_line_exit_2(checkpoints, tmp_path, args, message):
     bad = tmp_path / "bad.ckpt"
     bad.write_text("not a checkpoint")
     args = [a.format(bad=bad, ckpt=checkpoints["exp2_physics"]) for a in args]
-    result = subprocess.run([sys.executable, "-m", "hybridqcm.apps.export", *args, "--out", str(tmp_path)],
-                            capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [sys.executable, "-m", "hybridqcm.apps.export", *args, "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 2, result.stderr[-2000:]
     assert message in result.stderr and "Traceback" not in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
 def test_help_documents_contract():
-    result = subprocess.run([sys.executable, "-m", "hybridqcm.apps.export", "--help"], capture_output=True, text=True,
-                            timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "hybridqcm.apps.export", "--help"], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0 and "[batch, channels, time]" in result.stdout and "--time-steps" in result.stdout

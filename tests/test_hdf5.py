@@ -1,4 +1,5 @@
 """The HDF5 dataset format (SPEC §5): round trip, other producers' files, atomic writing, bad input."""
+
 from __future__ import annotations
 
 import os
@@ -7,10 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
+from conftest import write_tiny_dataset
 from hybridqcm.data import simulate as simulate_module
 from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, DatasetError, DatasetWriter, dataset_info, read_split, recorded_channels
-
-from conftest import write_tiny_dataset
 
 ALL_KEYS = tuple(LAYOUT)
 
@@ -42,11 +42,12 @@ def write_plain(path, splits: dict[str, dict[str, np.ndarray]], attrs: dict | No
 def test_write_read_round_trip_is_exact(tmp_path):
     path = tmp_path / "rt.h5"
     train, test = random_split(37, 20, 1), random_split(11, 20, 2)
-    with DatasetWriter(path, attrs={"h": 0.01, "n_steps": 20, "prior": "thesis", "seed": 3, "extra": {"a": [1, 2]}},
-                       chunk_samples=8) as writer:
+    with DatasetWriter(
+        path, attrs={"h": 0.01, "n_steps": 20, "prior": "thesis", "seed": 3, "extra": {"a": [1, 2]}}, chunk_samples=8
+    ) as writer:
         for split, arrays in (("train", train), ("test", test)):
             writer.create_split(split, arrays["params"].shape[0], 20)
-            writer.write(split, 0, **{k: v[:10] for k, v in arrays.items()})      # written in two pieces
+            writer.write(split, 0, **{k: v[:10] for k, v in arrays.items()})  # written in two pieces
             writer.write(split, 10, **{k: v[10:] for k, v in arrays.items()})
     for split, arrays in (("train", train), ("test", test)):
         back = read_split(path, split, ALL_KEYS)
@@ -87,9 +88,12 @@ def test_reads_a_file_from_another_producer(tmp_path):
     """Plain h5py, SPEC §5 layout with only accel/road/params (and one without params, no attributes)."""
     full = random_split(6, 40, 5)
     path = tmp_path / "other.h5"
-    write_plain(path, {"test": {k: full[k] for k in ("accel", "road", "params")}},
-                attrs={"schema": SCHEMA, "h": 0.01, "n_steps": 40, "mass_range": np.array([30.0, 150.0])})
-    out = read_split(path, "test")      # default keys: accel, road, params
+    write_plain(
+        path,
+        {"test": {k: full[k] for k in ("accel", "road", "params")}},
+        attrs={"schema": SCHEMA, "h": 0.01, "n_steps": 40, "mass_range": np.array([30.0, 150.0])},
+    )
+    out = read_split(path, "test")  # default keys: accel, road, params
     for key in ("accel", "road", "params"):
         np.testing.assert_array_equal(out[key], full[key])
     assert out["h"] == 0.01
@@ -97,7 +101,7 @@ def test_reads_a_file_from_another_producer(tmp_path):
     assert info["splits"]["test"]["keys"] == ["accel", "params", "road"]
     assert info["attrs"]["mass_range"] == [30.0, 150.0]
 
-    bare = tmp_path / "bare.h5"   # inference only: no params, no attributes at all, float64 arrays
+    bare = tmp_path / "bare.h5"  # inference only: no params, no attributes at all, float64 arrays
     write_plain(bare, {"field": {"accel": full["accel"].astype(np.float64), "road": full["road"].astype(np.float64)}})
     out = read_split(bare, "field", ("accel", "road"), n_steps=32)
     np.testing.assert_array_equal(out["accel"], full["accel"][:, :32].astype(np.float64))
@@ -127,15 +131,16 @@ def test_tiny_dataset_fixture_content(tiny_dataset):
         data = read_split(tiny_dataset, split, ALL_KEYS)
         assert data["accel"].shape == (info["splits"][split]["n_samples"], 512, 3)
         assert dict(zip(*np.unique(data["road_class"], return_counts=True))) == counts
-        for pid in np.unique(data["profile_id"]):   # samples of one profile share road and class
+        for pid in np.unique(data["profile_id"]):  # samples of one profile share road and class
             rows = data["profile_id"] == pid
             assert rows.sum() == 8
             assert (data["road"][rows] == data["road"][rows][0]).all()
             assert len(np.unique(data["road_class"][rows])) == 1
-            assert len(np.unique(data["params"][rows][:, 1])) == 8   # 8 different draws
+            assert len(np.unique(data["params"][rows][:, 1])) == 8  # 8 different draws
 
 
 # --------------------------------------------------------------------------- atomic writing
+
 
 def test_exception_mid_write_leaves_no_file(tmp_path):
     path = tmp_path / "x.h5"
@@ -209,6 +214,7 @@ def test_writer_rejects_bad_arrays(tmp_path):
 
 # --------------------------------------------------------------------------- bad input
 
+
 @pytest.fixture
 def good_file(tmp_path):
     path = tmp_path / "good.h5"
@@ -268,17 +274,20 @@ def test_non_finite_values(tmp_path, bad):
     write_plain(path, {"test": arrays})
     with pytest.raises(DatasetError, match=r"/test/accel contains non-finite values \(first at index \(1, 5, 2\)"):
         read_split(path, "test", ("accel", "road"))
-    assert read_split(path, "test", ("road",))["road"].shape == (3, 8)   # other keys still readable
+    assert read_split(path, "test", ("road",))["road"].shape == (3, 8)  # other keys still readable
     assert not np.isfinite(read_split(path, "test", ("accel",), check_finite=False)["accel"]).all()
 
 
-@pytest.mark.parametrize("key,shape,pattern", [
-    ("accel", (4, 16, 2), r"/test/accel has shape \(4, 16, 2\)"),
-    ("accel", (4, 16), r"/test/accel has shape \(4, 16\)"),
-    ("road", (4, 16, 3), r"/test/road has shape \(4, 16, 3\)"),
-    ("params", (4, 9), r"/test/params has shape \(4, 9\)"),
-    ("params", (5, 10), r"/test/params has 5 samples, other keys have 4"),
-])
+@pytest.mark.parametrize(
+    "key,shape,pattern",
+    [
+        ("accel", (4, 16, 2), r"/test/accel has shape \(4, 16, 2\)"),
+        ("accel", (4, 16), r"/test/accel has shape \(4, 16\)"),
+        ("road", (4, 16, 3), r"/test/road has shape \(4, 16, 3\)"),
+        ("params", (4, 9), r"/test/params has shape \(4, 9\)"),
+        ("params", (5, 10), r"/test/params has 5 samples, other keys have 4"),
+    ],
+)
 def test_wrong_shape(tmp_path, key, shape, pattern):
     arrays = {k: v for k, v in random_split(4, 16).items() if k in ("accel", "road", "params")}
     arrays[key] = np.zeros(shape, dtype=arrays[key].dtype)
@@ -299,8 +308,16 @@ def test_split_that_is_not_a_group(tmp_path):
 def test_schema_1_files_still_read_and_say_euler_from_rest(tmp_path):
     path = tmp_path / "v1.h5"
     split = random_split(3, 8)
-    write_plain(path, {"test": split}, attrs={"schema": "hybridqcm.dataset/1", "h": 0.01, "integrator": "semi_explicit_euler",
-                                              "created_by": "hybridqcm 0.1 qcm-simulate (me@here)"})
+    write_plain(
+        path,
+        {"test": split},
+        attrs={
+            "schema": "hybridqcm.dataset/1",
+            "h": 0.01,
+            "integrator": "semi_explicit_euler",
+            "created_by": "hybridqcm 0.1 qcm-simulate (me@here)",
+        },
+    )
     np.testing.assert_array_equal(read_split(path, "test", ("accel",))["accel"], split["accel"])
     info = dataset_info(path)
     assert (info["physics"], info["initial_state"]) == ("euler", "rest")
@@ -309,16 +326,18 @@ def test_schema_1_files_still_read_and_say_euler_from_rest(tmp_path):
 def test_a_logger_file_is_continuous_with_unknown_initial_state(tmp_path):
     path = tmp_path / "logger.h5"
     accel = random_split(4, 16)["accel"]
-    accel[..., 2] = np.nan                                              # no wheel accelerometer
+    accel[..., 2] = np.nan  # no wheel accelerometer
     write_plain(path, {"drive": {"accel": accel}}, attrs={"h": 0.002})  # no road, no params, no physics
     info = dataset_info(path)
     assert (info["physics"], info["initial_state"]) == ("continuous", "unknown")
     out = read_split(path, "drive", ("accel",))
     assert out["h"] == 0.002 and np.isnan(out["accel"][..., 2]).all()
     assert recorded_channels(path, "drive") == ["a3", "a2"]
-    accel[1, 3, 0] = np.nan                                             # a gap in a recorded channel is still an error
+    accel[1, 3, 0] = np.nan  # a gap in a recorded channel is still an error
     write_plain(tmp_path / "gap.h5", {"drive": {"accel": accel}})
-    with pytest.raises(DatasetError, match=r"gap.h5: /drive/accel contains non-finite values \(first at index \(1, 3, 0\)"):
+    with pytest.raises(
+        DatasetError, match=r"gap.h5: /drive/accel contains non-finite values \(first at index \(1, 3, 0\)"
+    ):
         read_split(tmp_path / "gap.h5", "drive", ("accel",))
 
 
@@ -348,4 +367,6 @@ def test_schema_2_attributes_and_state0(tmp_path):
     assert info["attrs"]["warmup_s"] == [1.0, 4.0] and info["attrs"]["integrator"] == "exact"
     out = read_split(path, "test", ("state0", "vel", "disp"))
     assert out["state0"].dtype == np.float64 and out["state0"].shape[1] == 6
-    np.testing.assert_allclose(out["state0"], np.concatenate([out["vel"][:, 0], out["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(
+        out["state0"], np.concatenate([out["vel"][:, 0], out["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9
+    )

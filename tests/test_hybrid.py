@@ -4,8 +4,14 @@ import lightning
 import pytest
 import torch
 
-from hybridqcm.estimation.hybrid import (CheckpointKindError, GaussNewtonRefinement, GaussNewtonStage, HybridEstimator,
-                                         equation_error_params, load_network)
+from hybridqcm.estimation.hybrid import (
+    CheckpointKindError,
+    GaussNewtonRefinement,
+    GaussNewtonStage,
+    HybridEstimator,
+    equation_error_params,
+    load_network,
+)
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
 
@@ -27,20 +33,33 @@ def batch():
     g = torch.Generator().manual_seed(0)
     init = reference_params().expand(12, 10) * (1 + 0.1 * torch.randn(12, 10, generator=g, dtype=torch.float64))
     init[:, [2, 4]] = s["params"][:, [2, 4]]
-    return {"accel": s["accel"], "road": s["road"], "pu": s["params"][:, 9] - s["params"][:, 8], "init": init,
-            "index": torch.arange(12), "params": s["params"]}
+    return {
+        "accel": s["accel"],
+        "road": s["road"],
+        "pu": s["params"][:, 9] - s["params"][:, 8],
+        "init": init,
+        "index": torch.arange(12),
+        "params": s["params"],
+    }
 
 
 def _loader(batch, size=6):
     keys = ("accel", "road", "pu", "init", "index")
-    chunks = [{k: batch[k][i:i + size] for k in keys} for i in range(0, batch["accel"].shape[0], size)]
+    chunks = [{k: batch[k][i : i + size] for k in keys} for i in range(0, batch["accel"].shape[0], size)]
     return torch.utils.data.DataLoader(chunks, batch_size=None)
 
 
 def _trainer(callback):
-    return lightning.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
-                             enable_progress_bar=False, enable_model_summary=False, callbacks=[callback],
-                             inference_mode=False)
+    return lightning.Trainer(
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[callback],
+        inference_mode=False,
+    )
 
 
 def test_equation_error_exact_on_clean_full_observation(batch):
@@ -54,14 +73,24 @@ def test_equation_error_exact_on_clean_full_observation(batch):
 
 
 def test_hybrid_end_to_end_with_tiny_checkpoints(checkpoints, batch, tmp_path):
-    module = HybridEstimator(cnn_ckpt=str(checkpoints["cnn"]), unet_ckpt=str(checkpoints["unet"]),
-                             cae_ckpt=str(checkpoints["cae"]), observed=["a3"], n_steps=100, h=H,
-                             equation_error_init=True, known=["p3", "p5"], pu_known=True)
+    module = HybridEstimator(
+        cnn_ckpt=str(checkpoints["cnn"]),
+        unet_ckpt=str(checkpoints["unet"]),
+        cae_ckpt=str(checkpoints["cae"]),
+        observed=["a3"],
+        n_steps=100,
+        h=H,
+        equation_error_init=True,
+        known=["p3", "p5"],
+        pu_known=True,
+    )
     assert module.completes and module.required_steps() == 128
     known = torch.zeros(10, dtype=torch.bool)
     known[[2, 4]] = True
-    stages = [GaussNewtonStage("completed", GaussNewton(SolverConfig(max_iterations=3)), "all"),
-              GaussNewtonStage("observed", GaussNewton(SolverConfig(max_iterations=8)), "observed", n_steps=60)]
+    stages = [
+        GaussNewtonStage("completed", GaussNewton(SolverConfig(max_iterations=3)), "all"),
+        GaussNewtonStage("observed", GaussNewton(SolverConfig(max_iterations=8)), "observed", n_steps=60),
+    ]
     callback = GaussNewtonRefinement(stages, known=known, pu_known=True, h=H, log_dir=tmp_path / "tb", restarts=1)
     _trainer(callback).predict(module, dataloaders=_loader(batch), return_predictions=False)
     out = callback.collect()
@@ -80,12 +109,21 @@ def test_hybrid_end_to_end_with_tiny_checkpoints(checkpoints, batch, tmp_path):
 def test_hybrid_completion_then_a3_recovers_truth(checkpoints, batch):
     """Without the CAE the measured a3 is left as it is, and GN on it recovers the truth (noise-free)
     even from the tiny U-Net's poor completion: the completion only shapes the start."""
-    module = HybridEstimator(unet_ckpt=str(checkpoints["unet"]), observed=["a3"], n_steps=100, h=H, cnn_init=False,
-                             known=["p3", "p5"], pu_known=True)
+    module = HybridEstimator(
+        unet_ckpt=str(checkpoints["unet"]),
+        observed=["a3"],
+        n_steps=100,
+        h=H,
+        cnn_init=False,
+        known=["p3", "p5"],
+        pu_known=True,
+    )
     known = torch.zeros(10, dtype=torch.bool)
     known[[2, 4]] = True
-    stages = [GaussNewtonStage(f"w{n}", GaussNewton(SolverConfig(max_iterations=10)), "observed", n_steps=n)
-              for n in (15, 30, 60)]
+    stages = [
+        GaussNewtonStage(f"w{n}", GaussNewton(SolverConfig(max_iterations=10)), "observed", n_steps=n)
+        for n in (15, 30, 60)
+    ]
     stages.append(GaussNewtonStage("observed", GaussNewton(SolverConfig(max_iterations=30)), "observed"))
     callback = GaussNewtonRefinement(stages, known=known, pu_known=True, h=H, restarts=3)
     # p1, p2 start where a decent CNN would put them (±8 %): the tiny test CNN is not one
@@ -101,7 +139,9 @@ def test_hybrid_completion_then_a3_recovers_truth(checkpoints, batch):
 def test_callback_runs_in_test_loop_and_cnn_initialises(checkpoints, batch):
     module = HybridEstimator(cnn_ckpt=str(checkpoints["cnn"]), observed=["a3", "a2", "a1"], n_steps=100, h=H)
     prepared = module.prepare({k: batch[k] for k in ("accel", "road", "pu", "init", "index")})
-    expected = load_network(checkpoints["cnn"], "cnn").estimate(batch["accel"][:, :, 0].float(), batch["accel"][:, :, 1].float())
+    expected = load_network(checkpoints["cnn"], "cnn").estimate(
+        batch["accel"][:, :, 0].float(), batch["accel"][:, :, 1].float()
+    )
     torch.testing.assert_close(prepared["init"][:, :2], expected.double())
     torch.testing.assert_close(prepared["init"][:, 2:], batch["init"][:, 2:])
     assert prepared["targets"].shape == (12, 100, 3)
@@ -125,8 +165,9 @@ def test_cnn_needs_a2(checkpoints):
     module = HybridEstimator(cnn_ckpt=str(checkpoints["cnn"]), observed=["a3"], n_steps=100)
     s = synthetic_samples(2, n_steps=160, seed=1)
     with pytest.raises(ValueError, match="reads a2"):
-        module.prepare({"accel": s["accel"], "road": s["road"], "pu": torch.ones(2), "init": s["params"],
-                        "index": torch.arange(2)})
+        module.prepare(
+            {"accel": s["accel"], "road": s["road"], "pu": torch.ones(2), "init": s["params"], "index": torch.arange(2)}
+        )
 
 
 def test_guarded_stage_never_worsens_the_measured_fit(batch):
@@ -138,8 +179,13 @@ def test_guarded_stage_never_worsens_the_measured_fit(batch):
     targets = batch["accel"][:, :100].clone()
     g = torch.Generator().manual_seed(3)
     targets[:, :, 1:] *= 1 + torch.randn(targets[:, :, 1:].shape, generator=g, dtype=torch.float64)  # 100 % error
-    outputs = {"targets": targets, "road": batch["road"][:, :100], "pu": batch["pu"], "index": torch.arange(12),
-               "init": batch["init"]}
+    outputs = {
+        "targets": targets,
+        "road": batch["road"][:, :100],
+        "pu": batch["pu"],
+        "index": torch.arange(12),
+        "init": batch["init"],
+    }
     stage = GaussNewtonStage("completed", GaussNewton(SolverConfig(max_iterations=5)), "all", guard=True)
     callback = GaussNewtonRefinement([stage], known=known, pu_known=True, h=H, observed=["a3"])
     params = callback.refine(outputs)["params"]

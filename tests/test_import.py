@@ -1,5 +1,6 @@
 """qcm-import: CSV recordings into the dataset layout, checked against the numbers the test wrote
 (read back with h5py directly, not with the importer), and every bad input's one-line error."""
+
 from __future__ import annotations
 
 import os
@@ -34,8 +35,14 @@ def signals(n: int, seed: int = 0) -> np.ndarray:
 def qcm_import(tmp_path: Path, *overrides: str) -> subprocess.CompletedProcess:
     script = Path(sys.executable).parent / "qcm-import"
     command = [str(script)] if script.exists() else [sys.executable, "-m", "hybridqcm.apps.importer"]
-    return subprocess.run(command + [f"hydra.run.dir={tmp_path / 'run'}", *overrides], capture_output=True, text=True,
-                          timeout=120, env=ENV, cwd=tmp_path)
+    return subprocess.run(
+        command + [f"hydra.run.dir={tmp_path / 'run'}", *overrides],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=ENV,
+        cwd=tmp_path,
+    )
 
 
 @pytest.mark.parametrize("units, factor", [("g", G), ("m/s2", 1.0)])
@@ -56,7 +63,7 @@ def test_round_trip_in_g_and_si_with_rate_detected(tmp_path, units, factor):
     assert accel.dtype == np.float32 and accel.shape == (1, n, 3)
     for c, expected in enumerate((a3, a2, a1)):
         np.testing.assert_allclose(accel[0, :, c], expected * factor, rtol=2e-7, atol=1e-7)
-    np.testing.assert_allclose(stored_road[0], road, rtol=2e-7, atol=1e-9)   # metres, never scaled by units
+    np.testing.assert_allclose(stored_road[0], road, rtol=2e-7, atol=1e-9)  # metres, never scaled by units
 
 
 def test_per_column_unit_override_and_unrecorded_channels_are_nan(tmp_path):
@@ -78,10 +85,12 @@ def test_per_column_unit_override_and_unrecorded_channels_are_nan(tmp_path):
 def test_rate_tolerance_separates_clock_jitter_from_a_non_constant_rate(tmp_path):
     n, h = 200, 0.005
     jitter = np.zeros(n)
-    jitter[50] = 4e-4 * h    # both neighbouring steps off by 4e-4 h: inside the default 1e-3
+    jitter[50] = 4e-4 * h  # both neighbouring steps off by 4e-4 h: inside the default 1e-3
     t = np.arange(n) * h + jitter
     a3 = signals(n)[0]
-    assert read_recordings(write_csv(tmp_path / "ok.csv", ["t", "a3"], [t, a3], fmt="%.12g"), units="g").h == pytest.approx(h, rel=1e-9)
+    assert read_recordings(
+        write_csv(tmp_path / "ok.csv", ["t", "a3"], [t, a3], fmt="%.12g"), units="g"
+    ).h == pytest.approx(h, rel=1e-9)
     jitter[50] = 3e-3 * h
     bad = write_csv(tmp_path / "bad.csv", ["t", "a3"], [np.arange(n) * h + jitter, a3], fmt="%.12g")
     with pytest.raises(RecordingError, match=r"column 't', row 51 \(line 52\): .*not constant"):
@@ -93,7 +102,7 @@ def _bad(tmp_path: Path, mutate) -> Path:
     """A 60-row CSV (t, a3, a2 at 100 Hz) with `mutate(cells)` applied; cells[col][i] is data row i + 1."""
     n = 60
     a3, a2, _ = signals(n, seed=2)
-    cells = {"t": ["%.6f" % (0.01 * k) for k in range(n)], "a3": ["%.6f" % x for x in a3], "a2": ["%.6f" % x for x in a2]}
+    cells = {"t": [f"{0.01 * k:.6f}" for k in range(n)], "a3": [f"{x:.6f}" for x in a3], "a2": [f"{x:.6f}" for x in a2]}
     mutate(cells)
     return write_csv(tmp_path / "bad.csv", list(cells), list(cells.values()))
 
@@ -101,6 +110,7 @@ def _bad(tmp_path: Path, mutate) -> Path:
 def _set(column: str, row: int, value: str):
     def mutate(cells):
         cells[column][row - 1] = value
+
     return mutate
 
 
@@ -108,6 +118,7 @@ def _drop_row(row: int):
     def mutate(cells):
         for column in cells.values():
             del column[row - 1]
+
     return mutate
 
 
@@ -118,10 +129,10 @@ BAD_CELLS = [
     (_set("a3", 9, "nan"), "a3", 9, "NaN or infinite"),
     (_set("a2", 60, "inf"), "a2", 60, "NaN or infinite"),
     (_set("t", 3, "x"), "t", 3, "is not a number"),
-    (_set("t", 12, "%.6f" % 0.095), "t", 12, "is not after"),          # earlier than row 11's 0.10
-    (_set("t", 12, "%.6f" % 0.10), "t", 12, "is not after"),           # equal to row 11's time
-    (_drop_row(20), "t", 20, "gap of 0.02 s"),                          # row 20 now holds t = 0.20 after 0.18
-    (_set("t", 30, "%.6f" % 0.2905), "t", 30, "not constant"),         # 5 % of h early
+    (_set("t", 12, f"{0.095:.6f}"), "t", 12, "is not after"),  # earlier than row 11's 0.10
+    (_set("t", 12, f"{0.10:.6f}"), "t", 12, "is not after"),  # equal to row 11's time
+    (_drop_row(20), "t", 20, "gap of 0.02 s"),  # row 20 now holds t = 0.20 after 0.18
+    (_set("t", 30, f"{0.2905:.6f}"), "t", 30, "not constant"),  # 5 % of h early
 ]
 
 
@@ -143,8 +154,11 @@ HEADER_ERRORS = [
     (["t", "x", "y"], {}, "no acceleration column: none of a3, a2, a1 in the header (line 1)"),
     (["t", "a3"], {"columns": {"a2": "floor_z"}}, "column 'floor_z' (columns.a2) is missing from the header (line 1)"),
     (["t", "a3"], {"units": "mg"}, "column 'a3' (a3), header line 1: unknown unit units = 'mg'"),
-    (["t", "a3", "a2"], {"units": "g", "column_units": {"a2": "ft/s2"}},
-     "column 'a2' (a2), header line 1: unknown unit column_units.a2 = 'ft/s2'"),
+    (
+        ["t", "a3", "a2"],
+        {"units": "g", "column_units": {"a2": "ft/s2"}},
+        "column 'a2' (a2), header line 1: unknown unit column_units.a2 = 'ft/s2'",
+    ),
 ]
 
 
@@ -174,7 +188,7 @@ def test_windows_cut_every_recording_with_stride(tmp_path):
         assert f.attrs["n_steps"] == 300 and f.attrs["window"] == 300 and f.attrs["stride"] == 100
     assert profile.tolist() == [0] * 8 + [1] * 5
     np.testing.assert_allclose(t0, [k * 1.0 for k in range(8)] + [100.0 + k * 1.0 for k in range(5)], atol=1e-9)
-    np.testing.assert_allclose(accel[9, :, 0], a3[1000 + 100:1000 + 400], rtol=2e-7, atol=1e-7)  # drive2's 2nd window
+    np.testing.assert_allclose(accel[9, :, 0], a3[1000 + 100 : 1000 + 400], rtol=2e-7, atol=1e-7)  # drive2's 2nd window
     assert data.window == 300 and len(read_recordings(csv, recording_column="recording", window=700).profile_id) == 2
 
 
@@ -183,12 +197,17 @@ def test_recordings_errors(tmp_path):
     t = np.concatenate([np.arange(n) * h, np.arange(n) * h, np.arange(n) * h])
     a3 = signals(3 * n)[0]
     csv = write_csv(tmp_path / "r.csv", ["t", "a3", "recording"], [t, a3, ["A"] * n + ["B"] * n + ["A"] * n])
-    with pytest.raises(RecordingError, match=rf"column 'recording', row {2 * n + 1} \(line {2 * n + 2}\): recording 'A' appears again"):
+    with pytest.raises(
+        RecordingError, match=rf"column 'recording', row {2 * n + 1} \(line {2 * n + 2}\): recording 'A' appears again"
+    ):
         read_recordings(csv, recording_column="recording")
     csv = write_csv(tmp_path / "s.csv", ["t", "a3", "recording"], [t[:80], a3[:80], ["A"] * n + ["B"] * 30])
     with pytest.raises(RecordingError, match=r"column 'recording': recordings have different lengths"):
         read_recordings(csv, recording_column="recording")
-    with pytest.raises(RecordingError, match=rf"column 't' \(recording 'B'\), row {n + 1} \(line {n + 2}\): 30 rows, fewer than window = 40"):
+    with pytest.raises(
+        RecordingError,
+        match=rf"column 't' \(recording 'B'\), row {n + 1} \(line {n + 2}\): 30 rows, fewer than window = 40",
+    ):
         read_recordings(csv, recording_column="recording", window=40)
 
 
@@ -207,7 +226,7 @@ def test_failed_write_leaves_no_file_and_overwrite_is_refused(tmp_path, monkeypa
     monkeypatch.setattr(h5py.Group, "create_dataset", fail_on_profile)
     with pytest.raises(OSError, match="disk full"):
         write_recordings(out_dir / "d.h5", data)
-    assert list(out_dir.iterdir()) == []    # neither the target nor a .partial file
+    assert list(out_dir.iterdir()) == []  # neither the target nor a .partial file
     monkeypatch.undo()
 
     out = write_recordings(out_dir / "d.h5", data)
@@ -222,14 +241,26 @@ def test_failed_write_leaves_no_file_and_overwrite_is_refused(tmp_path, monkeypa
 
 def test_app_writes_summary_and_fails_in_one_line_without_leaving_output(tmp_path):
     n = 1000
-    t = np.arange(n) * 0.002   # 500 Hz
+    t = np.arange(n) * 0.002  # 500 Hz
     a3, a2, _ = signals(n, seed=4)
     csv = write_csv(tmp_path / "drive.csv", ["t", "seat_z", "floor_z"], [t, a3 / G, a2 / G])
     out = tmp_path / "data" / "drive.h5"
-    result = qcm_import(tmp_path, f"input={csv}", f"output={out}", "units=g", "columns.a3=seat_z",
-                        "columns.a2=floor_z", "window=400", "stride=200")
+    result = qcm_import(
+        tmp_path,
+        f"input={csv}",
+        f"output={out}",
+        "units=g",
+        "columns.a3=seat_z",
+        "columns.a2=floor_z",
+        "window=400",
+        "stride=200",
+    )
     assert result.returncode == 0, result.stderr
-    assert "500 Hz" in result.stdout and "4 sample(s) x 400 steps" in result.stdout and "a3 (in g), a2 (in g)" in result.stdout
+    assert (
+        "500 Hz" in result.stdout
+        and "4 sample(s) x 400 steps" in result.stdout
+        and "a3 (in g), a2 (in g)" in result.stdout
+    )
     with h5py.File(out, "r") as f:
         np.testing.assert_allclose(f["test/accel"][1, :, 0], a3[200:600], rtol=2e-6, atol=1e-6)
         assert np.isnan(f["test/accel"][..., 2]).all()
@@ -238,7 +269,7 @@ def test_app_writes_summary_and_fails_in_one_line_without_leaving_output(tmp_pat
     assert again.returncode == 2 and "exists; pass overwrite=true" in again.stderr
 
     lines = csv.read_text().splitlines()
-    del lines[300]                                        # data row 300: a gap after t = 0.598
+    del lines[300]  # data row 300: a gap after t = 0.598
     gap = tmp_path / "gap.csv"
     gap.write_text("\n".join(lines) + "\n")
     bad_out = tmp_path / "bad" / "gap.h5"
@@ -262,13 +293,15 @@ def test_help_documents_every_key(tmp_path):
 def test_delimiters_time_units_and_short_rows(tmp_path):
     n = 50
     a3 = signals(n)[0]
-    rows = [f"{k * 10};{x:.9g}" for k, x in enumerate(a3)]          # milliseconds, semicolons
+    rows = [f"{k * 10};{x:.9g}" for k, x in enumerate(a3)]  # milliseconds, semicolons
     csv = tmp_path / "semi.csv"
     csv.write_text("t ; a3\n" + "\n".join(rows) + "\n")
     data = read_recordings(csv, time_unit="ms")
     assert data.h == pytest.approx(0.01, rel=1e-12)
     np.testing.assert_allclose(data.accel[0, :, 0], a3, rtol=2e-7, atol=1e-7)
     short = tmp_path / "short.csv"
-    short.write_text("t,a3,a2\n" + "\n".join(f"{0.01 * k:.2f},1,2" if k != 9 else f"{0.01 * k:.2f},1" for k in range(n)) + "\n")
+    short.write_text(
+        "t,a3,a2\n" + "\n".join(f"{0.01 * k:.2f},1,2" if k != 9 else f"{0.01 * k:.2f},1" for k in range(n)) + "\n"
+    )
     with pytest.raises(RecordingError, match=r"short.csv: column 'a2', row 10 \(line 11\): cell is empty"):
         read_recordings(short)

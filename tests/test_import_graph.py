@@ -4,6 +4,7 @@ The graph is read from the source (AST), not from a running interpreter, so impo
 functions (deferred for start-up time) count too: a cycle hidden behind a lazy import is still a
 cycle in the design. Imports under `if TYPE_CHECKING:` are left out (they never run).
 """
+
 from __future__ import annotations
 
 import ast
@@ -28,7 +29,8 @@ def module_names(root: Path = PACKAGE_ROOT) -> dict[str, Path]:
 def _is_type_checking(node: ast.If) -> bool:
     test = node.test
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def _import_nodes(tree: ast.AST):
@@ -134,8 +136,9 @@ def test_graph_reads_lazy_relative_and_from_imports(tmp_path):
     (package / "__init__.py").write_text("")
     (package / "sub" / "__init__.py").write_text("from .leaf import x\n")
     (package / "sub" / "leaf.py").write_text("def f():\n    from pkg import top\nx = 1\n")
-    (package / "top.py").write_text("from typing import TYPE_CHECKING\nfrom pkg.sub import leaf\n"
-                                    "if TYPE_CHECKING:\n    import pkg.other\n")
+    (package / "top.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom pkg.sub import leaf\nif TYPE_CHECKING:\n    import pkg.other\n"
+    )
     (package / "other.py").write_text("import pkg.top\n")
     graph = import_graph(package)
     assert graph["pkg.sub"] == {"pkg.sub.leaf"}
@@ -152,8 +155,10 @@ def test_hybridqcm_has_no_import_cycle():
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
 
 
-@pytest.mark.parametrize("lower, upper", [("hybridqcm.apps.stages", "hybridqcm.apps.pipeline"),
-                                          ("hybridqcm.apps.results", "hybridqcm.apps.pipeline")])
+@pytest.mark.parametrize(
+    "lower, upper",
+    [("hybridqcm.apps.stages", "hybridqcm.apps.pipeline"), ("hybridqcm.apps.results", "hybridqcm.apps.pipeline")],
+)
 def test_pipeline_modules_point_one_way(lower, upper):
     graph = import_graph()
     assert lower in graph[upper] and upper not in graph[lower]

@@ -1,4 +1,5 @@
 """Error-distribution metrics against hand-computed values, the CSV round trip, and the plots."""
+
 from __future__ import annotations
 
 import math
@@ -25,11 +26,18 @@ E2 = [0.0, 0.015, 0.08, 0.3]
 
 def hand_row(name, e):
     mean = sum(e) / 4
-    return {"param": name, "n": 4, "max_err": max(e), "mean_err": mean,
-            "std_err": math.sqrt(sum((x - mean) ** 2 for x in e) / 4),
-            "within_1pct": sum(x <= 0.01 for x in e) / 4, "within_5pct": sum(x <= 0.05 for x in e) / 4,
-            "within_10pct": sum(x <= 0.10 for x in e) / 4, "within_25pct": sum(x <= 0.25 for x in e) / 4,
-            "over_25pct": sum(x > 0.25 for x in e) / 4}
+    return {
+        "param": name,
+        "n": 4,
+        "max_err": max(e),
+        "mean_err": mean,
+        "std_err": math.sqrt(sum((x - mean) ** 2 for x in e) / 4),
+        "within_1pct": sum(x <= 0.01 for x in e) / 4,
+        "within_5pct": sum(x <= 0.05 for x in e) / 4,
+        "within_10pct": sum(x <= 0.10 for x in e) / 4,
+        "within_25pct": sum(x <= 0.25 for x in e) / 4,
+        "over_25pct": sum(x > 0.25 for x in e) / 4,
+    }
 
 
 def assert_rows_equal(rows, expected):
@@ -54,10 +62,12 @@ def test_relative_errors_by_hand():
 def test_error_distribution_fractions_by_hand():
     # hand values: p1 fractions 1/4, 2/4, 2/4, 3/4, 1/4; mean 15.875 %
     expected = [hand_row("p1", E1), hand_row("p2", E2)]
-    assert expected[0]["within_1pct"] == 0.25 and expected[0]["within_25pct"] == 0.75 and expected[0]["over_25pct"] == 0.25
+    assert (
+        expected[0]["within_1pct"] == 0.25 and expected[0]["within_25pct"] == 0.75 and expected[0]["over_25pct"] == 0.25
+    )
     assert expected[0]["mean_err"] == pytest.approx(0.15875)
     metric = ErrorDistribution(["p1", "p2"])
-    metric.update(PRED[:3], TARGET[:3])      # accumulated over two batches
+    metric.update(PRED[:3], TARGET[:3])  # accumulated over two batches
     metric.update(PRED[3:], TARGET[3:])
     assert_rows_equal(metric.compute(), expected)
     assert_rows_equal(error_distribution_rows(PRED, TARGET, ["p1", "p2"]), expected)
@@ -97,13 +107,16 @@ def test_csv_round_trip(tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["error_distribution.csv", "error_distribution.md"]
 
 
-@pytest.mark.parametrize("content,pattern", [
-    ("param,n,max_err\np1,4,0.4\n", r"missing columns \['mean_err'"),
-    ("", "missing columns"),
-    (",".join(COLUMNS) + "\np1,4,0.4,zero,0.1,0.25,0.5,0.5,0.75,0.25\n", r":2: malformed value"),
-    (",".join(COLUMNS) + "\np1,4,0.4,0.1\n", r":2: malformed value"),
-    (",".join(COLUMNS) + "\n,4,0.4,0.1,0.1,0.25,0.5,0.5,0.75,0.25\n", r":2: row without a parameter name"),
-])
+@pytest.mark.parametrize(
+    "content,pattern",
+    [
+        ("param,n,max_err\np1,4,0.4\n", r"missing columns \['mean_err'"),
+        ("", "missing columns"),
+        (",".join(COLUMNS) + "\np1,4,0.4,zero,0.1,0.25,0.5,0.5,0.75,0.25\n", r":2: malformed value"),
+        (",".join(COLUMNS) + "\np1,4,0.4,0.1\n", r":2: malformed value"),
+        (",".join(COLUMNS) + "\n,4,0.4,0.1,0.1,0.25,0.5,0.5,0.75,0.25\n", r":2: row without a parameter name"),
+    ],
+)
 def test_read_malformed_table_fails_loudly(tmp_path, content, pattern):
     path = tmp_path / "bad.csv"
     path.write_text(content)
@@ -121,14 +134,17 @@ def test_plots_write_png(tmp_path):
 
     rng = np.random.default_rng(0)
     target = rng.uniform(4, 20, 300)
-    figure = plots.plot_sorted_predictions(target * (1 + 0.1 * rng.normal(size=300)), target, "p1", tmp_path / "a" / "p1.png")
+    figure = plots.plot_sorted_predictions(
+        target * (1 + 0.1 * rng.normal(size=300)), target, "p1", tmp_path / "a" / "p1.png"
+    )
     plots.close(figure)
     figure = plots.plot_histogram(np.abs(rng.normal(size=300)), tmp_path / "h.png", xlabel="e")
     plots.close(figure)
-    figure = plots.plot_overlays(np.arange(50) * 0.01, {"true": rng.normal(size=(2, 50)), "est": rng.normal(size=(2, 50))},
-                                 tmp_path / "o.png")
+    figure = plots.plot_overlays(
+        np.arange(50) * 0.01, {"true": rng.normal(size=(2, 50)), "est": rng.normal(size=(2, 50))}, tmp_path / "o.png"
+    )
     plots.close(figure)
     for name in ("a/p1.png", "h.png", "o.png"):
         data = (tmp_path / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "h.png", "o.png"]   # no temporary files left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "h.png", "o.png"]  # no temporary files left

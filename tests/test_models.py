@@ -1,4 +1,5 @@
 """Networks (weight counts, shapes), physics residual, LightningModules (fast_dev_run, checkpoint round trip, inference API)."""
+
 from __future__ import annotations
 
 import lightning as L
@@ -7,30 +8,57 @@ import torch
 
 from hybridqcm.data.datamodules import HDF5DataModule
 from hybridqcm.data.simulate import simulate_samples, write_dataset
-from hybridqcm.models import (CheckpointMismatch, CompletionUNet, DenoisingAutoencoder, DenoisingCAE, LabelledEstimator,
-                              ParameterCNN, PhysicsResidualEstimator, UNet1d, count_parameters, least_squares_p12,
-                              physics_residual, physics_residual_loss)
+from hybridqcm.models import (
+    CheckpointMismatch,
+    CompletionUNet,
+    DenoisingAutoencoder,
+    DenoisingCAE,
+    LabelledEstimator,
+    ParameterCNN,
+    PhysicsResidualEstimator,
+    UNet1d,
+    count_parameters,
+    least_squares_p12,
+    physics_residual,
+    physics_residual_loss,
+)
 from hybridqcm.models.modules import balanced_residual_loss, one_cycle_lr
 from hybridqcm.physics import RoadProfile, build_prior
 
-SMALL_CNN = {"_target_": "hybridqcm.models.networks.ParameterCNN", "channels": [8, 8], "kernels": [10, 5], "hidden": [16, 8]}
+SMALL_CNN = {
+    "_target_": "hybridqcm.models.networks.ParameterCNN",
+    "channels": [8, 8],
+    "kernels": [10, 5],
+    "hidden": [16, 8],
+}
 SMALL_CAE = {"_target_": "hybridqcm.models.networks.DenoisingCAE", "channels": [4, 8], "kernel_size": 9}
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     path = tmp_path_factory.mktemp("data") / "tiny.h5"
-    write_dataset(path, {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-                  build_prior("thesis", h=0.01), RoadProfile(n_waves=200), n_steps=512, h=0.01, speed_mps=30 / 3.6,
-                  samples_per_profile=8, seed=0, progress=False, compression=None)
+    write_dataset(
+        path,
+        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
+        build_prior("thesis", h=0.01),
+        RoadProfile(n_waves=200),
+        n_steps=512,
+        h=0.01,
+        speed_mps=30 / 3.6,
+        samples_per_profile=8,
+        seed=0,
+        progress=False,
+        compression=None,
+    )
     return path
 
 
 @pytest.fixture(scope="module")
 def clean_batch():
     generator = torch.Generator().manual_seed(1)
-    return simulate_samples(build_prior("thesis"), RoadProfile(n_waves=300), torch.tensor([0, 1, 2, 1]), 300, 0.01,
-                            30 / 3.6, generator)
+    return simulate_samples(
+        build_prior("thesis"), RoadProfile(n_waves=300), torch.tensor([0, 1, 2, 1]), 300, 0.01, 30 / 3.6, generator
+    )
 
 
 def _aux(arrays):
@@ -59,7 +87,7 @@ def test_physics_residual_zero_for_true_parameters(clean_batch):
     r = physics_residual(p, aux)
     assert r.abs().max() < 1e-10 * aux[:, 0].abs().max()
     assert physics_residual_loss(p, aux).max() < 1e-25
-    assert physics_residual_loss(p * 1.01, aux).min() > 1e-8                 # and not zero elsewhere
+    assert physics_residual_loss(p * 1.01, aux).min() > 1e-8  # and not zero elsewhere
     assert torch.allclose(least_squares_p12(aux), p, rtol=1e-9)
 
 
@@ -67,7 +95,9 @@ def test_physics_residual_gradient_matches_finite_differences(clean_batch):
     aux = _aux(clean_batch)
     p = (clean_batch["params"][:, :2] * torch.tensor([1.05, 0.97], dtype=torch.float64)).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda q: physics_residual_loss(q, aux).sum(), (p,), eps=1e-6, atol=1e-7, rtol=1e-4)
-    assert torch.autograd.gradcheck(lambda q: balanced_residual_loss(q, aux).sum(), (p,), eps=1e-6, atol=1e-7, rtol=1e-4)
+    assert torch.autograd.gradcheck(
+        lambda q: balanced_residual_loss(q, aux).sum(), (p,), eps=1e-6, atol=1e-7, rtol=1e-4
+    )
 
 
 def test_balanced_residual_weighs_p1_and_p2_alike(clean_batch):
@@ -77,16 +107,26 @@ def test_balanced_residual_weighs_p1_and_p2_alike(clean_batch):
         off = p * torch.tensor(scale, dtype=torch.float64)
         assert torch.allclose(balanced_residual_loss(off, aux), torch.full((4,), 1e-4, dtype=torch.float64), rtol=1e-3)
     # The plain energy weighs a 1 % error of p1 (damping) far less than one of p2 (stiffness).
-    ratio = physics_residual_loss(p * torch.tensor([1.0, 1.01], dtype=torch.float64), aux) / \
-        physics_residual_loss(p * torch.tensor([1.01, 1.0], dtype=torch.float64), aux)
+    ratio = physics_residual_loss(p * torch.tensor([1.0, 1.01], dtype=torch.float64), aux) / physics_residual_loss(
+        p * torch.tensor([1.01, 1.0], dtype=torch.float64), aux
+    )
     assert (ratio > 10).all()
 
 
 # -- modules ------------------------------------------------------------------------------------------------
 def _dm(tiny, module, **kwargs):
     req = module.data_requirements()
-    return HDF5DataModule(tiny, inputs=req["inputs"], targets=req["targets"], aux=req["aux"], window=req["window"],
-                          batch_size=8, eval_batch_size=16, val_fraction=0.25, **kwargs)
+    return HDF5DataModule(
+        tiny,
+        inputs=req["inputs"],
+        targets=req["targets"],
+        aux=req["aux"],
+        window=req["window"],
+        batch_size=8,
+        eval_batch_size=16,
+        val_fraction=0.25,
+        **kwargs,
+    )
 
 
 def _modules():
@@ -102,8 +142,9 @@ def _modules():
 def test_fast_dev_run_every_module(tiny, index):
     module = _modules()[index]
     dm = _dm(tiny, module, noise_sigma=0.1 if isinstance(module, DenoisingAutoencoder) else 0.0)
-    trainer = L.Trainer(fast_dev_run=True, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False)
+    trainer = L.Trainer(
+        fast_dev_run=True, accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False
+    )
     trainer.fit(module, dm)
     assert bool(module.norm_fitted)
     trainer.test(module, dm)
@@ -118,8 +159,15 @@ def test_fast_dev_run_every_module(tiny, index):
 def test_checkpoint_round_trip_and_inference_api(tiny, tmp_path, index):
     module = _modules()[index]
     dm = _dm(tiny, module)
-    trainer = L.Trainer(max_steps=2, limit_val_batches=1, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, enable_checkpointing=False)
+    trainer = L.Trainer(
+        max_steps=2,
+        limit_val_batches=1,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+    )
     trainer.fit(module, dm)
     path = tmp_path / "model.ckpt"
     trainer.save_checkpoint(path)
@@ -170,12 +218,19 @@ def test_estimate_is_scale_invariant_and_denoiser_attaches(tiny, tmp_path):
     cae.register_forward_hook(lambda *args: calls.append(1))
     denoised = module.estimate(x[:, 0], x[:, 1])
     assert calls and denoised.shape == (3, 2) and not torch.equal(denoised, p)  # the CAE really runs first
-    trainer = L.Trainer(max_steps=1, limit_val_batches=0, accelerator="cpu", logger=False, enable_progress_bar=False,
-                        enable_model_summary=False, enable_checkpointing=False)
+    trainer = L.Trainer(
+        max_steps=1,
+        limit_val_batches=0,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        enable_checkpointing=False,
+    )
     trainer.fit(module, dm)
     trainer.save_checkpoint(tmp_path / "m.ckpt")
     state = torch.load(tmp_path / "m.ckpt", weights_only=True)["state_dict"]
-    assert not any(k.startswith("denoiser.") for k in state)                # never saved with the estimator
+    assert not any(k.startswith("denoiser.") for k in state)  # never saved with the estimator
 
 
 def test_one_cycle_schedule_shape():

@@ -5,6 +5,7 @@ closed form, the coupled case is solved exactly with scipy's matrix exponential 
 input is piecewise constant, so the zero-order-hold solution is the exact continuous one),
 and D, S are rebuilt from SPEC §1 by hand in numpy.
 """
+
 from __future__ import annotations
 
 import math
@@ -47,10 +48,21 @@ def spec_system(p: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- parameters
 
+
 def test_reference_params_match_spec_constants():
     p = reference_params().numpy()
-    expected = [615 / 80, 98935 / 80, 615 / 2160, 4761 / 2160, 98935 / 2160, 149171 / 2160,
-                4761 / 145, 4761 / 145, 149171 / 145, (149171 + 40000) / 145]
+    expected = [
+        615 / 80,
+        98935 / 80,
+        615 / 2160,
+        4761 / 2160,
+        98935 / 2160,
+        149171 / 2160,
+        4761 / 145,
+        4761 / 145,
+        149171 / 145,
+        (149171 + 40000) / 145,
+    ]
     np.testing.assert_allclose(p, expected, rtol=1e-15)
     assert road_gain(reference_params()).item() == pytest.approx(40000 / 145, rel=1e-14)  # K1/m1
     assert occupant_mass(reference_params()).item() == pytest.approx(80.0, rel=1e-14)
@@ -72,7 +84,7 @@ def test_matrices_to_params_rejects_wrong_structure():
     D, S = params_to_matrices(reference_params())
     for which, (i, j) in [("D", (0, 2)), ("S", (2, 0)), ("D", (0, 0)), ("S", (1, 1))]:
         D2, S2 = D.clone(), S.clone()
-        (D2 if which == "D" else S2)[i, j] += 1.0   # breaks a zero or a row sum
+        (D2 if which == "D" else S2)[i, j] += 1.0  # breaks a zero or a row sum
         with pytest.raises(ValueError, match="structure"):
             matrices_to_params(D2, S2)
     with pytest.raises(ValueError, match=r"\[\.\.\., 3, 3\]"):
@@ -119,13 +131,15 @@ def test_euler_step_matrix_is_the_semi_explicit_euler_map():
     p = reference_params()[None].repeat(3, 1)
     p[1, 0] *= 2.5
     road = torch.zeros(3, 6, dtype=torch.float64)
-    road[:, 0] = 1.0       # one kick, then free motion
+    road[:, 0] = 1.0  # one kick, then free motion
     traj = simulate(p, road, 0.01, scaled_road=True)
     M = euler_step_matrix(p, 0.01)
     x1 = torch.cat([traj.vel[:, 1], traj.disp[:, 1]], -1)
     for k in range(1, 5):
         x_next = (M @ x1[..., None]).squeeze(-1)
-        torch.testing.assert_close(x_next, torch.cat([traj.vel[:, k + 1], traj.disp[:, k + 1]], -1), rtol=1e-13, atol=1e-16)
+        torch.testing.assert_close(
+            x_next, torch.cat([traj.vel[:, k + 1], traj.disp[:, k + 1]], -1), rtol=1e-13, atol=1e-16
+        )
         x1 = x_next
 
 
@@ -156,20 +170,21 @@ def test_stable_continuous_system_can_be_unstable_under_euler():
 
 # --------------------------------------------------------------------------- integrators
 
+
 def single_dof_params(zeta: float, omega: float) -> torch.Tensor:
     """p with p4 = p6 = 0: chassis and occupant stay at rest, the wheel is a damped oscillator
     q1'' = -p8 q1' - p10 q1 + f (structurally a single mass-spring-damper)."""
     p = reference_params().clone()
     p[3] = p[5] = 0.0
-    p[7], p[9] = 2 * zeta * omega, omega ** 2
+    p[7], p[9] = 2 * zeta * omega, omega**2
     return p[None]
 
 
 def single_dof_exact(t: np.ndarray, zeta: float, omega: float, force: float) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form step response from rest: (q(t), v(t))."""
-    wd = omega * math.sqrt(1 - zeta ** 2)
+    wd = omega * math.sqrt(1 - zeta**2)
     decay = np.exp(-zeta * omega * t)
-    q = force / omega ** 2 * (1 - decay * (np.cos(wd * t) + zeta * omega / wd * np.sin(wd * t)))
+    q = force / omega**2 * (1 - decay * (np.cos(wd * t) + zeta * omega / wd * np.sin(wd * t)))
     v = force / wd * decay * np.sin(wd * t)
     return q, v
 
@@ -177,24 +192,32 @@ def single_dof_exact(t: np.ndarray, zeta: float, omega: float, force: float) -> 
 def test_single_dof_step_response_against_closed_form():
     zeta, omega, force, h = 0.1, 20.0, 3.0, 5e-4
     n = int(round(1.0 / h)) + 1
-    traj = simulate(single_dof_params(zeta, omega), torch.full((1, n), force, dtype=torch.float64), h, "rk4", scaled_road=True)
+    traj = simulate(
+        single_dof_params(zeta, omega), torch.full((1, n), force, dtype=torch.float64), h, "rk4", scaled_road=True
+    )
     t = h * np.arange(n)
     q, v = single_dof_exact(t, zeta, omega, force)
     # RK4 at h * omega = 0.01: global error ~ 1e-9 of the response (q ~ 1e-2, v ~ 0.2)
     np.testing.assert_allclose(traj.disp[0, :, 2].numpy(), q, rtol=0, atol=1e-10)
     np.testing.assert_allclose(traj.vel[0, :, 2].numpy(), v, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(traj.accel[0, :, 2].numpy(), force - 2 * zeta * omega * v - omega ** 2 * q, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(
+        traj.accel[0, :, 2].numpy(), force - 2 * zeta * omega * v - omega**2 * q, rtol=0, atol=1e-7
+    )
     assert traj.accel[0, :, :2].abs().max() == 0 and traj.disp[0, :, :2].abs().max() == 0
 
 
-@pytest.mark.parametrize("method,order", [("semi_explicit_euler", 1), ("forward_euler", 1), ("implicit_midpoint", 2), ("rk4", 4)])
+@pytest.mark.parametrize(
+    "method,order", [("semi_explicit_euler", 1), ("forward_euler", 1), ("implicit_midpoint", 2), ("rk4", 4)]
+)
 def test_single_dof_convergence_order(method, order):
     zeta, omega, force, T = 0.1, 20.0, 3.0, 1.0
     errors = []
     hs = [0.01, 0.005, 0.0025, 0.00125]
     for h in hs:
         n = int(round(T / h)) + 1
-        traj = simulate(single_dof_params(zeta, omega), torch.full((1, n), force, dtype=torch.float64), h, method, scaled_road=True)
+        traj = simulate(
+            single_dof_params(zeta, omega), torch.full((1, n), force, dtype=torch.float64), h, method, scaled_road=True
+        )
         q, v = single_dof_exact(np.array([T]), zeta, omega, force)
         errors.append(math.hypot(traj.disp[0, -1, 2].item() - q[0], (traj.vel[0, -1, 2].item() - v[0]) / omega))
     rates = [math.log2(a / b) for a, b in zip(errors, errors[1:])]
@@ -206,7 +229,7 @@ def zoh_exact(p: np.ndarray, force_coarse: np.ndarray, H: float) -> np.ndarray:
     """Exact state (v, q) [len+1, 6] of the 6x6 system at t = jH for wheel forcing held constant on [jH, (j+1)H)."""
     A = spec_system(p)
     Phi = scipy.linalg.expm(A * H)
-    Gamma = np.linalg.solve(A, (Phi - np.eye(6)))[:, 2]   # A^-1 (e^{AH} - I) e_{v1}
+    Gamma = np.linalg.solve(A, (Phi - np.eye(6)))[:, 2]  # A^-1 (e^{AH} - I) e_{v1}
     x = np.zeros(6)
     out = [x]
     for f in force_coarse:
@@ -215,7 +238,9 @@ def zoh_exact(p: np.ndarray, force_coarse: np.ndarray, H: float) -> np.ndarray:
     return np.array(out)
 
 
-@pytest.mark.parametrize("method,order", [("semi_explicit_euler", 1), ("forward_euler", 1), ("implicit_midpoint", 2), ("rk4", 4)])
+@pytest.mark.parametrize(
+    "method,order", [("semi_explicit_euler", 1), ("forward_euler", 1), ("implicit_midpoint", 2), ("rk4", 4)]
+)
 def test_coupled_system_converges_to_exact_zoh_solution(method, order):
     """Reference vehicle with a piecewise-constant road (steps every H = 0.02 s): the exact solution
     at t = 1 s by matrix exponentials; each method's error falls as h^order."""
@@ -248,7 +273,7 @@ def test_recorded_acceleration_is_the_equation_of_motion_at_each_step():
         b[..., 2] = road_gain(p)[:, None] * road
         expected = traj.vel @ D.transpose(-1, -2) + traj.disp @ S.transpose(-1, -2) + b
         torch.testing.assert_close(traj.accel, expected, rtol=1e-12, atol=1e-12)
-        assert traj.vel[:, 0].abs().max() == 0 and traj.disp[:, 0].abs().max() == 0   # from rest
+        assert traj.vel[:, 0].abs().max() == 0 and traj.disp[:, 0].abs().max() == 0  # from rest
     # scaled_road=True takes p_u u directly
     traj = simulate(p, road, 0.01)
     scaled = simulate(p, road_gain(p)[:, None] * road, 0.01, scaled_road=True)
@@ -275,7 +300,9 @@ def test_simulate_is_differentiable_in_p():
     pp, pm = p.detach().clone(), p.detach().clone()
     pp[0, 1] += eps
     pm[0, 1] -= eps
-    fd = (simulate(pp, road, 0.01).accel[..., 0].pow(2).sum() - simulate(pm, road, 0.01).accel[..., 0].pow(2).sum()) / (2 * eps)
+    fd = (simulate(pp, road, 0.01).accel[..., 0].pow(2).sum() - simulate(pm, road, 0.01).accel[..., 0].pow(2).sum()) / (
+        2 * eps
+    )
     assert grad[0, 1].item() == pytest.approx(fd.item(), rel=1e-5)
 
 
@@ -296,8 +323,9 @@ def test_simulate_rejects_bad_input():
 def conservative_params() -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
     """No damping (p1 = p3 = p4 = p7 = p8 = 0); returns p, masses and the stiffness matrix K."""
     c = V
-    p = torch.tensor([[0, c.K3 / c.m3, 0, 0, c.K3 / c.m2, c.K2 / c.m2, 0, 0, c.K2 / c.m1, (c.K2 + c.K1) / c.m1]],
-                     dtype=torch.float64)
+    p = torch.tensor(
+        [[0, c.K3 / c.m3, 0, 0, c.K3 / c.m2, c.K2 / c.m2, 0, 0, c.K2 / c.m1, (c.K2 + c.K1) / c.m1]], dtype=torch.float64
+    )
     K = np.array([[c.K3, -c.K3, 0], [-c.K3, c.K3 + c.K2, -c.K2], [0, -c.K2, c.K2 + c.K1]])
     return p, np.array([c.m3, c.m2, c.m1]), K
 
@@ -313,9 +341,9 @@ def test_energy_semi_explicit_euler_bounded_forward_euler_grows():
 
     def energies(method):
         traj = simulate(p, road, h, method, scaled_road=True)
-        v, q = traj.vel[0, kick + 1:].numpy(), traj.disp[0, kick + 1:].numpy()
+        v, q = traj.vel[0, kick + 1 :].numpy(), traj.disp[0, kick + 1 :].numpy()
         with np.errstate(all="ignore"):
-            E = 0.5 * (m * v ** 2).sum(-1) + 0.5 * np.einsum("ki,ij,kj->k", q, K, q)
+            E = 0.5 * (m * v**2).sum(-1) + 0.5 * np.einsum("ki,ij,kj->k", q, K, q)
             modified = E - 0.5 * h * np.einsum("ki,ij,kj->k", v, K, q)
         return E, modified
 
@@ -330,6 +358,7 @@ def test_energy_semi_explicit_euler_bounded_forward_euler_grows():
 
 
 # --------------------------------------------------------------------------- the stored data
+
 
 def test_stored_accelerations_satisfy_equation_of_motion(tiny_dataset):
     for split in ("train", "test"):

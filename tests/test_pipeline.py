@@ -1,4 +1,5 @@
 """qcm-pipeline: plans, resumes (finished stages are skipped) and records a manifest."""
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,9 @@ def test_finished_stages_are_skipped_and_recorded(tmp_path, monkeypatch):
     root, dataset = tmp_path / "r", tmp_path / "d.h5"
     dataset.write_bytes(b"")  # the simulate stage's output exists -> done
     calls = []
-    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    monkeypatch.setattr(
+        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+    )
     assert pipeline.run_pipeline("demo", str(root), str(dataset), only=["simulate"]) == 0
     assert calls == []
     manifest = json.loads((root / "manifest.json").read_text())
@@ -39,7 +42,9 @@ def test_finished_stages_are_skipped_and_recorded(tmp_path, monkeypatch):
 
 def test_stage_with_unfinished_dependency_is_not_run(tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    monkeypatch.setattr(
+        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+    )
     pipeline.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert calls == []
     assert "needs ['exp2_physics', 'exp9_unet']" in capsys.readouterr().out
@@ -59,8 +64,20 @@ def test_unknown_stage_is_an_error(tmp_path):
 def test_demo_end_to_end_on_a_tiny_scale(tmp_path):
     """The whole demo (simulate, train CNN and U-Net briefly, GN exps 5 and 10, tables) on tiny data."""
     root, dataset = tmp_path / "demo", tmp_path / "tiny.h5"
-    command = [sys.executable, "-m", "hybridqcm.apps.pipeline", "demo", "--root", str(root), "--dataset", str(dataset),
-               "--preset", "tiny", "--train-time", "00:00:00:30"]
+    command = [
+        sys.executable,
+        "-m",
+        "hybridqcm.apps.pipeline",
+        "demo",
+        "--root",
+        str(root),
+        "--dataset",
+        str(dataset),
+        "--preset",
+        "tiny",
+        "--train-time",
+        "00:00:00:30",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     for stage in ("exp5_random_init", "exp10_hybrid"):
@@ -89,7 +106,9 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
     for name in ("exp2_physics", "exp9_unet"):  # finished runs leave their marker last
         write_completion_marker(root / name, "qcm-train", by_name[name].task_overrides())
     calls = []
-    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0))
+    monkeypatch.setattr(
+        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+    )
     monkeypatch.setattr(pipeline, "print_summary", lambda path: None)
     pipeline.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert len(calls) == 1 and "experiment=exp10_hybrid" in calls[0]

@@ -1,4 +1,5 @@
 """Parameter priors: acceptance rate, rejection of unstable draws, stability, determinism."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,7 +40,7 @@ def test_thesis_prior_keeps_exactly_the_stable_candidates_in_order():
     the last accepted one."""
     prior, n = ThesisPrior(), 500
     draw = prior.sample(n, torch.Generator().manual_seed(5))
-    batch = max(64, int(1.6 * n))      # the first round's candidate count
+    batch = max(64, int(1.6 * n))  # the first round's candidate count
     candidates = prior._candidates(batch, torch.Generator().manual_seed(5)).numpy()
     stable = independent_stable(candidates, 0.01)
     assert stable.sum() >= n, "seed chosen so one round suffices"
@@ -69,26 +70,26 @@ def test_thesis_prior_structure():
     p = ThesisPrior().sample(3000, torch.Generator().manual_seed(2)).params
     m3 = occupant_mass(p)
     assert (m3 >= 30).all() and (m3 <= 150).all()
-    assert m3.min() < 35 and m3.max() > 145          # the whole mass range is used
-    torch.testing.assert_close(p[:, 0] / p[:, 1], torch.full_like(m3, V.C3 / V.K3))   # C3, K3 at reference
+    assert m3.min() < 35 and m3.max() > 145  # the whole mass range is used
+    torch.testing.assert_close(p[:, 0] / p[:, 1], torch.full_like(m3, V.C3 / V.K3))  # C3, K3 at reference
     rel = p[:, 2:] / reference_params()[2:] - 1
     # accepted draws are skewed by the rejection (p7 > p8 is mostly unstable) but stay near 10 %
     assert (rel.std(0) > 0.06).all() and (rel.std(0) < 0.12).all()
-    assert (p[:, 6] - p[:, 7]).mean() < 0   # rejection favours p7 < p8
+    assert (p[:, 6] - p[:, 7]).mean() < 0  # rejection favours p7 < p8
 
 
 @pytest.mark.parametrize("perturb_seat", [False, True])
 def test_physical_prior_always_stable_and_consistent(perturb_seat):
     prior = PhysicalPrior(perturb_seat=perturb_seat, sigma=0.1)
     candidates = prior._candidates(5000, torch.Generator().manual_seed(4))
-    assert bool(is_stable(candidates, 0.01).all())   # every candidate, not just the accepted ones
+    assert bool(is_stable(candidates, 0.01).all())  # every candidate, not just the accepted ones
     draw = prior.sample(2000, torch.Generator().manual_seed(4))
     assert draw.acceptance_rate == 1.0
     p = draw.params
-    torch.testing.assert_close(p[:, 6], p[:, 7], rtol=0, atol=0)          # C1 = 0: p7 = p8
-    torch.testing.assert_close(p[:, 0] / p[:, 1], p[:, 2] / p[:, 4])      # C3/K3 from either mass
-    torch.testing.assert_close(p[:, 3] / p[:, 5], p[:, 6] / p[:, 8])      # C2/K2 from either mass
-    assert (p[:, 9] > p[:, 8]).all()                                       # p_u = K1/m1 > 0
+    torch.testing.assert_close(p[:, 6], p[:, 7], rtol=0, atol=0)  # C1 = 0: p7 = p8
+    torch.testing.assert_close(p[:, 0] / p[:, 1], p[:, 2] / p[:, 4])  # C3/K3 from either mass
+    torch.testing.assert_close(p[:, 3] / p[:, 5], p[:, 6] / p[:, 8])  # C2/K2 from either mass
+    assert (p[:, 9] > p[:, 8]).all()  # p_u = K1/m1 > 0
     seat_ratio = p[:, 0] / p[:, 1]
     if perturb_seat:
         assert seat_ratio.std() > 0.01 * seat_ratio.mean()
@@ -123,7 +124,7 @@ def test_prior_edge_cases_and_validation():
 
 
 def test_prior_raises_when_nothing_is_stable():
-    prior = ThesisPrior(h=1.0)   # Euler at h = 1 s is unstable for every draw
+    prior = ThesisPrior(h=1.0)  # Euler at h = 1 s is unstable for every draw
     prior.max_rounds = 3
     with pytest.raises(RuntimeError, match="acceptance too low"):
         prior.sample(10, torch.Generator().manual_seed(0))

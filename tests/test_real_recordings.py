@@ -25,8 +25,9 @@ def _rows(path):
 @pytest.fixture(scope="module")
 def continuous(tmp_path_factory):
     root = tmp_path_factory.mktemp("continuous")
-    proc = _app("simulate", root / "run", "preset=tiny", "physics=continuous", f"output={root / 'drive.h5'}",
-                "progress=false")
+    proc = _app(
+        "simulate", root / "run", "preset=tiny", "physics=continuous", f"output={root / 'drive.h5'}", "progress=false"
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     with h5py.File(root / "drive.h5", "r") as f:
         assert f.attrs["physics"] == "continuous"
@@ -59,7 +60,9 @@ def test_occupant_mass_without_road(continuous, tmp_path):
 
 def test_exp5_picks_the_exact_model_and_recovers_the_vehicle(continuous, tmp_path):
     path, params = continuous
-    proc = _app("estimate", tmp_path, "experiment=exp5_random_init", f"data.path={path}", "progress=false", "plots=false")
+    proc = _app(
+        "estimate", tmp_path, "experiment=exp5_random_init", f"data.path={path}", "progress=false", "plots=false"
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert (summary["model"], summary["initial_state"]) == ("exact", "unknown")
@@ -76,8 +79,17 @@ def test_the_euler_model_on_continuous_data_is_flagged_not_converged(continuous,
     """The source's model fitted to continuous-time recordings is a different vehicle (SPEC § 9):
     samples it gets wrong must say so."""
     path, params = continuous
-    proc = _app("estimate", tmp_path, "experiment=exp5_random_init", f"data.path={path}", "model=euler",
-                "initial_state=unknown", "progress=false", "plots=false", "restarts.count=0")
+    proc = _app(
+        "estimate",
+        tmp_path,
+        "experiment=exp5_random_init",
+        f"data.path={path}",
+        "model=euler",
+        "initial_state=unknown",
+        "progress=false",
+        "plots=false",
+        "restarts.count=0",
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = _rows(tmp_path / "estimates.csv")
     err = _relative_errors(rows, params, [f"p{i}" for i in range(1, 11)])

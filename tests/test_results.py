@@ -1,4 +1,5 @@
 """The results generator: reads pipeline run folders, compares with the source, fails loudly."""
+
 from __future__ import annotations
 
 import json
@@ -28,7 +29,15 @@ def _manifest(tmp_path: Path, stages: list[dict]) -> Path:
 
 
 def _stage(name, run_dir, table, app="qcm-estimate"):
-    return {"name": name, "app": app, "run_dir": str(run_dir), "table": table, "setting": "s", "command": f"{app} ...", "seconds": 1.0}
+    return {
+        "name": name,
+        "app": app,
+        "run_dir": str(run_dir),
+        "table": table,
+        "setting": "s",
+        "command": f"{app} ...",
+        "seconds": 1.0,
+    }
 
 
 def test_verdict_requires_every_criterion():

@@ -1,4 +1,5 @@
 """ISO 8608 road profiles (SPEC §3): variance, class scaling, the fast method equals the direct sum."""
+
 from __future__ import annotations
 
 import math
@@ -16,7 +17,7 @@ def spec_variance(phi0: float, n_waves: int = 1000) -> float:
     """1/2 sum A_i^2 from SPEC §3 written out by hand."""
     omega = np.linspace(0.02 * np.pi, 6 * np.pi, n_waves)
     d_omega = (6 * np.pi - 0.02 * np.pi) / (n_waves - 1)
-    amplitude_sq = phi0 * omega ** -2.0 * d_omega / np.pi
+    amplitude_sq = phi0 * omega**-2.0 * d_omega / np.pi
     return 0.5 * amplitude_sq.sum()
 
 
@@ -34,17 +35,17 @@ def test_variance_of_one_long_profile():
     road = RoadProfile()
     for cls in (0, 2):
         amplitude, phase = road._draw(torch.tensor([cls]), torch.Generator().manual_seed(cls + 1))
-        s = torch.arange(0, 2000, 0.1, dtype=torch.float64)   # 0.1 m < half the shortest wavelength (1/3 m)
+        s = torch.arange(0, 2000, 0.1, dtype=torch.float64)  # 0.1 m < half the shortest wavelength (1/3 m)
         u = road.evaluate(amplitude, phase, s)
-        assert (u ** 2).mean().item() == pytest.approx(spec_variance(1e-6 * 4 ** cls), rel=0.03)
-        assert abs(u.mean().item()) < 0.1 * math.sqrt(spec_variance(1e-6 * 4 ** cls))
+        assert (u**2).mean().item() == pytest.approx(spec_variance(1e-6 * 4**cls), rel=0.03)
+        assert abs(u.mean().item()) < 0.1 * math.sqrt(spec_variance(1e-6 * 4**cls))
 
 
 def test_variance_over_many_profiles():
     """Ensemble mean of u^2 over 3000 independent class-B profiles, within 4 standard errors."""
     road = RoadProfile()
     u = road.sample(torch.full((3000,), 1), 20, 0.01, SPEED, torch.Generator().manual_seed(0))
-    per_profile = (u ** 2).mean(1)
+    per_profile = (u**2).mean(1)
     expected = spec_variance(4e-6)
     standard_error = per_profile.std().item() / math.sqrt(per_profile.numel())
     assert abs(per_profile.mean().item() - expected) < 4 * standard_error
@@ -57,7 +58,7 @@ def test_class_scaling_is_factor_four_in_variance():
     base = road.sample(torch.zeros(5, dtype=torch.long), 300, 0.01, SPEED, torch.Generator().manual_seed(3))
     for k in range(1, len(ROAD_CLASSES)):
         scaled = road.sample(torch.full((5,), k), 300, 0.01, SPEED, torch.Generator().manual_seed(3))
-        torch.testing.assert_close(scaled, base * 2 ** k, rtol=1e-12, atol=0)
+        torch.testing.assert_close(scaled, base * 2**k, rtol=1e-12, atol=0)
         assert road.variance(k) / road.variance(k - 1) == pytest.approx(4.0, rel=1e-13)
 
 

@@ -3,6 +3,7 @@
 Every hostile file here is refused with one-line CheckpointError and the marker file its payload
 would create (or truncate) is checked afterwards: it must not appear / must keep its content.
 """
+
 from __future__ import annotations
 
 import os
@@ -35,11 +36,16 @@ def tiny_cnn(tmp_path_factory) -> Path:
     from hybridqcm.models import PhysicsResidualEstimator
 
     torch.manual_seed(0)
-    module = PhysicsResidualEstimator(net={"channels": [4, 4], "kernels": [16, 8], "strides": [4, 2], "hidden": [8, 4]},
-                                      window=128)
+    module = PhysicsResidualEstimator(
+        net={"channels": [4, 4], "kernels": [16, 8], "strides": [4, 2], "hidden": [8, 4]}, window=128
+    )
     path = tmp_path_factory.mktemp("ckpt") / "cnn.ckpt"
-    checkpoint = {"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                  "hybridqcm_class": "PhysicsResidualEstimator", "pytorch-lightning_version": "2.6.6"}
+    checkpoint = {
+        "state_dict": module.state_dict(),
+        "hyper_parameters": dict(module.hparams),
+        "hybridqcm_class": "PhysicsResidualEstimator",
+        "pytorch-lightning_version": "2.6.6",
+    }
     torch.save(checkpoint, path)
     return path
 
@@ -71,8 +77,13 @@ def test_real_checkpoint_round_trips(tiny_cnn):
         assert torch.equal(value, stored[key]), key
     # what it predicts is recorded: targets, inputs, window, rate, physics
     hp = module.hparams
-    assert (list(hp.target_channels), list(hp.input_channels), hp.window, hp.h, hp.physics) == \
-        (["p1", "p2"], ["a3", "a2"], 128, 0.01, "euler")
+    assert (list(hp.target_channels), list(hp.input_channels), hp.window, hp.h, hp.physics) == (
+        ["p1", "p2"],
+        ["a3", "a2"],
+        128,
+        0.01,
+        "euler",
+    )
 
 
 def test_pickle_payload_is_refused_and_never_runs(tiny_cnn, tmp_path):
@@ -99,20 +110,36 @@ def test_pickle_payload_in_the_estimate_app_never_runs(tiny_cnn, tiny_dataset, t
     marker = tmp_path / "pwned-app"
     evil = _tampered(tiny_cnn, tmp_path / "evil.ckpt", lambda raw: raw.update(extra=_Payload(f"touch {marker}")))
     result = subprocess.run(
-        [sys.executable, "-c", "from hybridqcm.apps.estimate import main; main()", "experiment=exp6_cnn_init",
-         f"data.path={tiny_dataset}", f"cnn_ckpt={evil}", f"hydra.run.dir={tmp_path / 'run'}", "n_samples=2"],
-        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": SRC})
+        [
+            sys.executable,
+            "-c",
+            "from hybridqcm.apps.estimate import main; main()",
+            "experiment=exp6_cnn_init",
+            f"data.path={tiny_dataset}",
+            f"cnn_ckpt={evil}",
+            f"hydra.run.dir={tmp_path / 'run'}",
+            "n_samples=2",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": SRC},
+    )
     assert result.returncode == 2, result.stderr[-2000:]
     assert "refused" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not marker.exists()
 
 
-@pytest.mark.parametrize("net", [
-    {"_target_": "builtins.open", "_args_": ["VICTIM", "w"]},
-    {"_target_": "hybridqcm.models.networks.ParameterCNN", "activation_name": {"_target_": "builtins.open",
-                                                                              "_args_": ["VICTIM", "w"]}},
-    {"_target_": "os.system", "command": "touch VICTIM"},
-])
+@pytest.mark.parametrize(
+    "net",
+    [
+        {"_target_": "builtins.open", "_args_": ["VICTIM", "w"]},
+        {
+            "_target_": "hybridqcm.models.networks.ParameterCNN",
+            "activation_name": {"_target_": "builtins.open", "_args_": ["VICTIM", "w"]},
+        },
+        {"_target_": "os.system", "command": "touch VICTIM"},
+    ],
+)
 def test_hyperparameter_injection_is_refused(tiny_cnn, tmp_path, net):
     victim = tmp_path / "victim.txt"
     victim.write_text("precious")
@@ -129,12 +156,20 @@ def test_hyperparameter_injection_is_refused(tiny_cnn, tmp_path, net):
 
 
 def test_optimizer_target_outside_torch_optim_is_refused(tiny_cnn, tmp_path):
-    evil = _tampered(tiny_cnn, tmp_path / "opt.ckpt",
-                     lambda raw: raw["hyper_parameters"].update(optimizer={"_target_": "subprocess.run", "args": ["true"]}))
+    evil = _tampered(
+        tiny_cnn,
+        tmp_path / "opt.ckpt",
+        lambda raw: raw["hyper_parameters"].update(optimizer={"_target_": "subprocess.run", "args": ["true"]}),
+    )
     with pytest.raises(CheckpointError, match=r"hyper_parameters\.optimizer\._target_ = 'subprocess.run'"):
         read_checkpoint(evil, "cnn")
-    fine = _tampered(tiny_cnn, tmp_path / "adam.ckpt", lambda raw: raw["hyper_parameters"].update(
-        optimizer={"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}))
+    fine = _tampered(
+        tiny_cnn,
+        tmp_path / "adam.ckpt",
+        lambda raw: raw["hyper_parameters"].update(
+            optimizer={"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}
+        ),
+    )
     assert read_checkpoint(fine, "cnn").hparams["optimizer"]["_target_"] == "torch.optim.Adam"
 
 
@@ -171,16 +206,25 @@ def test_estimator_refuses_cnn_for_other_targets_or_channels(tiny_cnn, tmp_path)
     labelled = tmp_path / "labelled.ckpt"
     from hybridqcm.models import LabelledEstimator
 
-    module = LabelledEstimator(net={"channels": [4], "kernels": [8], "strides": [4], "hidden": [4]}, window=64,
-                               target_channels=["p3", "p4"])
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "hybridqcm_class": "LabelledEstimator"}, labelled)
+    module = LabelledEstimator(
+        net={"channels": [4], "kernels": [8], "strides": [4], "hidden": [4]}, window=64, target_channels=["p3", "p4"]
+    )
+    torch.save(
+        {
+            "state_dict": module.state_dict(),
+            "hyper_parameters": dict(module.hparams),
+            "hybridqcm_class": "LabelledEstimator",
+        },
+        labelled,
+    )
     with pytest.raises(CheckpointKindError, match=r"targets \['p3', 'p4'\], but the initialiser needs \['p1', 'p2'\]"):
         HybridEstimator(cnn_ckpt=str(labelled))
     other_h = _tampered(tiny_cnn, tmp_path / "h.ckpt", lambda raw: raw["hyper_parameters"].update(h=0.005))
     with pytest.raises(CheckpointKindError, match=r"trained at h = 0.005 s, but the data have h = 0.01 s"):
         HybridEstimator(cnn_ckpt=str(other_h), h=0.01)
-    continuous = _tampered(tiny_cnn, tmp_path / "c.ckpt", lambda raw: raw["hyper_parameters"].update(physics="continuous"))
+    continuous = _tampered(
+        tiny_cnn, tmp_path / "c.ckpt", lambda raw: raw["hyper_parameters"].update(physics="continuous")
+    )
     with pytest.raises(CheckpointKindError, match="physics = 'continuous'"):
         HybridEstimator(cnn_ckpt=str(continuous))
 

@@ -3,11 +3,15 @@
 import pytest
 import torch
 
-from hybridqcm.estimation.sensitivity import (EulerSensitivity, accelerations_and_jacobian, euler_accelerations,
-                                              euler_sensitivities)
-from hybridqcm.testing import synthetic_samples
+from hybridqcm.estimation.sensitivity import (
+    EulerSensitivity,
+    accelerations_and_jacobian,
+    euler_accelerations,
+    euler_sensitivities,
+)
 from hybridqcm.physics import simulate
 from hybridqcm.physics.integrators import SemiExplicitEuler
+from hybridqcm.testing import synthetic_samples
 
 H = 0.01
 

@@ -1,4 +1,5 @@
 """qcm-simulate end to end, run as a subprocess (Hydra), including its bad-input behaviour."""
+
 from __future__ import annotations
 
 import json
@@ -24,10 +25,17 @@ def _command(tmp_path: Path, overrides, output: Path | None, run_name: str) -> l
 ENV = {**os.environ, "COLUMNS": "160", "PYTHONWARNINGS": "ignore"}
 
 
-def qcm_simulate(tmp_path: Path, *overrides: str, output: Path | None = None, run_name: str = "run",
-                 timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run(_command(tmp_path, overrides, output, run_name), capture_output=True, text=True,
-                          timeout=timeout, env=ENV, cwd=tmp_path)
+def qcm_simulate(
+    tmp_path: Path, *overrides: str, output: Path | None = None, run_name: str = "run", timeout: float = 120
+) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        _command(tmp_path, overrides, output, run_name),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=ENV,
+        cwd=tmp_path,
+    )
 
 
 def test_tiny_preset_writes_a_valid_dataset(tmp_path):
@@ -126,7 +134,7 @@ def test_refuses_to_overwrite_existing_output(tmp_path):
 
 @pytest.mark.parametrize("h", [0.005, 0.002, 0.001])
 def test_logger_rates_continuous_mid_drive(tmp_path, h):
-    n_steps = int(round(0.64 / h))                                  # the same 0.64 s window at every rate
+    n_steps = int(round(0.64 / h))  # the same 0.64 s window at every rate
     result = qcm_simulate(tmp_path, f"h={h}", f"n_steps={n_steps}", "samples_per_profile=2")
     assert result.returncode == 0, result.stderr
     out = tmp_path / "data" / "out.h5"
@@ -135,8 +143,10 @@ def test_logger_rates_continuous_mid_drive(tmp_path, h):
     assert info["attrs"]["h"] == h and info["attrs"]["warmup_s"] == [2.0, 20.0]
     data = read_split(out, "test", ("accel", "vel", "disp", "state0"))
     assert data["accel"].shape[1] == n_steps
-    np.testing.assert_allclose(data["state0"], np.concatenate([data["vel"][:, 0], data["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9)
-    assert np.abs(data["state0"]).min(0).max() > 0                   # windows start while moving
+    np.testing.assert_allclose(
+        data["state0"], np.concatenate([data["vel"][:, 0], data["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9
+    )
+    assert np.abs(data["state0"]).min(0).max() > 0  # windows start while moving
     # the signal is the same physical process at every rate: accel RMS within a factor 2 of 100 Hz
     assert 0.02 < float(np.sqrt((data["accel"][..., 0] ** 2).mean())) < 1.0
 

@@ -5,8 +5,14 @@ import math
 import pytest
 import torch
 
-from hybridqcm.estimation.solver import (GaussNewton, LeastSquaresProblem, LevenbergMarquardt, SolverConfig,
-                                         SolverStatus, build_solver)
+from hybridqcm.estimation.solver import (
+    GaussNewton,
+    LeastSquaresProblem,
+    LevenbergMarquardt,
+    SolverConfig,
+    SolverStatus,
+    build_solver,
+)
 from hybridqcm.testing import synthetic_samples
 
 H = 0.01
@@ -72,11 +78,20 @@ def test_unobserved_channels_do_not_enter(data):
 
 
 def test_zero_road_is_singular_not_nan(data):
-    problem = LeastSquaresProblem(torch.zeros(4, 50, 3, dtype=torch.float64), torch.zeros(4, 50, dtype=torch.float64), H)
+    problem = LeastSquaresProblem(
+        torch.zeros(4, 50, 3, dtype=torch.float64), torch.zeros(4, 50, dtype=torch.float64), H
+    )
     init = data["params"][:4].clone()
     result = GaussNewton().solve(problem, init)
     assert (result.status == SolverStatus.SINGULAR).all()
-    for tensor in (result.params, result.loss, result.loss_history, result.std, result.covariance, result.singular_values):
+    for tensor in (
+        result.params,
+        result.loss,
+        result.loss_history,
+        result.std,
+        result.covariance,
+        result.singular_values,
+    ):
         assert not torch.isnan(tensor).any()
     assert torch.equal(result.params, init)
     assert torch.isinf(result.std).all()  # nothing is identifiable without input
@@ -113,7 +128,11 @@ def test_literal_armijo_rejects_full_steps(data):
 def test_uncertainty_is_calibrated_under_noise():
     data = synthetic_samples(64, n_steps=100, seed=21)
     g = torch.Generator().manual_seed(2)
-    noise = 1e-3 * data["accel"].abs().mean((1,), keepdim=True) * torch.randn(data["accel"].shape, generator=g, dtype=torch.float64)
+    noise = (
+        1e-3
+        * data["accel"].abs().mean((1,), keepdim=True)
+        * torch.randn(data["accel"].shape, generator=g, dtype=torch.float64)
+    )
     problem = LeastSquaresProblem(data["accel"] + noise, data["road"], H)
     result = GaussNewton(SolverConfig(max_iterations=20)).solve(problem, _near_truth(data["params"], 0.02))
     inside = ((result.params - data["params"]).abs() <= 1.96 * result.std).double().mean()
@@ -143,10 +162,13 @@ def test_channel_weights(data):
     accel, road = data["accel"][:8], data["road"][:8]
     base = GaussNewton(SolverConfig(max_iterations=4)).solve(LeastSquaresProblem(accel, road, H), init)
     ones = GaussNewton(SolverConfig(max_iterations=4)).solve(
-        LeastSquaresProblem(accel, road, H, weights=torch.ones(8, 3, dtype=torch.float64)), init)
+        LeastSquaresProblem(accel, road, H, weights=torch.ones(8, 3, dtype=torch.float64)), init
+    )
     assert torch.equal(base.params, ones.params)
     weights = torch.tensor([[10.0, 1.0, 0.1]], dtype=torch.float64).expand(8, 3)
-    weighted = GaussNewton(SolverConfig(max_iterations=15)).solve(LeastSquaresProblem(accel, road, H, weights=weights), init)
+    weighted = GaussNewton(SolverConfig(max_iterations=15)).solve(
+        LeastSquaresProblem(accel, road, H, weights=weights), init
+    )
     err = (weighted.params - data["params"][:8]).abs() / data["params"][:8]
     assert (err <= 1e-6).all()
     with pytest.raises(ValueError, match="weights"):
@@ -161,8 +183,9 @@ def test_wrong_model_is_misfit_not_converged():
 
     data = synthetic_samples(24, n_steps=100, seed=31)
     fine = 20
-    road_fine = torch.nn.functional.interpolate(data["road"][:, None], scale_factor=fine, mode="linear",
-                                                align_corners=False)[:, 0]
+    road_fine = torch.nn.functional.interpolate(
+        data["road"][:, None], scale_factor=fine, mode="linear", align_corners=False
+    )[:, 0]
     continuous = simulate(data["params"], road_fine, H / fine, method="rk4").accel[:, ::fine]
     road = road_fine[:, ::fine]
     solver = GaussNewton(SolverConfig(max_iterations=20))
@@ -205,9 +228,19 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
     mean = torch.zeros(5, 3, dtype=torch.float64)
     precision = torch.tensor([[4.0, 0.0, 100.0]], dtype=torch.float64).expand(5, 3)
     weights = torch.full((5, 1), 10.0, dtype=torch.float64)  # 1/σ
-    problem = LeastSquaresProblem(data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,),
-                                  weights=weights, model=Linear(design), prior_mean=mean, prior_precision=precision)
-    result = GaussNewton(SolverConfig(max_iterations=5, misfit_lags=0)).solve(problem, torch.ones(5, 3, dtype=torch.float64))
+    problem = LeastSquaresProblem(
+        data,
+        torch.zeros(5, 40, dtype=torch.float64),
+        H,
+        observed=(True,),
+        weights=weights,
+        model=Linear(design),
+        prior_mean=mean,
+        prior_precision=precision,
+    )
+    result = GaussNewton(SolverConfig(max_iterations=5, misfit_lags=0)).solve(
+        problem, torch.ones(5, 3, dtype=torch.float64)
+    )
     J = design[:, 0, :] * 10.0
     for b in range(5):
         information = J.T @ J + torch.diag(precision[b])
@@ -218,5 +251,6 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
         posterior = torch.linalg.inv(J.T @ J / result.residual_variance[b] + torch.diag(precision[b]))
         assert torch.allclose(result.std[b], posterior.diagonal().sqrt(), rtol=1e-9)
     with pytest.raises(ValueError, match="prior"):
-        LeastSquaresProblem(data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,), model=Linear(design),
-                            prior_mean=mean)
+        LeastSquaresProblem(
+            data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,), model=Linear(design), prior_mean=mean
+        )

@@ -1,12 +1,12 @@
 """Run tracking and callbacks: HPARAMS with test metrics, csv / mlflow loggers, estimation results in
 TensorBoard, early stopping, rich progress bar, logger=none with the LR monitor."""
+
 from __future__ import annotations
 
 import csv
 import importlib.util
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -51,16 +51,27 @@ def test_test_metrics_reach_hparams_and_csv(data, tmp_path):
     with open(out / "csv" / "metrics.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     test_rows = [r for r in rows if r.get("test/mean_rel_err")]
-    assert len(test_rows) == 1 and float(test_rows[0]["test/mean_rel_err"]) == pytest.approx(summary["test/mean_rel_err"], rel=1e-6)
+    assert len(test_rows) == 1 and float(test_rows[0]["test/mean_rel_err"]) == pytest.approx(
+        summary["test/mean_rel_err"], rel=1e-6
+    )
     assert any(r.get("val/mean_rel_err") for r in rows) and (out / "csv" / "hparams.yaml").exists()
 
 
 def test_early_stopping_stops_and_logger_none_keeps_lr_monitor_quiet(data, tmp_path):
     """6 epochs without early stopping; with min_delta larger than any change, it stops after the 2nd validation."""
     common = [*EXP2, f"data.path={data['tiny']}", "trainer.max_epochs=6", "logger=none"]
-    train(_cfg(common, tmp_path / "full"))                        # callbacks=default: lr_monitor would raise here
-    train(_cfg([*common, "callbacks=early_stopping", "callbacks.early_stopping.min_delta=1e9",
-                "callbacks.early_stopping.patience=1"], tmp_path / "stopped"))
+    train(_cfg(common, tmp_path / "full"))  # callbacks=default: lr_monitor would raise here
+    train(
+        _cfg(
+            [
+                *common,
+                "callbacks=early_stopping",
+                "callbacks.early_stopping.min_delta=1e9",
+                "callbacks.early_stopping.patience=1",
+            ],
+            tmp_path / "stopped",
+        )
+    )
     full = json.loads((tmp_path / "full" / "test_metrics.json").read_text())["steps"]
     stopped = json.loads((tmp_path / "stopped" / "test_metrics.json").read_text())["steps"]
     assert full > 0 and stopped * 3 == full, (stopped, full)
@@ -82,8 +93,15 @@ def test_callback_and_logger_configs_compose(tmp_path):
     assert mlflow.logger.mlflow.tracking_uri == f"file:{tmp_path}/mlruns"
 
 
-@pytest.mark.parametrize("choice, bar", [("default", "RichProgressBar"), ("rich", "RichProgressBar"),
-                                         ("tqdm", "TQDMProgressBar"), ("[early_stopping,tqdm]", "TQDMProgressBar")])
+@pytest.mark.parametrize(
+    "choice, bar",
+    [
+        ("default", "RichProgressBar"),
+        ("rich", "RichProgressBar"),
+        ("tqdm", "TQDMProgressBar"),
+        ("[early_stopping,tqdm]", "TQDMProgressBar"),
+    ],
+)
 def test_progress_bar_switch(tmp_path, choice, bar):
     cfg = _cfg(["experiment=exp1_labelled", f"callbacks={choice}"], tmp_path)
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c is not None]
@@ -100,8 +118,18 @@ def test_rich_progress_bar_run(data, tmp_path):
 def test_mlflow_without_package_is_one_line_naming_the_extra(data, tmp_path):
     with pytest.raises(ConfigError, match=r"logger\.mlflow .*'mlflow'.*pip install -e '\.\[tracking\]'"):
         prepare(_cfg(["experiment=exp2_physics", f"data.path={data['tiny']}", "logger=mlflow"], tmp_path))
-    result = subprocess.run([str(BIN / "qcm-train"), "experiment=exp2_physics", f"data.path={data['tiny']}",
-                             "logger=mlflow", f"hydra.run.dir={tmp_path}/cli"], capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [
+            str(BIN / "qcm-train"),
+            "experiment=exp2_physics",
+            f"data.path={data['tiny']}",
+            "logger=mlflow",
+            f"hydra.run.dir={tmp_path}/cli",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 2 and "[tracking]" in result.stderr and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines()[-1].startswith("error: logger.mlflow"), result.stderr
 
@@ -135,7 +163,9 @@ def test_estimation_table_and_plots_in_event_file(tmp_path):
         original = np.round(mpimg.imread(path)[..., :3] * 255).astype(np.uint8)
         from io import BytesIO
 
-        decoded = np.round(mpimg.imread(BytesIO(logged.encoded_image_string), format="png")[..., :3] * 255).astype(np.uint8)
+        decoded = np.round(mpimg.imread(BytesIO(logged.encoded_image_string), format="png")[..., :3] * 255).astype(
+            np.uint8
+        )
         assert (logged.height, logged.width) == original.shape[:2]
         assert np.array_equal(decoded, original)
     with pytest.raises(FileNotFoundError, match="missing.png"):

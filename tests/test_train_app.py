@@ -1,4 +1,5 @@
 """qcm-train: configs compose, runs write their artefacts, evaluation/denoiser/multirun contracts, bad input fails early."""
+
 from __future__ import annotations
 
 import csv
@@ -20,8 +21,11 @@ from hybridqcm.data.simulate import write_dataset
 from hybridqcm.physics import RoadProfile, build_prior
 
 BIN = Path(sys.executable).parent
-TRAIN_EXPERIMENTS = sorted(p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml")
-                           if (yaml.safe_load(p.read_text()) or {}).get("task") == "train")
+TRAIN_EXPERIMENTS = sorted(
+    p.stem
+    for p in (CONFIG_DIR / "experiment").glob("*.yaml")
+    if (yaml.safe_load(p.read_text()) or {}).get("task") == "train"
+)
 # Small nets and data so a run takes seconds.
 SMALL = ["debug=short", "data.samples_per_epoch=64", "data.val_samples=32", "data.batch_size=32", "seed=1"]
 SMALL_NET = {
@@ -33,9 +37,19 @@ SMALL_NET = {
 
 
 def _tiny(path, seed=0):
-    write_dataset(path, {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-                  build_prior("thesis", h=0.01), RoadProfile(n_waves=200), n_steps=512, h=0.01, speed_mps=30 / 3.6,
-                  samples_per_profile=8, seed=seed, progress=False, compression=None)
+    write_dataset(
+        path,
+        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
+        build_prior("thesis", h=0.01),
+        RoadProfile(n_waves=200),
+        n_steps=512,
+        h=0.01,
+        speed_mps=30 / 3.6,
+        samples_per_profile=8,
+        seed=seed,
+        progress=False,
+        compression=None,
+    )
     return path
 
 
@@ -46,9 +60,19 @@ def data(tmp_path_factory):
     with DatasetWriter(partial) as writer:
         for split in ("train", "test"):
             writer.create_split(split, 8, 512, keys=("accel", "road", "params"))
-            writer.write(split, 0, accel=np.random.rand(8, 512, 3).astype(np.float32), road=np.zeros((8, 512), np.float32),
-                         params=np.ones((8, 10)))
-    return {"tiny": _tiny(root / "tiny.h5"), "other": _tiny(root / "other.h5", seed=1), "partial": partial, "root": root}
+            writer.write(
+                split,
+                0,
+                accel=np.random.rand(8, 512, 3).astype(np.float32),
+                road=np.zeros((8, 512), np.float32),
+                params=np.ones((8, 10)),
+            )
+    return {
+        "tiny": _tiny(root / "tiny.h5"),
+        "other": _tiny(root / "other.h5", seed=1),
+        "partial": partial,
+        "root": root,
+    }
 
 
 def _cfg(overrides, out_dir):
@@ -86,8 +110,11 @@ def test_every_experiment_composes_and_instantiates(experiment, tmp_path):
 
 def test_search_launcher_and_debug_configs_compose(tmp_path):
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=exp1_labelled", "hparams_search=exp1_optuna", "launcher=joblib",
-                                          "debug=fdr"], return_hydra_config=True)
+        cfg = compose(
+            "train",
+            overrides=["experiment=exp1_labelled", "hparams_search=exp1_optuna", "launcher=joblib", "debug=fdr"],
+            return_hydra_config=True,
+        )
     assert "optuna" in cfg.hydra.sweeper._target_ and "joblib" in cfg.hydra.launcher._target_
     assert cfg.optimized_metric == "val/mean_rel_err" and cfg.trainer.fast_dev_run is True
     assert "model.lr_schedule.max_lr" in cfg.hydra.sweeper.params
@@ -114,7 +141,9 @@ def test_denoiser_run_artefacts(trained):
 
 
 def test_unet_run(data, tmp_path):
-    metrics = train(_cfg(["experiment=exp9_unet", f"data.path={data['tiny']}", *SMALL, *SMALL_NET["exp9_unet"]], tmp_path))
+    metrics = train(
+        _cfg(["experiment=exp9_unet", f"data.path={data['tiny']}", *SMALL, *SMALL_NET["exp9_unet"]], tmp_path)
+    )
     assert "test/rel_mse" in metrics and (tmp_path / "checkpoints" / "last.ckpt").exists()
     with open(tmp_path / "mse_summary.csv") as handle:
         assert [r["channel"] for r in csv.DictReader(handle)] == ["a2", "a1"]
@@ -122,10 +151,16 @@ def test_unet_run(data, tmp_path):
 
 def test_cli_evaluates_checkpoint_on_other_file_with_noise_and_denoiser(data, trained, tmp_path):
     run_dir = tmp_path / "eval"
-    command = [str(BIN / "qcm-train"), "experiment=exp2_physics", "train=false",
-               f"ckpt_path={trained['exp2_physics']}/checkpoints/last.ckpt", f"data.path={data['other']}",
-               "data.noise_sigma=0.05", f"denoiser_ckpt={trained['exp4_denoiser']}/checkpoints/last.ckpt",
-               f"hydra.run.dir={run_dir}"]
+    command = [
+        str(BIN / "qcm-train"),
+        "experiment=exp2_physics",
+        "train=false",
+        f"ckpt_path={trained['exp2_physics']}/checkpoints/last.ckpt",
+        f"data.path={data['other']}",
+        "data.noise_sigma=0.05",
+        f"denoiser_ckpt={trained['exp4_denoiser']}/checkpoints/last.ckpt",
+        f"hydra.run.dir={run_dir}",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((run_dir / "test_metrics.json").read_text())
@@ -136,8 +171,18 @@ def test_cli_evaluates_checkpoint_on_other_file_with_noise_and_denoiser(data, tr
 
 def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
     sweep = tmp_path / "sweep"
-    command = [str(BIN / "qcm-train"), "-m", "experiment=exp2_physics", f"data.path={data['tiny']}", "data.noise_sigma=0,0.05",
-               *SMALL, *SMALL_NET["exp2_physics"], "callbacks=none", "logger=none", f"hydra.sweep.dir={sweep}"]
+    command = [
+        str(BIN / "qcm-train"),
+        "-m",
+        "experiment=exp2_physics",
+        f"data.path={data['tiny']}",
+        "data.noise_sigma=0,0.05",
+        *SMALL,
+        *SMALL_NET["exp2_physics"],
+        "callbacks=none",
+        "logger=none",
+        f"hydra.sweep.dir={sweep}",
+    ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=400)
     assert result.returncode == 0, result.stderr[-3000:]
     for job in ("0", "1"):
@@ -155,20 +200,23 @@ def test_unknown_and_non_training_experiments(tmp_path):
     (tmp_path / "experiment" / "exp5_gn.yaml").write_text("# @package _global_\ntask: estimate\n")
     with pytest.raises(ConfigError, match="exp5_gn.*estimate"):
         check_experiment_overrides(["experiment=exp5_gn"], tmp_path)
-    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"])          # multirun lists are fine
+    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"])  # multirun lists are fine
     result = subprocess.run([str(BIN / "qcm-train"), "experiment=nope"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unknown experiment 'nope'" in result.stderr
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (["task=estimate"], "task = 'estimate'"),
-    (["train=false"], "needs ckpt_path"),
-    (["ckpt_path=/nonexistent/x.ckpt"], "does not exist"),
-    (["denoiser_ckpt=/x.ckpt"], "at evaluation"),
-    (["data.noise_sigma=-0.1"], "noise_sigma"),
-    (["data.inputs=[a3,a1]"], "data.inputs"),
-    (["data.inputs=[a3,zz]"], "data.inputs"),
-])
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["task=estimate"], "task = 'estimate'"),
+        (["train=false"], "needs ckpt_path"),
+        (["ckpt_path=/nonexistent/x.ckpt"], "does not exist"),
+        (["denoiser_ckpt=/x.ckpt"], "at evaluation"),
+        (["data.noise_sigma=-0.1"], "noise_sigma"),
+        (["data.inputs=[a3,a1]"], "data.inputs"),
+        (["data.inputs=[a3,zz]"], "data.inputs"),
+    ],
+)
 def test_bad_settings_fail_before_training(overrides, message, data, tmp_path):
     cfg = _cfg(["experiment=exp1_labelled", f"data.path={data['tiny']}", *overrides], tmp_path)
     with pytest.raises(ConfigError, match=message):
@@ -181,10 +229,19 @@ def test_bad_data_and_checkpoints_fail_before_training(data, trained, tmp_path):
         (["experiment=exp2_physics_reference", f"data.path={data['partial']}"], r"partial\.h5.*lacks.*disp"),
         (["experiment=exp1_labelled_reference", f"data.path={data['tiny']}", "data.window=600"], "window = 600"),
         (["experiment=exp1_labelled_reference", f"data.path={tmp_path}/missing.h5"], "does not exist"),
-        (["experiment=exp1_labelled", "train=false", f"ckpt_path={trained['exp4_denoiser']}/checkpoints/last.ckpt"],
-         "holds a DenoisingAutoencoder model, expected LabelledEstimator"),
-        (["experiment=exp9_unet", "train=false", f"ckpt_path={trained['exp2_physics']}/checkpoints/last.ckpt",
-          f"denoiser_ckpt={trained['exp4_denoiser']}/checkpoints/last.ckpt"], "holds a PhysicsResidualEstimator"),
+        (
+            ["experiment=exp1_labelled", "train=false", f"ckpt_path={trained['exp4_denoiser']}/checkpoints/last.ckpt"],
+            "holds a DenoisingAutoencoder model, expected LabelledEstimator",
+        ),
+        (
+            [
+                "experiment=exp9_unet",
+                "train=false",
+                f"ckpt_path={trained['exp2_physics']}/checkpoints/last.ckpt",
+                f"denoiser_ckpt={trained['exp4_denoiser']}/checkpoints/last.ckpt",
+            ],
+            "holds a PhysicsResidualEstimator",
+        ),
     ]
     for overrides, message in cases:
         with pytest.raises(ConfigError, match=message):

@@ -1,4 +1,5 @@
 """Bad inputs of issue 9: each is refused before any work with one line (exit code 2 in the apps)."""
+
 from __future__ import annotations
 
 import math
@@ -52,14 +53,17 @@ def files(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("key, overrides, error, message", [
-    ("empty", [], DatasetError, r"/test is empty \(0 samples\)"),
-    ("group", [], DatasetError, r"/test/accel is a Group, not an array"),
-    ("good", ["n_samples=7"], ConfigError, r"n_samples=7 but .*good.h5 /test holds 6 samples"),
-    ("good", ["+data.pathh=x.h5"], ConfigError, r"unknown setting data.pathh='x.h5'"),
-    ("good", ["+foo=1"], ConfigError, r"unknown setting foo=1"),
-    ("negative", [], DatasetError, r"/test/params\[2, 4\] \(p5\) = -[0-9.]+; parameters must be finite and > 0"),
-])
+@pytest.mark.parametrize(
+    "key, overrides, error, message",
+    [
+        ("empty", [], DatasetError, r"/test is empty \(0 samples\)"),
+        ("group", [], DatasetError, r"/test/accel is a Group, not an array"),
+        ("good", ["n_samples=7"], ConfigError, r"n_samples=7 but .*good.h5 /test holds 6 samples"),
+        ("good", ["+data.pathh=x.h5"], ConfigError, r"unknown setting data.pathh='x.h5'"),
+        ("good", ["+foo=1"], ConfigError, r"unknown setting foo=1"),
+        ("negative", [], DatasetError, r"/test/params\[2, 4\] \(p5\) = -[0-9.]+; parameters must be finite and > 0"),
+    ],
+)
 def test_estimate_refuses_before_any_work(files, key, overrides, error, message):
     with pytest.raises(error, match=message) as info:
         validate(_cfg("estimate", ["experiment=exp5_random_init", f"data.path={files[key]}", *overrides]))
@@ -67,8 +71,12 @@ def test_estimate_refuses_before_any_work(files, key, overrides, error, message)
 
 
 def test_n_samples_equal_to_the_split_is_fine(files):
-    assert validate(_cfg("estimate", ["experiment=exp5_random_init", f"data.path={files['good']}",
-                                      "n_samples=6"]))["n_samples"] == 6
+    assert (
+        validate(_cfg("estimate", ["experiment=exp5_random_init", f"data.path={files['good']}", "n_samples=6"]))[
+            "n_samples"
+        ]
+        == 6
+    )
 
 
 def test_read_only_run_folder_is_found_before_solving(files, tmp_path):
@@ -78,9 +86,20 @@ def test_read_only_run_folder_is_found_before_solving(files, tmp_path):
     run.mkdir()
     run.chmod(stat.S_IRUSR | stat.S_IXUSR)
     try:
-        result = subprocess.run([sys.executable, "-c", "from hybridqcm.apps.estimate import main; main()",
-                                 "experiment=exp5_random_init", f"data.path={files['good']}", f"hydra.run.dir={run}",
-                                 "progress=false"], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": SRC})
+        result = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                "from hybridqcm.apps.estimate import main; main()",
+                "experiment=exp5_random_init",
+                f"data.path={files['good']}",
+                f"hydra.run.dir={run}",
+                "progress=false",
+            ],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": SRC},
+        )
     finally:
         run.chmod(0o755)
     assert result.returncode == 2 and "not writable" in result.stderr
@@ -105,9 +124,13 @@ def test_task_name_must_be_a_plain_folder_name(name):
 
 
 def test_task_name_traversal_is_refused_by_the_app(tmp_path):
-    result = subprocess.run([sys.executable, "-c", "from hybridqcm.apps.estimate import main; main()",
-                             "task_name=../../escaped"], capture_output=True, text=True, cwd=tmp_path,
-                            env={**os.environ, "PYTHONPATH": SRC})
+    result = subprocess.run(
+        [sys.executable, "-c", "from hybridqcm.apps.estimate import main; main()", "task_name=../../escaped"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": SRC},
+    )
     assert result.returncode == 2 and "task_name='../../escaped'" in result.stderr
     assert not (tmp_path.parent / "escaped").exists() and not (tmp_path / "outputs").exists()
 
@@ -116,10 +139,25 @@ def test_train_logger_none_with_lr_monitor_is_one_line(tmp_path):
     from hybridqcm.apps.train import check_logger_callbacks
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", overrides=["experiment=exp1_labelled", "logger=none", f"paths.output_dir={tmp_path}",
-                                          f"paths.root_dir={tmp_path}"])
-        fine = compose("train", overrides=["experiment=exp1_labelled", "logger=none", "~callbacks.lr_monitor",
-                                           f"paths.output_dir={tmp_path}", f"paths.root_dir={tmp_path}"])
+        cfg = compose(
+            "train",
+            overrides=[
+                "experiment=exp1_labelled",
+                "logger=none",
+                f"paths.output_dir={tmp_path}",
+                f"paths.root_dir={tmp_path}",
+            ],
+        )
+        fine = compose(
+            "train",
+            overrides=[
+                "experiment=exp1_labelled",
+                "logger=none",
+                "~callbacks.lr_monitor",
+                f"paths.output_dir={tmp_path}",
+                f"paths.root_dir={tmp_path}",
+            ],
+        )
     with pytest.raises(ConfigError, match=r"callbacks.lr_monitor \(LearningRateMonitor\) needs a logger"):
         check_logger_callbacks(cfg)
     check_logger_callbacks(fine)
@@ -142,7 +180,9 @@ def test_coverage_counts_diverged_and_non_finite_as_not_covered():
     failed = torch.tensor([False, False, False, True])
     # only sample 0 is covered: 1 has infinite std, 2 a NaN estimate, 3 diverged
     assert coverage_95(estimate, truth, std, failed) == 0.25
-    assert coverage_95(estimate, truth, torch.full((4,), math.inf, dtype=torch.float64), torch.ones(4, dtype=bool)) == 0.0
+    assert (
+        coverage_95(estimate, truth, torch.full((4,), math.inf, dtype=torch.float64), torch.ones(4, dtype=bool)) == 0.0
+    )
 
 
 def test_train_refuses_unknown_top_level_keys(tmp_path):

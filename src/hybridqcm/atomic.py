@@ -1,13 +1,14 @@
 """Atomic file writes: a temporary file beside the target, renamed into place once complete,
 so a reader never sees a half-written table or summary."""
+
 from __future__ import annotations
 
 import csv
 import io
 import os
 import tempfile
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:

@@ -8,6 +8,7 @@ Library code raises these; the apps print them in one line and exit with code 2
     ├── DatasetError      a dataset file that cannot be used (or written)
     └── CheckpointError   a checkpoint that is missing, unreadable, foreign, refused or of the wrong kind
 """
+
 from __future__ import annotations
 
 

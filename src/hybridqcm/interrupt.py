@@ -6,6 +6,7 @@ weakref callback or a __del__ (garbage collection inside torch or h5py), the int
 completes. The handler therefore also records the request, and long loops call
 `check_stop()` at safe points (DatasetWriter.write, once per chunk), which raises it again.
 """
+
 from __future__ import annotations
 
 import signal

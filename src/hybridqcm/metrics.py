@@ -4,11 +4,12 @@ Per parameter over a set of samples, with the relative error e = |p_hat - p| / |
 max, mean and std of e and the fractions with e <= 1 %, <= 5 %, <= 10 %, <= 25 % and > 25 %.
 Column names match ../shared/reference/thesis_tables.csv so rows can be set side by side.
 """
+
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -18,8 +19,18 @@ from torchmetrics import Metric
 from hybridqcm.atomic import atomic_write_text
 
 THRESHOLDS = (0.01, 0.05, 0.10, 0.25)
-COLUMNS = ("param", "n", "max_err", "mean_err", "std_err", "within_1pct", "within_5pct", "within_10pct",
-           "within_25pct", "over_25pct")
+COLUMNS = (
+    "param",
+    "n",
+    "max_err",
+    "mean_err",
+    "std_err",
+    "within_1pct",
+    "within_5pct",
+    "within_10pct",
+    "within_25pct",
+    "over_25pct",
+)
 
 
 def relative_errors(pred: Tensor | np.ndarray, target: Tensor | np.ndarray) -> Tensor:
@@ -45,10 +56,13 @@ def error_distribution_rows(pred, target, names: Sequence[str]) -> list[dict]:
 def _row(name: str, e: Tensor) -> dict:
     n = e.numel()
     finite = e[torch.isfinite(e)]
-    row = {"param": name, "n": n,
-           "max_err": float(e.max()) if n else float("nan"),
-           "mean_err": float(e.mean()) if n else float("nan"),
-           "std_err": float(e.std(unbiased=False)) if n else float("nan")}
+    row = {
+        "param": name,
+        "n": n,
+        "max_err": float(e.max()) if n else float("nan"),
+        "mean_err": float(e.mean()) if n else float("nan"),
+        "std_err": float(e.std(unbiased=False)) if n else float("nan"),
+    }
     if finite.numel() < n:  # report the non-finite count plainly instead of a silent inf mean
         row["non_finite"] = n - finite.numel()
     for t in THRESHOLDS:
@@ -81,22 +95,29 @@ class ErrorDistribution(Metric):
 
     def scalars(self, prefix: str = "") -> dict[str, float]:
         """Flat {prefix/p1/mean_err: ...} for loggers."""
-        return {f"{prefix}{row['param']}/{k}": float(v) for row in self.compute() for k, v in row.items()
-                if k not in ("param", "n", "non_finite")}
+        return {
+            f"{prefix}{row['param']}/{k}": float(v)
+            for row in self.compute()
+            for k, v in row.items()
+            if k not in ("param", "n", "non_finite")
+        }
 
 
 def rows_to_markdown(rows: Sequence[dict], title: str | None = None) -> str:
     header = ["param", "max", "mean", "std", "≤1 %", "≤5 %", "≤10 %", "≤25 %", ">25 %"]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
-        lines.append(f"| {r['param']} | {100 * r['max_err']:.3g} % | {100 * r['mean_err']:.3g} % | {100 * r['std_err']:.3g} % | "
-                     f"{100 * r['within_1pct']:.2f} % | {100 * r['within_5pct']:.2f} % | {100 * r['within_10pct']:.2f} % | "
-                     f"{100 * r['within_25pct']:.2f} % | {100 * r['over_25pct']:.2f} % |")
+        lines.append(
+            f"| {r['param']} | {100 * r['max_err']:.3g} % | {100 * r['mean_err']:.3g} % | {100 * r['std_err']:.3g} % | "
+            f"{100 * r['within_1pct']:.2f} % | {100 * r['within_5pct']:.2f} % | {100 * r['within_10pct']:.2f} % | "
+            f"{100 * r['within_25pct']:.2f} % | {100 * r['over_25pct']:.2f} % |"
+        )
     return "\n".join(lines) + "\n"
 
 
-def write_error_distribution(rows: Sequence[dict], directory: str | Path, stem: str = "error_distribution",
-                             title: str | None = None) -> tuple[Path, Path]:
+def write_error_distribution(
+    rows: Sequence[dict], directory: str | Path, stem: str = "error_distribution", title: str | None = None
+) -> tuple[Path, Path]:
     """Write `stem.csv` and `stem.md` into `directory` (atomically). Returns both paths."""
     directory = Path(directory)
     csv_path, md_path = directory / f"{stem}.csv", directory / f"{stem}.md"
@@ -127,7 +148,7 @@ def read_error_distribution(path: str | Path) -> list[dict]:
             try:
                 row = {k: (raw[k] if k == "param" else float(raw[k])) for k in COLUMNS}
                 row["n"] = int(row["n"]) if float(row["n"]).is_integer() else row["n"]
-                if raw.get("non_finite") not in (None, "", "0"):   # written only when there were some
+                if raw.get("non_finite") not in (None, "", "0"):  # written only when there were some
                     row["non_finite"] = int(raw["non_finite"])
             except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{path}:{line_no}: malformed value in row {raw}") from None

@@ -3,10 +3,11 @@
 All functions return a matplotlib Figure (for TensorBoard's add_figure) and, given `path`,
 also save it as PNG. The Agg backend is used so nothing needs a display.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import matplotlib
 
@@ -25,8 +26,14 @@ def _save(fig, path: str | Path | None):
     return fig
 
 
-def plot_sorted_predictions(pred: np.ndarray, target: np.ndarray, name: str, path: str | Path | None = None,
-                            title: str | None = None, max_points: int = 20000):
+def plot_sorted_predictions(
+    pred: np.ndarray,
+    target: np.ndarray,
+    name: str,
+    path: str | Path | None = None,
+    title: str | None = None,
+    max_points: int = 20000,
+):
     """Samples ordered by true value: the true curve, predictions, ±10 % and ±25 % bands."""
     pred, target = np.asarray(pred, dtype=float).ravel(), np.asarray(target, dtype=float).ravel()
     order = np.argsort(target)
@@ -48,8 +55,13 @@ def plot_sorted_predictions(pred: np.ndarray, target: np.ndarray, name: str, pat
     return fig
 
 
-def plot_overlays(time: np.ndarray, curves: dict[str, np.ndarray], path: str | Path | None = None,
-                  title: str = "", ylabel: str = "acceleration [m/s²]"):
+def plot_overlays(
+    time: np.ndarray,
+    curves: dict[str, np.ndarray],
+    path: str | Path | None = None,
+    title: str = "",
+    ylabel: str = "acceleration [m/s²]",
+):
     """A few example signals on top of each other, one panel per row of the arrays [examples, time]."""
     n = next(iter(curves.values())).shape[0]
     fig, axes = plt.subplots(n, 1, figsize=(8, 1.8 * n + 0.6), sharex=True, squeeze=False)
@@ -65,8 +77,9 @@ def plot_overlays(time: np.ndarray, curves: dict[str, np.ndarray], path: str | P
     return fig
 
 
-def plot_histogram(values: np.ndarray, path: str | Path | None = None, title: str = "", xlabel: str = "",
-                   log_x: bool = True):
+def plot_histogram(
+    values: np.ndarray, path: str | Path | None = None, title: str = "", xlabel: str = "", log_x: bool = True
+):
     """Histogram of per-sample values (log-spaced bins for errors spanning decades)."""
     values = np.asarray(values, dtype=float)
     values = values[np.isfinite(values)]

@@ -13,8 +13,14 @@ import torch
 from torch import Tensor
 
 
-def synthetic_samples(n: int, n_steps: int = 100, seed: int = 0, h: float = 0.01, speed_mps: float = 30 / 3.6,
-                      road_classes: tuple[int, ...] = (0, 1, 2)) -> dict[str, Tensor]:
+def synthetic_samples(
+    n: int,
+    n_steps: int = 100,
+    seed: int = 0,
+    h: float = 0.01,
+    speed_mps: float = 30 / 3.6,
+    road_classes: tuple[int, ...] = (0, 1, 2),
+) -> dict[str, Tensor]:
     """accel [n, n_steps, 3], vel, disp, road [n, n_steps], params [n, 10] (float64, noise-free)."""
     from hybridqcm.physics import RoadProfile, build_prior, simulate
 
@@ -23,24 +29,45 @@ def synthetic_samples(n: int, n_steps: int = 100, seed: int = 0, h: float = 0.01
     classes = torch.tensor(road_classes)[torch.randint(0, len(road_classes), (n,), generator=generator)]
     road = RoadProfile().sample(classes, n_steps, h, speed_mps, generator)
     trajectory = simulate(params, road, h)
-    return {"accel": trajectory.accel, "vel": trajectory.vel, "disp": trajectory.disp, "road": road,
-            "params": params, "road_class": classes}
+    return {
+        "accel": trajectory.accel,
+        "vel": trajectory.vel,
+        "disp": trajectory.disp,
+        "road": road,
+        "params": params,
+        "road_class": classes,
+    }
 
 
-def write_dataset(path: str | Path, samples: dict[str, Tensor], split: str = "test", with_params: bool = True,
-                  h: float = 0.01) -> Path:
+def write_dataset(
+    path: str | Path, samples: dict[str, Tensor], split: str = "test", with_params: bool = True, h: float = 0.01
+) -> Path:
     """Write ``samples`` as a SPEC §5 file (float32 signals); optionally without /params."""
     from hybridqcm.data.hdf5 import DatasetWriter
 
     n, n_steps = samples["road"].shape
     keys = ["accel", "vel", "disp", "road"] + (["params"] if with_params else [])
-    with DatasetWriter(path, attrs={"h": h, "n_steps": n_steps, "speed_mps": 30 / 3.6, "prior": "thesis", "seed": 0,
-                                    "created_by": "hybridqcm.testing",
-                                    "physics": "euler", "warmup_s": [0.0, 0.0]}, overwrite=True,
-                       compression=None) as writer:
+    with DatasetWriter(
+        path,
+        attrs={
+            "h": h,
+            "n_steps": n_steps,
+            "speed_mps": 30 / 3.6,
+            "prior": "thesis",
+            "seed": 0,
+            "created_by": "hybridqcm.testing",
+            "physics": "euler",
+            "warmup_s": [0.0, 0.0],
+        },
+        overwrite=True,
+        compression=None,
+    ) as writer:
         writer.create_split(split, n, n_steps, keys=keys)
-        writer.write(split, 0, **{k: np.asarray(samples[k].numpy(), dtype=np.float64 if k == "params" else np.float32)
-                                  for k in keys})
+        writer.write(
+            split,
+            0,
+            **{k: np.asarray(samples[k].numpy(), dtype=np.float64 if k == "params" else np.float32) for k in keys},
+        )
     return Path(path)
 
 
@@ -62,16 +89,25 @@ def _fit(module, tensors: dict[str, Tensor], path: Path, steps: int) -> Path:
 
     module.fit_normalisation({k: v for k, v in tensors.items()})
     loader = torch.utils.data.DataLoader(_Batches(tensors), batch_size=16, shuffle=True, collate_fn=lambda b: b)
-    trainer = lightning.Trainer(accelerator="cpu", devices=1, max_steps=steps, logger=False, enable_checkpointing=False,
-                                enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0)
+    trainer = lightning.Trainer(
+        accelerator="cpu",
+        devices=1,
+        max_steps=steps,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+    )
     trainer.fit(module, train_dataloaders=loader)
     path.parent.mkdir(parents=True, exist_ok=True)
     trainer.save_checkpoint(str(path))
     return path
 
 
-def train_tiny_checkpoints(directory: str | Path, samples: dict[str, Tensor], steps: int = 3,
-                           window: int = 128) -> dict[str, Path]:
+def train_tiny_checkpoints(
+    directory: str | Path, samples: dict[str, Tensor], steps: int = 3, window: int = 128
+) -> dict[str, Path]:
     """Train tiny CNN / U-Net / CAE for a few steps on ``samples`` (n_steps >= window) and save them.
 
     Their accuracy is irrelevant (a few steps); what matters is that they are real checkpoints of
@@ -89,13 +125,24 @@ def train_tiny_checkpoints(directory: str | Path, samples: dict[str, Tensor], st
     # PhysicsResidualEstimator aux channels: (a3, v3, v2, q3, q2)
     aux = torch.stack([a3.double(), vel[..., 0], vel[..., 1], disp[..., 0], disp[..., 1]], 1)[..., :window]
     torch.manual_seed(0)
-    cnn = PhysicsResidualEstimator(net={"channels": [4, 4], "kernels": [16, 8], "strides": [4, 2], "hidden": [8, 4]},
-                                   window=window)
-    paths = {"cnn": _fit(cnn, {"x": x_cnn, "y": samples["params"][:, :2].double(), "aux": aux, "index": index},
-                         directory / "cnn.ckpt", steps)}
+    cnn = PhysicsResidualEstimator(
+        net={"channels": [4, 4], "kernels": [16, 8], "strides": [4, 2], "hidden": [8, 4]}, window=window
+    )
+    paths = {
+        "cnn": _fit(
+            cnn,
+            {"x": x_cnn, "y": samples["params"][:, :2].double(), "aux": aux, "index": index},
+            directory / "cnn.ckpt",
+            steps,
+        )
+    }
     unet = CompletionUNet(net={"filters": [2, 4], "kernel_size": 5}, window=window)
-    paths["unet"] = _fit(unet, {"x": torch.stack([a3, pu_u], 1)[..., :window], "y": torch.stack([a2, a1], 1)[..., :window],
-                                "index": index}, directory / "unet.ckpt", steps)
+    paths["unet"] = _fit(
+        unet,
+        {"x": torch.stack([a3, pu_u], 1)[..., :window], "y": torch.stack([a2, a1], 1)[..., :window], "index": index},
+        directory / "unet.ckpt",
+        steps,
+    )
     cae = DenoisingAutoencoder(net={"channels": [4, 4], "kernel_size": 9}, window=window)
     paths["cae"] = _fit(cae, {"x": x_cnn, "y": x_cnn, "index": index}, directory / "cae.ckpt", steps)
     return paths

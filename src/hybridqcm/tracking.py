@@ -10,15 +10,21 @@
 - `log_estimation_to_tensorboard`: the estimation error-distribution table (markdown text) and
   the sorted-prediction plots (images) into a TensorBoard event file, beside the GN losses.
 """
+
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 # logger class name -> (module it imports, pyproject extra that installs it)
-OPTIONAL_LOGGER_PACKAGES = {"MLFlowLogger": ("mlflow", "tracking"), "WandbLogger": ("wandb", None),
-                            "CometLogger": ("comet_ml", None), "NeptuneLogger": ("neptune", None)}
+OPTIONAL_LOGGER_PACKAGES = {
+    "MLFlowLogger": ("mlflow", "tracking"),
+    "WandbLogger": ("wandb", None),
+    "CometLogger": ("comet_ml", None),
+    "NeptuneLogger": ("neptune", None),
+}
 # top-level config keys recorded as hyper-parameters (the rest is paths and bookkeeping)
 HPARAM_KEYS = ("task_name", "seed", "model", "data", "trainer", "ckpt_path", "denoiser_ckpt", "optimized_metric")
 
@@ -57,8 +63,11 @@ def hparams_of(cfg) -> dict[str, Any]:
         from hydra.core.hydra_config import HydraConfig
 
         choices = OmegaConf.to_container(HydraConfig.get().runtime.choices)
-        params["choices"] = {k: ",".join(map(str, v)) if isinstance(v, list) else v for k, v in choices.items()
-                             if k != "hydra" and not k.startswith("hydra/") and v is not None}  # callbacks=[a,b] -> "a,b"
+        params["choices"] = {
+            k: ",".join(map(str, v)) if isinstance(v, list) else v
+            for k, v in choices.items()
+            if k != "hydra" and not k.startswith("hydra/") and v is not None
+        }  # callbacks=[a,b] -> "a,b"
     except (ImportError, ValueError):  # composed outside a Hydra run (tests, API use)
         pass
     return params
@@ -90,14 +99,23 @@ def _markdown(rows: Sequence[Mapping[str, Any]], title: str | None) -> str:
     for row in rows:
         fields += [k for k in row if k not in fields]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(fields) + " |", "|" + "---|" * len(fields)]
-    lines += ["| " + " | ".join(f"{r.get(f, ''):.4g}" if isinstance(r.get(f), float) else str(r.get(f, ""))
-                                for f in fields) + " |" for r in rows]
+    lines += [
+        "| "
+        + " | ".join(f"{r.get(f, ''):.4g}" if isinstance(r.get(f), float) else str(r.get(f, "")) for f in fields)
+        + " |"
+        for r in rows
+    ]
     return "\n".join(lines) + "\n"
 
 
-def log_estimation_to_tensorboard(log_dir: str | Path, table_rows: Sequence[Mapping[str, Any]],
-                                  plot_paths: Iterable[str | Path], step: int = 0, title: str | None = None,
-                                  prefix: str = "estimation") -> Path:
+def log_estimation_to_tensorboard(
+    log_dir: str | Path,
+    table_rows: Sequence[Mapping[str, Any]],
+    plot_paths: Iterable[str | Path],
+    step: int = 0,
+    title: str | None = None,
+    prefix: str = "estimation",
+) -> Path:
     """Write the error-distribution table and the plots (PNG files) to a TensorBoard event file in `log_dir`.
 
     table_rows: metrics.error_distribution_rows output (rendered as in error_distribution.md) or any
@@ -117,7 +135,7 @@ def log_estimation_to_tensorboard(log_dir: str | Path, table_rows: Sequence[Mapp
             path = Path(path)
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: plot file does not exist")
-            image = mpimg.imread(path)                         # PNG -> float [H, W, 3|4] in [0, 1]
+            image = mpimg.imread(path)  # PNG -> float [H, W, 3|4] in [0, 1]
             if image.ndim == 2:
                 image = image[..., None].repeat(3, -1)
             writer.add_image(f"{prefix}/{path.stem}", image[..., :3], global_step=step, dataformats="HWC")

@@ -1,4 +1,5 @@
 """Shared pieces of the Hydra entry points: config location, error exit, console tables, a quiet console."""
+
 from __future__ import annotations
 
 import functools
@@ -6,8 +7,10 @@ import logging
 import os
 import sys
 import warnings
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, NoReturn, Sequence
+from typing import NoReturn
+
 
 def _register_resolvers() -> None:
     """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes."""
@@ -184,14 +187,18 @@ def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path 
         for name in (n.strip() for n in value.split(",")):
             path = Path(config_dir) / "experiment" / f"{name}.yaml"
             if not path.is_file():
-                raise ConfigError(f"unknown experiment {name!r} (no {path}); {app} experiments: "
-                                  f"{', '.join(experiments_for(task, config_dir))}")
+                raise ConfigError(
+                    f"unknown experiment {name!r} (no {path}); {app} experiments: "
+                    f"{', '.join(experiments_for(task, config_dir))}"
+                )
             declared = experiment_task(path)
             if declared != task:
-                raise ConfigError(f"experiment {name!r} is not a{'n' if task == 'estimate' else ''} "
-                                  f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
-                                  f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
-                                  f"the others run with {other}")
+                raise ConfigError(
+                    f"experiment {name!r} is not a{'n' if task == 'estimate' else ''} "
+                    f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
+                    f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
+                    f"the others run with {other}"
+                )
 
 
 def run_hydra_app(config_name: str, task: str, entry) -> None:

@@ -13,15 +13,14 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
-from hybridqcm.apps import common
+from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail, print_table
-from hybridqcm.apps import runfolder
 from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 from hybridqcm.errors import HybridQCMError
 
@@ -107,8 +106,10 @@ def check_positive_params(path: Path, split: str, params, n: int) -> None:
     bad = np.argwhere(~(np.isfinite(values) & (values > 0)))
     if bad.size:
         i, j = (int(x) for x in bad[0])
-        raise DatasetError(f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {float(values[i, j])!r}; parameters "
-                           f"must be finite and > 0 ({len(bad)} such values)")
+        raise DatasetError(
+            f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {float(values[i, j])!r}; parameters "
+            f"must be finite and > 0 ({len(bad)} such values)"
+        )
 
 
 def _known_key_tree() -> dict:
@@ -145,8 +146,10 @@ def check_known_keys(cfg) -> None:
         for key in node.keys():
             name = f"{prefix}{key}"
             if key not in tree:
-                raise ConfigError(f"unknown setting {name}={node[key]!r} (qcm-estimate does not use it); "
-                                  f"known under {prefix or 'the top level'}: {sorted(tree)}")
+                raise ConfigError(
+                    f"unknown setting {name}={node[key]!r} (qcm-estimate does not use it); "
+                    f"known under {prefix or 'the top level'}: {sorted(tree)}"
+                )
             sub = tree[key]
             if isinstance(sub, dict) and key not in _OPEN_KEYS and isinstance(node[key], DictConfig):
                 walk(node[key], sub, f"{name}.")
@@ -185,18 +188,26 @@ def validate(cfg) -> dict:
         from hybridqcm.estimation.hybrid import BASE_EXCITATION
 
         if base not in BASE_EXCITATION:
-            raise ConfigError(f"base_excitation={base!r}: choose one of {sorted(BASE_EXCITATION)} or null (road-driven)")
+            raise ConfigError(
+                f"base_excitation={base!r}: choose one of {sorted(BASE_EXCITATION)} or null (road-driven)"
+            )
         driver, outputs, n_params = BASE_EXCITATION[base]
         missing = [c for c in (driver, *outputs) if c not in observed]
         if missing:
-            raise ConfigError(f"base_excitation={base} is driven by the measured {driver} and fits {list(outputs)}: "
-                              f"observed={observed} lacks {missing}")
+            raise ConfigError(
+                f"base_excitation={base} is driven by the measured {driver} and fits {list(outputs)}: "
+                f"observed={observed} lacks {missing}"
+            )
         if any(j >= n_params for j in known):
             raise ConfigError(f"known={list(cfg.known)}: the {base} model holds only p1..p{n_params}")
         if str(cfg.model) == "euler":
-            raise ConfigError(f"base_excitation={base} uses the exact continuous-time model: model=euler is not available")
+            raise ConfigError(
+                f"base_excitation={base} uses the exact continuous-time model: model=euler is not available"
+            )
         if str(cfg.initial_state) == "rest":
-            raise ConfigError(f"base_excitation={base}: the initial relative state is always estimated (initial_state=unknown)")
+            raise ConfigError(
+                f"base_excitation={base}: the initial relative state is always estimated (initial_state=unknown)"
+            )
     if cfg.known_source not in ("file", "reference"):
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if int(cfg.batch_size) < 1:
@@ -212,9 +223,16 @@ def validate(cfg) -> dict:
         if window is not None and not 2 <= int(window):
             raise ConfigError(f"stages[{i}].n_steps must be >= 2 (or null for n_steps), got {window}")
         method, settings = solver_settings(cfg, stage)
-        stages.append({"name": name, "channels": channels if isinstance(channels, str) else list(channels),
-                       "method": method, "settings": settings, "n_steps": None if window is None else int(window),
-                       "guard": guard})
+        stages.append(
+            {
+                "name": name,
+                "channels": channels if isinstance(channels, str) else list(channels),
+                "method": method,
+                "settings": settings,
+                "n_steps": None if window is None else int(window),
+                "guard": guard,
+            }
+        )
     if not stages:
         raise ConfigError("stages is empty: give at least one GN stage")
 
@@ -229,24 +247,32 @@ def validate(cfg) -> dict:
             except CheckpointKindError as error:
                 raise ConfigError(str(error)) from None
     if cfg.init.cnn and not cfg.cnn_ckpt:
-        raise ConfigError(f"experiment {cfg.experiment_name} initialises p1, p2 with the CNN: give cnn_ckpt=PATH "
-                          f"(or init.cnn=false for a random init)")
+        raise ConfigError(
+            f"experiment {cfg.experiment_name} initialises p1, p2 with the CNN: give cnn_ckpt=PATH "
+            f"(or init.cnn=false for a random init)"
+        )
     completes = bool(cfg.unet_ckpt) and not {"a2", "a1"} <= set(observed)
     if cfg.init.equation_error and not (completes or set(observed) == set(CHANNELS)):
-        raise ConfigError(f"init.equation_error needs all three accelerations: observe them or give unet_ckpt=PATH "
-                          f"(observed={observed})")
+        raise ConfigError(
+            f"init.equation_error needs all three accelerations: observe them or give unet_ckpt=PATH "
+            f"(observed={observed})"
+        )
     for stage in stages:  # explicit channel lists must be measured or completed
         if not isinstance(stage["channels"], str):
             available = set(observed) | ({"a2", "a1"} if completes else set())
             missing = [c for c in stage["channels"] if c not in available]
             if missing:
-                raise ConfigError(f"stage {stage['name']!r} uses channels {missing}, which are neither observed "
-                                  f"(observed={observed}) nor completed by a U-Net")
+                raise ConfigError(
+                    f"stage {stage['name']!r} uses channels {missing}, which are neither observed "
+                    f"(observed={observed}) nor completed by a U-Net"
+                )
         elif stage["channels"] not in ("all", "observed"):
             raise ConfigError(f"stage {stage['name']!r}: channels={stage['channels']!r}; use all, observed or a list")
     if cfg.init.cnn and "a2" not in observed and not completes and not cfg.cnn_a2_from_file:
-        raise ConfigError("the CNN initialiser reads a2, which is not observed: give unet_ckpt=PATH to complete it "
-                          "(or cnn_a2_from_file=true to use the file's a2 for the initial guess only)")
+        raise ConfigError(
+            "the CNN initialiser reads a2, which is not observed: give unet_ckpt=PATH to complete it "
+            "(or cnn_a2_from_file=true to use the file's a2 for the initial guess only)"
+        )
     if cfg.cae_ckpt and "a2" not in observed and not completes:
         raise ConfigError("cae_ckpt denoises (a3, a2) but a2 is neither observed nor completed (give unet_ckpt)")
 
@@ -262,30 +288,41 @@ def validate(cfg) -> dict:
             raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
     has_params = "params" in keys
     if not has_params and known and cfg.known_source == "file":
-        raise DatasetError(f"{path}: /{split} has no 'params', so the known parameters {[PARAM_NAMES[i] for i in known]} "
-                           f"cannot come from the file; set known_source=reference to take them from the vehicle config")
+        raise DatasetError(
+            f"{path}: /{split} has no 'params', so the known parameters {[PARAM_NAMES[i] for i in known]} "
+            f"cannot come from the file; set known_source=reference to take them from the vehicle config"
+        )
     import h5py
 
     with h5py.File(path, "r") as handle:
         accel = handle[split]["accel"]
         if not isinstance(accel, h5py.Dataset) or accel.ndim != 3:
-            raise DatasetError(f"{path}: /{split}/accel is a {type(accel).__name__}"
-                               f"{'' if not isinstance(accel, h5py.Dataset) else f' of shape {accel.shape}'}, "
-                               f"not an array [M, n_steps, 3]")
+            raise DatasetError(
+                f"{path}: /{split}/accel is a {type(accel).__name__}"
+                f"{'' if not isinstance(accel, h5py.Dataset) else f' of shape {accel.shape}'}, "
+                f"not an array [M, n_steps, 3]"
+            )
         stored = int(accel.shape[1])
         n_total = int(accel.shape[0])
         h_file = float(handle.attrs["h"]) if "h" in handle.attrs else None
         if n_total == 0:
             raise DatasetError(f"{path}: /{split} is empty (0 samples); nothing to estimate")
         if cfg.n_samples is not None and int(cfg.n_samples) > n_total:
-            raise ConfigError(f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
-                              f"(use n_samples<={n_total} or null for all)")
+            raise ConfigError(
+                f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
+                f"(use n_samples<={n_total} or null for all)"
+            )
         if has_params:
-            check_positive_params(path, split, handle[split]["params"], n_total if cfg.n_samples is None
-                                  else int(cfg.n_samples))
+            check_positive_params(
+                path, split, handle[split]["params"], n_total if cfg.n_samples is None else int(cfg.n_samples)
+            )
     try:
-        check_networks(networks.get("cnn_ckpt") if cfg.init.cnn else None, networks.get("unet_ckpt"),
-                       networks.get("cae_ckpt"), h_file or 0.01)
+        check_networks(
+            networks.get("cnn_ckpt") if cfg.init.cnn else None,
+            networks.get("unet_ckpt"),
+            networks.get("cae_ckpt"),
+            h_file or 0.01,
+        )
     except CheckpointKindError as error:
         raise ConfigError(str(error)) from None
     needed = n_steps
@@ -307,7 +344,9 @@ def validate(cfg) -> dict:
     except ValueError as error:
         raise ConfigError(str(error)) from None
     if sensor.active and sigma > 0:
-        raise ConfigError(f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one")
+        raise ConfigError(
+            f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one"
+        )
     margin = cfg.get("input_margin", "auto")
     if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
         margin = (0, 0) if model == "euler" else (min(4, stored - n_steps), max(0, min(8, stored - n_steps - 4)))
@@ -318,7 +357,9 @@ def validate(cfg) -> dict:
     if len(margin) != 2 or min(margin) < 0:
         raise ConfigError(f"input_margin={list(margin)}: give auto or [before, after] sample counts >= 0")
     if margin[0] + n_steps > stored:
-        raise DatasetError(f"{path}: input_margin before = {margin[0]} + n_steps = {n_steps} exceed the {stored} stored steps")
+        raise DatasetError(
+            f"{path}: input_margin before = {margin[0]} + n_steps = {n_steps} exceed the {stored} stored steps"
+        )
     needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
@@ -329,10 +370,25 @@ def validate(cfg) -> dict:
         stages = [s for s in stages if s["n_steps"] is None or s["n_steps"] >= shortest] or stages[-1:]
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
-    return {"path": path, "split": split, "has_params": has_params, "known": known, "observed": observed,
-            "stages": stages, "n_read_steps": needed, "n_samples": n_samples, "h": h_file or 0.01,
-            "completes": completes, "windows": windows, "model": model, "initial_state": initial_state,
-            "base_excitation": base, "n_params": n_params, "sensor": sensor, "input_margin": margin}
+    return {
+        "path": path,
+        "split": split,
+        "has_params": has_params,
+        "known": known,
+        "observed": observed,
+        "stages": stages,
+        "n_read_steps": needed,
+        "n_samples": n_samples,
+        "h": h_file or 0.01,
+        "completes": completes,
+        "windows": windows,
+        "model": model,
+        "initial_state": initial_state,
+        "base_excitation": base,
+        "n_params": n_params,
+        "sensor": sensor,
+        "input_margin": margin,
+    }
 
 
 # --------------------------------------------------------------------------------------------------
@@ -343,16 +399,23 @@ def build_inputs(cfg, plan: Mapping) -> dict:
 
     road_free = plan["base_excitation"] is not None
     keys = ["accel"] + ([] if road_free else ["road"]) + (["params"] if plan["has_params"] else [])
-    arrays = read_split(plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(0, plan["n_samples"]))
+    arrays = read_split(
+        plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(0, plan["n_samples"])
+    )
     accel = torch.from_numpy(np.asarray(arrays["accel"], dtype=np.float64))
     for c in plan["observed"]:  # unrecorded channels may be NaN in a file; the ones used may not
         column = accel[:, :, CHANNELS.index(c)]
         if not bool(torch.isfinite(column).all()):
             bad = int((~torch.isfinite(column)).any(1).nonzero()[0])
-            raise ConfigError(f"{plan['path']}: /{plan['split']}/accel channel {c} has NaN/inf (sample {bad}); "
-                              f"it is in observed={plan['observed']}")
-    road = (torch.zeros(accel.shape[:2], dtype=torch.float64) if road_free
-            else torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64)))
+            raise ConfigError(
+                f"{plan['path']}: /{plan['split']}/accel channel {c} has NaN/inf (sample {bad}); "
+                f"it is in observed={plan['observed']}"
+            )
+    road = (
+        torch.zeros(accel.shape[:2], dtype=torch.float64)
+        if road_free
+        else torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64))
+    )
     m = accel.shape[0]
     vehicle = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()})
     p_ref = vehicle.to_params()
@@ -367,8 +430,11 @@ def build_inputs(cfg, plan: Mapping) -> dict:
     for j in plan["known"]:
         init[:, j] = known_values[:, j]
     if cfg.pu_known:
-        pu = (known_values[:, 9] - known_values[:, 8]) if (true is not None and cfg.known_source == "file") \
+        pu = (
+            (known_values[:, 9] - known_values[:, 8])
+            if (true is not None and cfg.known_source == "file")
             else torch.full((m,), float(p_ref[9] - p_ref[8]), dtype=torch.float64)
+        )
     else:
         pu = torch.full((m,), float(p_ref[9] - p_ref[8]), dtype=torch.float64)  # only the U-Net would read it
 
@@ -428,41 +494,73 @@ def run(cfg) -> dict:
     known_mask[plan["known"]] = True
 
     module = HybridEstimator(
-        cnn_ckpt=cfg.cnn_ckpt if cfg.init.cnn else None, unet_ckpt=cfg.unet_ckpt, cae_ckpt=cfg.cae_ckpt,
-        observed=plan["observed"], n_steps=int(cfg.n_steps), h=plan["h"], cnn_init=bool(cfg.init.cnn),
-        equation_error_init=bool(cfg.init.equation_error), known=[PARAM_NAMES[j] for j in plan["known"]],
-        pu_known=bool(cfg.pu_known), cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
-        base_excitation=plan["base_excitation"], input_margin=plan["input_margin"],
+        cnn_ckpt=cfg.cnn_ckpt if cfg.init.cnn else None,
+        unet_ckpt=cfg.unet_ckpt,
+        cae_ckpt=cfg.cae_ckpt,
+        observed=plan["observed"],
+        n_steps=int(cfg.n_steps),
+        h=plan["h"],
+        cnn_init=bool(cfg.init.cnn),
+        equation_error_init=bool(cfg.init.equation_error),
+        known=[PARAM_NAMES[j] for j in plan["known"]],
+        pu_known=bool(cfg.pu_known),
+        cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
+        base_excitation=plan["base_excitation"],
+        input_margin=plan["input_margin"],
     )
-    stages = [GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"],
-                               s["guard"]) for s in plan["stages"]]
+    stages = [
+        GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
+        for s in plan["stages"]
+    ]
     sigma = float(cfg.noise_sigma)
     # Restart threshold on L/(½Σa²): noise-free fits end near 1e-15; with noise the floor is ~σ².
     threshold = float(cfg.restarts.threshold) if sigma == 0 else max(float(cfg.restarts.threshold), 4.0 * sigma**2)
     if plan["base_excitation"] is None:
-        response = quarter_car_response(plan["model"], plan["h"], bool(cfg.pu_known), plan["initial_state"],
-                                        str(cfg.hold), int(cfg.substeps))
+        response = quarter_car_response(
+            plan["model"], plan["h"], bool(cfg.pu_known), plan["initial_state"], str(cfg.hold), int(cfg.substeps)
+        )
     else:
-        response = base_excitation_response(plan["base_excitation"], plan["h"], plan["initial_state"],
-                                            str(cfg.hold), int(cfg.substeps))
+        response = base_excitation_response(
+            plan["base_excitation"], plan["h"], plan["initial_state"], str(cfg.hold), int(cfg.substeps)
+        )
     if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
         threshold = math.inf
     reweight = cfg.residual_weighting
     if str(reweight) == "auto":
         reweight = plan["model"] == "exact"
-    refinement = GaussNewtonRefinement(stages, known=known_mask, pu_known=bool(cfg.pu_known), h=plan["h"],
-                                       response=response, reweight=reweight,
-                                       peer_factor=cfg.get("misfit_peer_factor", 10.0),
-                                       log_dir=run_dir / "tb" if cfg.tensorboard else None,
-                                       restarts=int(cfg.restarts.count), restart_threshold=threshold,
-                                       restart_sigma=float(cfg.restarts.sigma), seed=int(cfg.seed),
-                                       restart_mass_factors=list(cfg.restarts.get("mass_factors") or []))
+    refinement = GaussNewtonRefinement(
+        stages,
+        known=known_mask,
+        pu_known=bool(cfg.pu_known),
+        h=plan["h"],
+        response=response,
+        reweight=reweight,
+        peer_factor=cfg.get("misfit_peer_factor", 10.0),
+        log_dir=run_dir / "tb" if cfg.tensorboard else None,
+        restarts=int(cfg.restarts.count),
+        restart_threshold=threshold,
+        restart_sigma=float(cfg.restarts.sigma),
+        seed=int(cfg.seed),
+        restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
+    )
     loader = torch.utils.data.DataLoader(
-        _DictDataset({k: v for k, v in inputs.items() if k != "true"}), batch_size=int(cfg.batch_size),
-        shuffle=False, collate_fn=_identity, num_workers=0)
-    trainer = lightning.Trainer(accelerator="cpu", devices=1, logger=False, enable_checkpointing=False,
-                                enable_progress_bar=bool(cfg.progress), enable_model_summary=False,
-                                callbacks=[refinement], default_root_dir=str(run_dir), inference_mode=False)
+        _DictDataset({k: v for k, v in inputs.items() if k != "true"}),
+        batch_size=int(cfg.batch_size),
+        shuffle=False,
+        collate_fn=_identity,
+        num_workers=0,
+    )
+    trainer = lightning.Trainer(
+        accelerator="cpu",
+        devices=1,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=bool(cfg.progress),
+        enable_model_summary=False,
+        callbacks=[refinement],
+        default_root_dir=str(run_dir),
+        inference_mode=False,
+    )
     t_solve = time.perf_counter()
     trainer.predict(module, dataloaders=loader, return_predictions=False)
     solve_seconds = time.perf_counter() - t_solve
@@ -483,36 +581,87 @@ def run(cfg) -> dict:
     m3_high = torch.where(p2_low > 0, K3 / p2_low.clamp_min(1e-300), torch.full_like(p2_low, math.inf))
 
     # estimates.csv: index, parameters, status, their std, m3 with std and 95 % interval, x0 and its std
-    header = ["index", *param_names, "status", *[f"std_{n}" for n in param_names], "m3", "m3_std", "m3_low", "m3_high",
-              *state_names, *[f"std_{n}" for n in state_names]]
+    header = [
+        "index",
+        *param_names,
+        "status",
+        *[f"std_{n}" for n in param_names],
+        "m3",
+        "m3_std",
+        "m3_low",
+        "m3_high",
+        *state_names,
+        *[f"std_{n}" for n in state_names],
+    ]
     rows = []
     for i in range(params.shape[0]):
-        rows.append([int(collected.index[i]), *[repr(float(x)) for x in params[i]], status[i],
-                     *[repr(float(x)) for x in std[i]], repr(float(m3[i])), repr(float(m3_std[i])),
-                     repr(float(m3_low[i])), repr(float(m3_high[i])),
-                     *[repr(float(x)) for x in x0[i]], *[repr(float(x)) for x in x0_std[i]]])
+        rows.append(
+            [
+                int(collected.index[i]),
+                *[repr(float(x)) for x in params[i]],
+                status[i],
+                *[repr(float(x)) for x in std[i]],
+                repr(float(m3[i])),
+                repr(float(m3_std[i])),
+                repr(float(m3_low[i])),
+                repr(float(m3_high[i])),
+                *[repr(float(x)) for x in x0[i]],
+                *[repr(float(x)) for x in x0_std[i]],
+            ]
+        )
     atomic_write_csv(run_dir / "estimates.csv", header, rows)
-    status_rows = [[int(collected.index[i]), status[i], int(result.iterations[i]), repr(float(result.loss[i])),
-                    repr(float(collected.relative_loss[i])), int(collected.restarts[i]),
-                    repr(float(result.condition_number[i]))] for i in range(params.shape[0])]
+    status_rows = [
+        [
+            int(collected.index[i]),
+            status[i],
+            int(result.iterations[i]),
+            repr(float(result.loss[i])),
+            repr(float(collected.relative_loss[i])),
+            int(collected.restarts[i]),
+            repr(float(result.condition_number[i])),
+        ]
+        for i in range(params.shape[0])
+    ]
     for row, rel, white in zip(status_rows, result.relative_residual, result.whiteness):
         row += [repr(float(rel)), repr(float(white))]
-    atomic_write_csv(run_dir / "status.csv", ["index", "status", "iterations", "loss", "relative_loss", "restarts",
-                                        "condition_number", "relative_residual", "whiteness"], status_rows)
+    atomic_write_csv(
+        run_dir / "status.csv",
+        [
+            "index",
+            "status",
+            "iterations",
+            "loss",
+            "relative_loss",
+            "restarts",
+            "condition_number",
+            "relative_residual",
+            "whiteness",
+        ],
+        status_rows,
+    )
 
     free = [j for j in range(n_params) if j not in plan["known"]]
     free_names = [param_names[j] for j in free]
     table_rows = None
     summary = {
-        "experiment": cfg.experiment_name, "data": str(plan["path"]), "split": plan["split"],
-        "n_samples": int(params.shape[0]), "n_steps": int(cfg.n_steps), "noise_sigma": float(cfg.noise_sigma),
-        "seed": int(cfg.seed), "observed": plan["observed"], "known": [PARAM_NAMES[j] for j in plan["known"]],
-        "model": plan["model"], "initial_state": plan["initial_state"], "base_excitation": plan["base_excitation"],
+        "experiment": cfg.experiment_name,
+        "data": str(plan["path"]),
+        "split": plan["split"],
+        "n_samples": int(params.shape[0]),
+        "n_steps": int(cfg.n_steps),
+        "noise_sigma": float(cfg.noise_sigma),
+        "seed": int(cfg.seed),
+        "observed": plan["observed"],
+        "known": [PARAM_NAMES[j] for j in plan["known"]],
+        "model": plan["model"],
+        "initial_state": plan["initial_state"],
+        "base_excitation": plan["base_excitation"],
         "hold": str(cfg.hold) if plan["model"] == "exact" else None,
         "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
         "input_margin": list(plan["input_margin"]),
         "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
-        "stages": collected.stage_status, "stage_mean_loss": collected.stage_loss,
+        "stages": collected.stage_status,
+        "stage_mean_loss": collected.stage_loss,
         "iterations_mean": float(result.iterations.double().mean()),
         "restarted_samples": int((collected.restarts > 0).sum()),
         "seconds_solve": solve_seconds,
@@ -534,14 +683,26 @@ def run(cfg) -> dict:
         cal_rows = []
         for j, name in zip(free, free_names):
             ok = ~failed & torch.isfinite(std[:, j]) & torch.isfinite(params[:, j])
-            cal_rows.append([name, int(params.shape[0]), coverage_95(params[:, j], true[:, j], std[:, j], failed),
-                             float(std[:, j][ok].median() / true[:, j][ok].median()) if bool(ok.any()) else math.inf])
+            cal_rows.append(
+                [
+                    name,
+                    int(params.shape[0]),
+                    coverage_95(params[:, j], true[:, j], std[:, j], failed),
+                    float(std[:, j][ok].median() / true[:, j][ok].median()) if bool(ok.any()) else math.inf,
+                ]
+            )
         true_m3 = K3 / true[:, 1]
         m3_ok = ~failed & torch.isfinite(m3_high) & torch.isfinite(m3_low)
         inside = ((true_m3 >= m3_low) & (true_m3 <= m3_high) & m3_ok).double()
         m3_width = (m3_high - m3_low) / true_m3
-        cal_rows.append(["m3", int(params.shape[0]), float(inside.mean()),
-                         float(m3_std[m3_ok].median() / true_m3[m3_ok].median()) if bool(m3_ok.any()) else math.inf])
+        cal_rows.append(
+            [
+                "m3",
+                int(params.shape[0]),
+                float(inside.mean()),
+                float(m3_std[m3_ok].median() / true_m3[m3_ok].median()) if bool(m3_ok.any()) else math.inf,
+            ]
+        )
         atomic_write_csv(run_dir / "calibration.csv", ["param", "n", "coverage_95", "median_rel_std"], cal_rows)
         m3_err = (m3 - true_m3).abs() / true_m3.abs()
         m3_err = torch.where(torch.isfinite(m3_err), m3_err, torch.full_like(m3_err, math.inf))
@@ -556,29 +717,61 @@ def run(cfg) -> dict:
             from hybridqcm.plots import close, plot_sorted_predictions
 
             for j, name in zip(free, free_names):
-                close(plot_sorted_predictions(params[:, j].numpy(), true[:, j].numpy(), name,
-                                              run_dir / "plots" / f"sorted_{name}.png", title=f"{cfg.experiment_name}: {name}"))
-            close(plot_sorted_predictions(m3.numpy(), true_m3.numpy(), "m3 [kg]", run_dir / "plots" / "sorted_m3.png",
-                                          title=f"{cfg.experiment_name}: occupant mass"))
+                close(
+                    plot_sorted_predictions(
+                        params[:, j].numpy(),
+                        true[:, j].numpy(),
+                        name,
+                        run_dir / "plots" / f"sorted_{name}.png",
+                        title=f"{cfg.experiment_name}: {name}",
+                    )
+                )
+            close(
+                plot_sorted_predictions(
+                    m3.numpy(),
+                    true_m3.numpy(),
+                    "m3 [kg]",
+                    run_dir / "plots" / "sorted_m3.png",
+                    title=f"{cfg.experiment_name}: occupant mass",
+                )
+            )
         if cfg.tensorboard:  # the table and the plots beside the GN losses, in one TensorBoard run
             from hybridqcm.tracking import log_estimation_to_tensorboard
 
-            log_estimation_to_tensorboard(run_dir / "tb", table_rows, sorted((run_dir / "plots").glob("*.png")),
-                                          title=title)
+            log_estimation_to_tensorboard(
+                run_dir / "tb", table_rows, sorted((run_dir / "plots").glob("*.png")), title=title
+            )
     summary["seconds_total"] = time.perf_counter() - t_start
     atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
-    runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(),
-                                      [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt])
+    runfolder.write_completion_marker(
+        run_dir, "qcm-estimate", runfolder.task_overrides(), [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
+    )
 
-    print_table(f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()])
+    print_table(
+        f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()]
+    )
     if table_rows is not None:
-        print_table(f"{cfg.experiment_name}: relative error, {params.shape[0]} samples", 
-                    ["param", "max", "mean", "≤1 %", "≤5 %", "≤10 %", "≤25 %", ">25 %"],
-                    [[r["param"], f"{100 * r['max_err']:.3g} %", f"{100 * r['mean_err']:.3g} %", f"{100 * r['within_1pct']:.2f} %",
-                      f"{100 * r['within_5pct']:.2f} %", f"{100 * r['within_10pct']:.2f} %", f"{100 * r['within_25pct']:.2f} %",
-                      f"{100 * r['over_25pct']:.2f} %"] for r in table_rows])
-        print(f"all estimated parameters within 1 %: {100 * summary['all_within_1pct']:.2f} % of samples; "
-              f"GN {summary['seconds_solve']:.1f} s, total {summary['seconds_total']:.1f} s -> {run_dir}")
+        print_table(
+            f"{cfg.experiment_name}: relative error, {params.shape[0]} samples",
+            ["param", "max", "mean", "≤1 %", "≤5 %", "≤10 %", "≤25 %", ">25 %"],
+            [
+                [
+                    r["param"],
+                    f"{100 * r['max_err']:.3g} %",
+                    f"{100 * r['mean_err']:.3g} %",
+                    f"{100 * r['within_1pct']:.2f} %",
+                    f"{100 * r['within_5pct']:.2f} %",
+                    f"{100 * r['within_10pct']:.2f} %",
+                    f"{100 * r['within_25pct']:.2f} %",
+                    f"{100 * r['over_25pct']:.2f} %",
+                ]
+                for r in table_rows
+            ],
+        )
+        print(
+            f"all estimated parameters within 1 %: {100 * summary['all_within_1pct']:.2f} % of samples; "
+            f"GN {summary['seconds_solve']:.1f} s, total {summary['seconds_total']:.1f} s -> {run_dir}"
+        )
     else:
         print(f"estimates of {params.shape[0]} samples (no params in the file: no error table) -> {run_dir}")
     return summary

@@ -10,6 +10,7 @@ inside, batch axis dynamic. Each export is checked against the checkpoint's own 
 file, on synthetic smooth signals; a deviation beyond --tol fails the command (exit 1).
 Bad input (missing file, foreign checkpoint, missing package) exits 2 with a one-line error.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,8 @@ import os
 import sys
 import tempfile
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from hybridqcm.apps.common import ConfigError, fail
 from hybridqcm.atomic import atomic_write_text
@@ -72,16 +73,26 @@ def parity_inputs(model, time_steps: int, data: str | None, split: str, n: int, 
 
         keys = sorted(required_keys(inputs))
         arrays = read_split(data, split, keys=keys, n_steps=time_steps, index=slice(0, n))
-        return torch.from_numpy(np.ascontiguousarray(select_channels(arrays, inputs, dtype=np.float32))), arrays.get("h")
+        return torch.from_numpy(np.ascontiguousarray(select_channels(arrays, inputs, dtype=np.float32))), arrays.get(
+            "h"
+        )
     generator = torch.Generator().manual_seed(seed)
     noise = torch.randn(n, len(inputs), time_steps + 9, generator=generator)
     smooth = noise.unfold(-1, 10, 1).mean(-1)[..., :time_steps]
     return (smooth / smooth.pow(2).mean(-1, keepdim=True).sqrt()).float(), None
 
 
-def export(ckpt: str, out_dir: str | Path | None = None, stem: str | None = None, formats: Sequence[str] = FORMATS,
-           time_steps: int | None = None, data: str | None = None, split: str = "test", n_check: int = 64,
-           tol: float = 1e-5) -> dict:
+def export(
+    ckpt: str,
+    out_dir: str | Path | None = None,
+    stem: str | None = None,
+    formats: Sequence[str] = FORMATS,
+    time_steps: int | None = None,
+    data: str | None = None,
+    split: str = "test",
+    n_check: int = 64,
+    tol: float = 1e-5,
+) -> dict:
     """Write the exports and the JSON contract; returns the contract (with a `parity` entry per format).
 
     Raises ConfigError for bad input and ParityError when an export deviates beyond `tol` (the
@@ -96,8 +107,9 @@ def export(ckpt: str, out_dir: str | Path | None = None, stem: str | None = None
     if "onnx" in formats:
         missing = [m for m in ("onnx", "onnxruntime", "onnxscript") if importlib.util.find_spec(m) is None]
         if missing:
-            raise ConfigError(f"--format onnx needs the package(s) {missing}: pip install -e '.[export]' "
-                              f"(or --format torchscript)")
+            raise ConfigError(
+                f"--format onnx needs the package(s) {missing}: pip install -e '.[export]' (or --format torchscript)"
+            )
     model = _load(ckpt)
     try:
         steps = export_time_steps(model, time_steps)
@@ -113,9 +125,12 @@ def export(ckpt: str, out_dir: str | Path | None = None, stem: str | None = None
     sidecar = contract(model, steps, float(h) if h is not None else SPEC_H)
     sidecar["h_source"] = f"attrs of {data}" if h is not None else "SPEC default (no --data given)"
     sidecar.update({"checkpoint": str(Path(ckpt).resolve()), "files": {}, "parity": {}})
-    sidecar["parity_inputs"] = (f"{len(x)} recordings of {data} /{split}" if data else f"{len(x)} synthetic smooth signals")
-    sidecar["parity_measure"] = ("max |Δp| / |p| per element" if model.kind == "estimator"
-                                 else "max |Δ| / RMS of the reference channel")
+    sidecar["parity_inputs"] = (
+        f"{len(x)} recordings of {data} /{split}" if data else f"{len(x)} synthetic smooth signals"
+    )
+    sidecar["parity_measure"] = (
+        "max |Δp| / |p| per element" if model.kind == "estimator" else "max |Δ| / RMS of the reference channel"
+    )
     example = x[: min(2, len(x))]
     with torch.no_grad():
         if "torchscript" in formats:
@@ -138,8 +153,10 @@ def export(ckpt: str, out_dir: str | Path | None = None, stem: str | None = None
     atomic_write_text(out / f"{stem}.json", json.dumps(sidecar, indent=2) + "\n")
     worst = {k: v for k, v in sidecar["parity"].items() if not v <= tol}
     if worst:
-        raise ParityError(f"{ckpt}: export deviates from the checkpoint beyond {tol:g}: {worst} "
-                           f"({sidecar['parity_measure']}); files left in {out}")
+        raise ParityError(
+            f"{ckpt}: export deviates from the checkpoint beyond {tol:g}: {worst} "
+            f"({sidecar['parity_measure']}); files left in {out}"
+        )
     return sidecar
 
 
@@ -157,10 +174,17 @@ def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            torch.onnx.export(graph, (example,), str(tmp), input_names=["accel"],
-                              output_names=["params" if model.kind == "estimator" else "signals"],
-                              dynamic_shapes={"x": {0: torch.export.Dim("batch")}}, dynamo=True, verbose=False,
-                              external_data=False)
+            torch.onnx.export(
+                graph,
+                (example,),
+                str(tmp),
+                input_names=["accel"],
+                output_names=["params" if model.kind == "estimator" else "signals"],
+                dynamic_shapes={"x": {0: torch.export.Dim("batch")}},
+                dynamo=True,
+                verbose=False,
+                external_data=False,
+            )
         _publish(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -173,22 +197,38 @@ def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="qcm-export", formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog="qcm-export",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Export a trained network (CNN estimator, CAE denoiser, U-Net completion) to TorchScript and ONNX.\n"
-                    "Input: raw accelerations [batch, channels, time] float32 in m/s² (normalisation inside);\n"
-                    "output: parameters [batch, P] float64 (estimators) or signals [batch, 2, time] in m/s².\n"
-                    "Writes STEM.pt, STEM.onnx and STEM.json (the input/output contract and the parity check).",
-        epilog="example: qcm-export outputs/demo/exp2_physics/checkpoints/last.ckpt --data data/demo.h5 --out exports/")
+        "Input: raw accelerations [batch, channels, time] float32 in m/s² (normalisation inside);\n"
+        "output: parameters [batch, P] float64 (estimators) or signals [batch, 2, time] in m/s².\n"
+        "Writes STEM.pt, STEM.onnx and STEM.json (the input/output contract and the parity check).",
+        epilog="example: qcm-export outputs/demo/exp2_physics/checkpoints/last.ckpt --data data/demo.h5 --out exports/",
+    )
     parser.add_argument("ckpt", help="checkpoint (.ckpt) written by qcm-train")
     parser.add_argument("--out", default=None, help="output folder (default: the checkpoint's folder)")
     parser.add_argument("--name", default=None, help="file stem of the exports (default: the checkpoint's stem)")
-    parser.add_argument("--format", nargs="+", default=list(FORMATS), choices=FORMATS, dest="formats",
-                        help="what to write (default: both; onnx needs pip install -e '.[export]')")
-    parser.add_argument("--time-steps", type=int, default=None,
-                        help="length of the time axis of the denoiser / U-Net export (default: the training window; "
-                             "estimators always take exactly their window)")
-    parser.add_argument("--data", default=None, help="HDF5 dataset whose recordings check parity (default: synthetic signals)")
-    parser.add_argument("--split", default="test", help="split of --data to take held-out recordings from (default: test)")
+    parser.add_argument(
+        "--format",
+        nargs="+",
+        default=list(FORMATS),
+        choices=FORMATS,
+        dest="formats",
+        help="what to write (default: both; onnx needs pip install -e '.[export]')",
+    )
+    parser.add_argument(
+        "--time-steps",
+        type=int,
+        default=None,
+        help="length of the time axis of the denoiser / U-Net export (default: the training window; "
+        "estimators always take exactly their window)",
+    )
+    parser.add_argument(
+        "--data", default=None, help="HDF5 dataset whose recordings check parity (default: synthetic signals)"
+    )
+    parser.add_argument(
+        "--split", default="test", help="split of --data to take held-out recordings from (default: test)"
+    )
     parser.add_argument("--n-check", type=int, default=64, help="recordings in the parity check (default: 64)")
     parser.add_argument("--tol", type=float, default=1e-5, help="largest relative deviation accepted (default: 1e-5)")
     return parser
@@ -202,16 +242,19 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.n_check < 1:
         fail(f"--n-check {args.n_check}: must be >= 1")
     try:
-        sidecar = export(args.ckpt, args.out, args.name, args.formats, args.time_steps, args.data, args.split,
-                         args.n_check, args.tol)
+        sidecar = export(
+            args.ckpt, args.out, args.name, args.formats, args.time_steps, args.data, args.split, args.n_check, args.tol
+        )
     except (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError) as error:
         fail(error)
     except ParityError as error:
         fail(error, code=1)
     out = Path(args.out) if args.out else Path(args.ckpt).parent
     parity = ", ".join(f"{k} {v:.2e}" for k, v in sidecar["parity"].items())
-    print(f"{sidecar['model_class']}: {', '.join(str(out / f) for f in sidecar['files'].values())} + "
-          f"{out / ((args.name or Path(args.ckpt).stem) + '.json')}; parity ({sidecar['parity_measure']}): {parity}")
+    print(
+        f"{sidecar['model_class']}: {', '.join(str(out / f) for f in sidecar['files'].values())} + "
+        f"{out / ((args.name or Path(args.ckpt).stem) + '.json')}; parity ({sidecar['parity_measure']}): {parity}"
+    )
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ Examples:
     qcm-import input=drive.csv output=data/drive.h5 columns.a3=seat_z columns.a2=floor_z window=500 stride=250
     qcm-import --help                               # every key
 """
+
 from __future__ import annotations
 
 import json
@@ -50,24 +51,52 @@ def run(cfg: DictConfig) -> dict:
     if output.exists() and not cfg.overwrite:
         raise FileExistsError(f"output={output} exists; pass overwrite=true to replace it")
     data = read_recordings(
-        source, units=str(cfg.units), column_units=_mapping(cfg, "column_units"), columns=_mapping(cfg, "columns"),
-        time_column=cfg.time_column, time_unit=str(cfg.time_unit), recording_column=cfg.recording_column,
-        window=_optional_int(cfg, "window"), stride=_optional_int(cfg, "stride"),
-        rate_tolerance=_number(cfg, "rate_tolerance"), gap_factor=_number(cfg, "gap_factor"), delimiter=cfg.delimiter,
+        source,
+        units=str(cfg.units),
+        column_units=_mapping(cfg, "column_units"),
+        columns=_mapping(cfg, "columns"),
+        time_column=cfg.time_column,
+        time_unit=str(cfg.time_unit),
+        recording_column=cfg.recording_column,
+        window=_optional_int(cfg, "window"),
+        stride=_optional_int(cfg, "stride"),
+        rate_tolerance=_number(cfg, "rate_tolerance"),
+        gap_factor=_number(cfg, "gap_factor"),
+        delimiter=cfg.delimiter,
     )
     write_recordings(output, data, split=str(cfg.split), source=str(source), overwrite=bool(cfg.overwrite))
     duration = sum(data.rows) * data.h
     summary = {
-        "input": str(source), "output": str(output), "split": str(cfg.split), "rate_hz": 1.0 / data.h, "h": data.h,
-        "recordings": len(data.recordings), "rows": int(sum(data.rows)), "duration_s": duration,
-        "channels": list(data.channels), "road": data.road is not None, "units": data.source_units,
-        "samples": data.n_samples, "n_steps": data.n_steps, "window": data.window, "stride": data.stride,
+        "input": str(source),
+        "output": str(output),
+        "split": str(cfg.split),
+        "rate_hz": 1.0 / data.h,
+        "h": data.h,
+        "recordings": len(data.recordings),
+        "rows": int(sum(data.rows)),
+        "duration_s": duration,
+        "channels": list(data.channels),
+        "road": data.road is not None,
+        "units": data.source_units,
+        "samples": data.n_samples,
+        "n_steps": data.n_steps,
+        "window": data.window,
+        "stride": data.stride,
     }
-    rows = [["rate", f"{summary['rate_hz']:.6g} Hz (h = {data.h:.6g} s)"],
-            ["duration", f"{duration:.6g} s in {summary['rows']} rows, {len(data.recordings)} recording(s)"],
-            ["channels", ", ".join(f"{c} (in {data.source_units[c]})" for c in data.channels) + (", road (in m)" if summary["road"] else "")],
-            ["written", f"/{cfg.split}: {data.n_samples} sample(s) x {data.n_steps} steps"
-             + (f" (window {data.window}, stride {data.stride})" if data.window else "")]]
+    rows = [
+        ["rate", f"{summary['rate_hz']:.6g} Hz (h = {data.h:.6g} s)"],
+        ["duration", f"{duration:.6g} s in {summary['rows']} rows, {len(data.recordings)} recording(s)"],
+        [
+            "channels",
+            ", ".join(f"{c} (in {data.source_units[c]})" for c in data.channels)
+            + (", road (in m)" if summary["road"] else ""),
+        ],
+        [
+            "written",
+            f"/{cfg.split}: {data.n_samples} sample(s) x {data.n_steps} steps"
+            + (f" (window {data.window}, stride {data.stride})" if data.window else ""),
+        ],
+    ]
     print_table(f"{source} -> {output}", ["imported", "value"], rows)
     summary_path = Path(cfg.paths.output_dir) / "summary.json"
     summary_path.parent.mkdir(parents=True, exist_ok=True)

@@ -6,6 +6,7 @@ Every finished stage is recorded in `<root>/manifest.json` (command, run folder,
 which table of the source study it answers); `qcm-results` turns that manifest into tables.
 The stages themselves and the manifest's reader/writer live in `apps/stages.py`.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,14 @@ from hybridqcm.apps.results import print_summary
 from hybridqcm.apps.stages import BIN, PIPELINES, manifest_path, record_stage
 
 
-def run_pipeline(name: str, root: str | None = None, dataset: str | None = None, only: list[str] | None = None,
-                 plan: bool = False, **options) -> int:
+def run_pipeline(
+    name: str,
+    root: str | None = None,
+    dataset: str | None = None,
+    only: list[str] | None = None,
+    plan: bool = False,
+    **options,
+) -> int:
     root = root or f"outputs/{name}"
     dataset = dataset or ("data/demo.h5" if name == "demo" else "data/reference.h5")
     stages = all_stages = PIPELINES[name](root, dataset, **options)
@@ -31,7 +38,9 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
             raise SystemExit(f"error: unknown stage(s) {unknown}; stages: {[s.name for s in stages]}")
         stages = [s for s in stages if s.name in only]
     total = sum(s.minutes for s in stages if not s.is_done())
-    print(f"[qcm-pipeline] {name}: {len(stages)} stages, about {total:.0f} min of work left on 2 CPU cores; root {root}")
+    print(
+        f"[qcm-pipeline] {name}: {len(stages)} stages, about {total:.0f} min of work left on 2 CPU cores; root {root}"
+    )
     if plan:
         for s in stages:
             state = "done" if s.is_done() else f"~{s.minutes:g} min"
@@ -41,8 +50,13 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
         header = f"[{index}/{len(stages)}] {stage.name}"
         if stage.is_done():
             print(f"{header}: done already ({stage.run_dir}), skipped")
-            record_stage(root, name, dataset, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None},
-                         replace=False)
+            record_stage(
+                root,
+                name,
+                dataset,
+                {**asdict(stage), "command": shlex.join(stage.command()), "seconds": None},
+                replace=False,
+            )
             continue
         missing = [n for n in stage.needs if not by_name[n].is_done()]
         if missing:
@@ -53,27 +67,42 @@ def run_pipeline(name: str, root: str | None = None, dataset: str | None = None,
         result = subprocess.run(stage.command())
         seconds = time.perf_counter() - start
         if result.returncode != 0:
-            print(f"{header}: FAILED (exit {result.returncode}) after {seconds:.0f} s; see {stage.run_dir}", file=sys.stderr)
+            print(
+                f"{header}: FAILED (exit {result.returncode}) after {seconds:.0f} s; see {stage.run_dir}",
+                file=sys.stderr,
+            )
             return result.returncode
-        record_stage(root, name, dataset, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": round(seconds, 1)})
+        record_stage(
+            root, name, dataset, {**asdict(stage), "command": shlex.join(stage.command()), "seconds": round(seconds, 1)}
+        )
         print(f"{header}: finished in {seconds:.0f} s -> {stage.run_dir}")
     record_stage(root, name, dataset, None)
     print_summary(manifest_path(root))
-    print(f"\nArtefacts: dataset {dataset}; run folders under {root}/ (checkpoints, estimates.csv, error_distribution.*, plots)")
+    print(
+        f"\nArtefacts: dataset {dataset}; run folders under {root}/ (checkpoints, estimates.csv, error_distribution.*, plots)"
+    )
     print(f"Manifest: {manifest_path(root)}    Results: qcm-results --manifest {manifest_path(root)}")
     print(f"TensorBoard: {BIN / 'tensorboard'} --logdir {root}")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="qcm-pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("pipeline", choices=sorted(PIPELINES), help="demo (small, ~20 min) or reproduce (reference protocol)")
+    parser = argparse.ArgumentParser(
+        prog="qcm-pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "pipeline", choices=sorted(PIPELINES), help="demo (small, ~20 min) or reproduce (reference protocol)"
+    )
     parser.add_argument("--root", help="folder of the run folders and manifest (default outputs/<pipeline>)")
     parser.add_argument("--dataset", help="dataset file (default data/demo.h5 or data/reference.h5)")
     parser.add_argument("--only", nargs="+", metavar="STAGE", help="run only these stages")
-    parser.add_argument("--plan", action="store_true", help="print the stages, their commands and expected cost, run nothing")
+    parser.add_argument(
+        "--plan", action="store_true", help="print the stages, their commands and expected cost, run nothing"
+    )
     parser.add_argument("--preset", help="demo only: qcm-simulate preset (default small; tiny for a smoke test)")
-    parser.add_argument("--train-time", help="demo only: time limit of each training run, DD:HH:MM:SS (default 00:00:04:00)")
+    parser.add_argument(
+        "--train-time", help="demo only: time limit of each training run, DD:HH:MM:SS (default 00:00:04:00)"
+    )
     args = parser.parse_args(argv)
     options = {k: v for k, v in (("preset", args.preset), ("train_time", args.train_time)) if v is not None}
     if options and args.pipeline != "demo":

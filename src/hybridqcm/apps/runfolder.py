@@ -7,24 +7,44 @@ The marker `.hybridqcm-done.json` is written after every artefact; it names the 
 (the task overrides and each input file's size and mtime), so "this stage is done" means
 "a run with exactly these inputs finished here" (pipeline.Stage.is_done).
 """
+
 from __future__ import annotations
 
 import json
 import os
 import shutil
 import time
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
 
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import ConfigError
 
 MARKER = ".hybridqcm-done.json"
-ESTIMATE_ARTEFACTS = ("estimates.csv", "status.csv", "error_distribution.csv", "error_distribution.md",
-                      "calibration.csv", "summary.json", "plots", "tb", MARKER)
-TRAIN_ARTEFACTS = ("checkpoints", "tensorboard", "test_metrics.json", "predictions.csv", "error_distribution.csv",
-                   "error_distribution.md", "per_sample_mse.csv", "mse_summary.csv", "mse_summary.md", "examples.png",
-                   MARKER)
+ESTIMATE_ARTEFACTS = (
+    "estimates.csv",
+    "status.csv",
+    "error_distribution.csv",
+    "error_distribution.md",
+    "calibration.csv",
+    "summary.json",
+    "plots",
+    "tb",
+    MARKER,
+)
+TRAIN_ARTEFACTS = (
+    "checkpoints",
+    "tensorboard",
+    "test_metrics.json",
+    "predictions.csv",
+    "error_distribution.csv",
+    "error_distribution.md",
+    "per_sample_mse.csv",
+    "mse_summary.csv",
+    "mse_summary.md",
+    "examples.png",
+    MARKER,
+)
 TRAIN_GLOBS = ("sorted_predictions_*.png", "mse_hist_*.png")
 
 
@@ -36,8 +56,13 @@ def existing_artefacts(run_dir: Path, names: Iterable[str], globs: Iterable[str]
     return found
 
 
-def prepare_run_dir(run_dir: str | Path, names: Sequence[str], overwrite: bool, globs: Sequence[str] = (),
-                    inputs: Iterable[str | os.PathLike | None] = ()) -> Path:
+def prepare_run_dir(
+    run_dir: str | Path,
+    names: Sequence[str],
+    overwrite: bool,
+    globs: Sequence[str] = (),
+    inputs: Iterable[str | os.PathLike | None] = (),
+) -> Path:
     """Refuse a folder holding another run's artefacts (unless overwrite), clear ours when overwriting.
 
     inputs: files this run reads; clearing one of them (a checkpoint inside the folder) is refused.
@@ -48,12 +73,16 @@ def prepare_run_dir(run_dir: str | Path, names: Sequence[str], overwrite: bool, 
         resolved = Path(given).resolve()
         for path in found:
             if resolved == path.resolve() or path.resolve() in resolved.parents:
-                raise ConfigError(f"{given} is an input of this run but lies in {path}, which overwrite would "
-                                  f"clear; choose another hydra.run.dir")
+                raise ConfigError(
+                    f"{given} is an input of this run but lies in {path}, which overwrite would "
+                    f"clear; choose another hydra.run.dir"
+                )
     if found and not overwrite:
         shown = ", ".join(p.name for p in found[:4]) + (" ..." if len(found) > 4 else "")
-        raise ConfigError(f"hydra.run.dir={run_dir} already holds another run's outputs ({shown}); "
-                          f"pass overwrite=true to clear them first, or choose another folder")
+        raise ConfigError(
+            f"hydra.run.dir={run_dir} already holds another run's outputs ({shown}); "
+            f"pass overwrite=true to clear them first, or choose another folder"
+        )
     for path in found:
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
@@ -76,11 +105,17 @@ def fingerprint(paths: Iterable[str | os.PathLike | None]) -> dict[str, list[int
     return out
 
 
-def write_completion_marker(run_dir: str | Path, app: str, overrides: Sequence[str],
-                            input_files: Iterable[str | os.PathLike | None] = ()) -> Path:
+def write_completion_marker(
+    run_dir: str | Path, app: str, overrides: Sequence[str], input_files: Iterable[str | os.PathLike | None] = ()
+) -> Path:
     """Write the marker last: app, task overrides and input file fingerprints."""
-    record = {"app": app, "overrides": list(overrides), "inputs": fingerprint(input_files), "pid": os.getpid(),
-              "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    record = {
+        "app": app,
+        "overrides": list(overrides),
+        "inputs": fingerprint(input_files),
+        "pid": os.getpid(),
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
     return atomic_write_text(Path(run_dir) / MARKER, json.dumps(record, indent=2) + "\n")
 
 
@@ -110,5 +145,15 @@ def task_overrides() -> list[str]:
     return [str(o) for o in HydraConfig.get().overrides.task]
 
 
-__all__ = ["MARKER", "ESTIMATE_ARTEFACTS", "TRAIN_ARTEFACTS", "TRAIN_GLOBS", "prepare_run_dir",
-           "write_completion_marker", "read_completion_marker", "marker_matches", "task_overrides", "fingerprint"]
+__all__ = [
+    "MARKER",
+    "ESTIMATE_ARTEFACTS",
+    "TRAIN_ARTEFACTS",
+    "TRAIN_GLOBS",
+    "prepare_run_dir",
+    "write_completion_marker",
+    "read_completion_marker",
+    "marker_matches",
+    "task_overrides",
+    "fingerprint",
+]

@@ -8,6 +8,7 @@ Examples:
     qcm-simulate output=data/mine.h5 seed=7 prior=physical overwrite=true
     qcm-simulate --cfg job                         # show the resolved configuration
 """
+
 from __future__ import annotations
 
 import json
@@ -19,8 +20,16 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import (CONFIG_DIR, ConfigError, check_task_name, check_writable_dir, fail,
-                                   install_signal_handlers, interrupted_exit, print_table)
+from hybridqcm.apps.common import (
+    CONFIG_DIR,
+    ConfigError,
+    check_task_name,
+    check_writable_dir,
+    fail,
+    install_signal_handlers,
+    interrupted_exit,
+    print_table,
+)
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.simulate import DEFAULT_WARMUP_S, check_physics, check_warmup, kmh_to_mps, write_dataset
 from hybridqcm.physics.parameters import PARAM_NAMES, is_stable, reference_params, system_matrix
@@ -45,12 +54,16 @@ def check_step(h: float, physics: str = "euler") -> None:
     if physics == "continuous":
         fastest = float(torch.linalg.eigvals(system_matrix(reference_params())).abs().max()) / (2 * math.pi)
         if not h * fastest < 0.5:
-            raise ValueError(f"h={h}: sampling at {1 / h:g} Hz cannot resolve the reference vehicle's fastest mode "
-                             f"({fastest:.1f} Hz); use h < {0.5 / fastest:.3g} s")
+            raise ValueError(
+                f"h={h}: sampling at {1 / h:g} Hz cannot resolve the reference vehicle's fastest mode "
+                f"({fastest:.1f} Hz); use h < {0.5 / fastest:.3g} s"
+            )
         return
     if not is_stable(reference_params()[None], h=h).all():
-        raise ValueError(f"h={h}: the Euler step is unstable for the reference vehicle at this step size; "
-                         f"use a smaller h (the reference protocol uses h=0.01)")
+        raise ValueError(
+            f"h={h}: the Euler step is unstable for the reference vehicle at this step size; "
+            f"use a smaller h (the reference protocol uses h=0.01)"
+        )
 
 
 def check_splits(splits) -> None:
@@ -63,8 +76,10 @@ def check_splits(splits) -> None:
             raise ValueError(f"splits.{split}.profiles must map road classes to counts, got {profiles!r}")
         counts = [v for v in profiles.values() if isinstance(v, int) and not isinstance(v, bool)]
         if len(counts) == len(profiles) and sum(counts) == 0:
-            raise ValueError(f"splits.{split}.profiles = {profiles}: every count is 0, so /{split} would be empty; "
-                             f"give it at least one profile or remove it with ~splits.{split}")
+            raise ValueError(
+                f"splits.{split}.profiles = {profiles}: every count is 0, so /{split} would be empty; "
+                f"give it at least one profile or remove it with ~splits.{split}"
+            )
 
 
 def run(cfg: DictConfig) -> dict:
@@ -87,28 +102,61 @@ def run(cfg: DictConfig) -> dict:
     check_writable_dir(summary_path.parent)
     stale = sorted(output.parent.glob(f".{output.name}.*.partial"))
     if stale:  # removed by DatasetWriter once it holds the write lock
-        print(f"note: removing {len(stale)} stale partial file(s) of killed runs: {', '.join(p.name for p in stale)}",
-              file=sys.stderr)
+        print(
+            f"note: removing {len(stale)} stale partial file(s) of killed runs: {', '.join(p.name for p in stale)}",
+            file=sys.stderr,
+        )
     options = OmegaConf.to_container(cfg.prior_options, resolve=True)
     # continuous physics: the prior checks the eigenvalues of A only (no Euler step map to keep stable)
-    prior = build_prior(cfg.prior, h=float(cfg.h) if physics == "euler" else None,
-                        mass_range=tuple(options.pop("mass_range")), **options)
+    prior = build_prior(
+        cfg.prior,
+        h=float(cfg.h) if physics == "euler" else None,
+        mass_range=tuple(options.pop("mass_range")),
+        **options,
+    )
     splits = OmegaConf.to_container(cfg.splits, resolve=True)
     summaries = write_dataset(
-        output, splits, prior, RoadProfile(n_waves=int(cfg.road.n_waves)), n_steps=int(cfg.n_steps), h=float(cfg.h),
-        speed_mps=kmh_to_mps(cfg.speed_kmh), samples_per_profile=int(cfg.samples_per_profile), seed=int(cfg.seed),
-        overwrite=bool(cfg.overwrite), profiles_per_chunk=int(cfg.profiles_per_chunk), method=cfg.integrator,
-        progress=bool(cfg.progress), compression=cfg.compression, physics=physics, warmup_s=warmup_s,
+        output,
+        splits,
+        prior,
+        RoadProfile(n_waves=int(cfg.road.n_waves)),
+        n_steps=int(cfg.n_steps),
+        h=float(cfg.h),
+        speed_mps=kmh_to_mps(cfg.speed_kmh),
+        samples_per_profile=int(cfg.samples_per_profile),
+        seed=int(cfg.seed),
+        overwrite=bool(cfg.overwrite),
+        profiles_per_chunk=int(cfg.profiles_per_chunk),
+        method=cfg.integrator,
+        progress=bool(cfg.progress),
+        compression=cfg.compression,
+        physics=physics,
+        warmup_s=warmup_s,
     )
     summary = {split: s.as_dict() for split, s in summaries.items()}
     rows = []
     for split, s in summary.items():
-        rows.append([split, s["n_samples"], " ".join(f"{k}:{v}" for k, v in s["per_class"].items()),
-                     f"{100 * s['prior_acceptance_rate']:.1f} %", " ".join(f"{x:.3g}" for x in s["peak_accel_a3_a2_a1"]),
-                     f"{s['seconds']:.1f}"])
-    print_table(f"{output}", ["split", "samples", "per road class", "prior acceptance", "peak |a| (a3 a2 a1) m/s²", "s"], rows)
-    ranges = [[name, f"{min(s['param_min'][i] for s in summary.values()):.4g}", f"{max(s['param_max'][i] for s in summary.values()):.4g}"]
-              for i, name in enumerate(PARAM_NAMES)]
+        rows.append(
+            [
+                split,
+                s["n_samples"],
+                " ".join(f"{k}:{v}" for k, v in s["per_class"].items()),
+                f"{100 * s['prior_acceptance_rate']:.1f} %",
+                " ".join(f"{x:.3g}" for x in s["peak_accel_a3_a2_a1"]),
+                f"{s['seconds']:.1f}",
+            ]
+        )
+    print_table(
+        f"{output}", ["split", "samples", "per road class", "prior acceptance", "peak |a| (a3 a2 a1) m/s²", "s"], rows
+    )
+    ranges = [
+        [
+            name,
+            f"{min(s['param_min'][i] for s in summary.values()):.4g}",
+            f"{max(s['param_max'][i] for s in summary.values()):.4g}",
+        ]
+        for i, name in enumerate(PARAM_NAMES)
+    ]
     print_table("parameter ranges", ["param", "min", "max"], ranges)
     atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
     return summary

@@ -11,6 +11,7 @@ Run folder (hydra.run.dir): checkpoints/{best-*.ckpt,last.ckpt}, tensorboard/, t
 for the parameter CNNs, predictions.csv, error_distribution.{csv,md}, sorted_predictions_<p>.png;
 for the CAE / U-Net, per_sample_mse.csv, mse_summary.{csv,md}, mse_hist_<channel>.png, examples.png.
 """
+
 from __future__ import annotations
 
 import csv
@@ -20,8 +21,9 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import yaml
 
@@ -81,7 +83,9 @@ def load_model(cfg, train: bool):
 
     model_cls = get_class(cfg.model._target_)
     if model_cls.__name__ not in MODULES:
-        raise ConfigError(f"model._target_ = {cfg.model._target_!r} is not one of the project's models {sorted(MODULES)}")
+        raise ConfigError(
+            f"model._target_ = {cfg.model._target_!r} is not one of the project's models {sorted(MODULES)}"
+        )
     if cfg.get("ckpt_path"):
         # The one safe loader: weights_only, allow-listed classes/targets, strict state_dict.
         checked = model_cls.load_checked(str(cfg.ckpt_path))
@@ -124,11 +128,16 @@ def check_logger_callbacks(cfg) -> None:
     """Callbacks that need a logger (LearningRateMonitor) with logger=none: one line, before any work."""
     callbacks = cfg.get("callbacks") or {}
     loggers = [c for c in (cfg.get("logger") or {}).values() if c is not None and "_target_" in c]
-    needs = [name for name, c in callbacks.items()
-             if c is not None and str(c.get("_target_", "")).endswith("LearningRateMonitor")]
+    needs = [
+        name
+        for name, c in callbacks.items()
+        if c is not None and str(c.get("_target_", "")).endswith("LearningRateMonitor")
+    ]
     if needs and not loggers:
-        raise ConfigError(f"callbacks.{needs[0]} (LearningRateMonitor) needs a logger, but logger=none; "
-                          f"add ~callbacks.{needs[0]} or choose logger=tensorboard")
+        raise ConfigError(
+            f"callbacks.{needs[0]} (LearningRateMonitor) needs a logger, but logger=none; "
+            f"add ~callbacks.{needs[0]} or choose logger=tensorboard"
+        )
 
 
 def _instantiate_group(group: Mapping | None) -> list:
@@ -158,8 +167,10 @@ def _prepare(cfg) -> dict:
 
     task = cfg.get("task", "train")
     if task != "train":
-        raise ConfigError(f"task = {task!r}: qcm-train runs training experiments only (task: train); "
-                          f"use qcm-estimate for estimation experiments")
+        raise ConfigError(
+            f"task = {task!r}: qcm-train runs training experiments only (task: train); "
+            f"use qcm-estimate for estimation experiments"
+        )
     train, test = bool(cfg.get("train", True)), bool(cfg.get("test", True))
     if not train and not cfg.get("ckpt_path"):
         raise ConfigError("train=false needs ckpt_path=CKPT (the checkpoint to evaluate)")
@@ -180,7 +191,9 @@ def _prepare(cfg) -> dict:
         from hybridqcm.models import DenoisingAutoencoder
 
         if not hasattr(model, "attach_denoiser"):
-            raise ConfigError(f"denoiser_ckpt given, but {type(model).__name__} takes no denoiser (only the parameter CNNs do)")
+            raise ConfigError(
+                f"denoiser_ckpt given, but {type(model).__name__} takes no denoiser (only the parameter CNNs do)"
+            )
         model.attach_denoiser(DenoisingAutoencoder.load_checked(str(cfg.denoiser_ckpt)))
     datamodule = build_datamodule(cfg.data, model.data_requirements(), train)
     stages = (["fit"] if train else []) + (["test"] if test else [])
@@ -200,8 +213,13 @@ def train(cfg) -> dict[str, float]:
     parts = prepare(cfg)
     model, datamodule = parts["model"], parts["datamodule"]
     out_dir = common.check_writable_dir(Path(cfg.paths.output_dir))
-    runfolder.prepare_run_dir(out_dir, runfolder.TRAIN_ARTEFACTS, bool(cfg.get("overwrite", False)),
-                              runfolder.TRAIN_GLOBS, inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
+    runfolder.prepare_run_dir(
+        out_dir,
+        runfolder.TRAIN_ARTEFACTS,
+        bool(cfg.get("overwrite", False)),
+        runfolder.TRAIN_GLOBS,
+        inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")],
+    )
 
     callbacks = _instantiate_group(cfg.get("callbacks"))
     loggers = _instantiate_group(cfg.get("logger"))
@@ -218,12 +236,18 @@ def train(cfg) -> dict[str, float]:
 
     if parts["test"]:
         checkpoint = None
-        if parts["train"] and trainer.checkpoint_callback is not None and getattr(trainer.checkpoint_callback, "best_model_path", ""):
+        if (
+            parts["train"]
+            and trainer.checkpoint_callback is not None
+            and getattr(trainer.checkpoint_callback, "best_model_path", "")
+        ):
             checkpoint = trainer.checkpoint_callback.best_model_path
         tester = trainer
         if trainer.world_size > 1:
             # Spawned ranks keep their test outputs to themselves: test once, in this process, on one device.
-            tester = instantiate(cfg.trainer, devices=1, num_nodes=1, strategy="auto", callbacks=[], logger=loggers or False)
+            tester = instantiate(
+                cfg.trainer, devices=1, num_nodes=1, strategy="auto", callbacks=[], logger=loggers or False
+            )
         results = tester.test(model, datamodule=datamodule, ckpt_path=checkpoint, weights_only=True)
         test_metrics = {k: float(v) for k, v in (results[0] if results else {}).items()}
         metrics.update(test_metrics)
@@ -232,18 +256,30 @@ def train(cfg) -> dict[str, float]:
         log_test_hparams(loggers, hparams_of(cfg), test_metrics)  # TensorBoard HPARAMS: this run's row
         write_test_outputs(model, out_dir, tester)
         summary = {
-            "task_name": cfg.get("task_name"), "model": type(model).__name__, "train": parts["train"],
-            "train_seconds": train_seconds, "steps": trainer.global_step, "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
-            "denoiser_ckpt": cfg.get("denoiser_ckpt"), "noise_sigma": getattr(datamodule, "noise_sigma", None),
-            "sensor": dataclasses.asdict(datamodule.sensor) if getattr(datamodule, "sensor", None) is not None else None,
+            "task_name": cfg.get("task_name"),
+            "model": type(model).__name__,
+            "train": parts["train"],
+            "train_seconds": train_seconds,
+            "steps": trainer.global_step,
+            "tested_checkpoint": checkpoint or cfg.get("ckpt_path"),
+            "denoiser_ckpt": cfg.get("denoiser_ckpt"),
+            "noise_sigma": getattr(datamodule, "noise_sigma", None),
+            "sensor": dataclasses.asdict(datamodule.sensor)
+            if getattr(datamodule, "sensor", None) is not None
+            else None,
             "data_path": getattr(datamodule, "path", None) and str(datamodule.path),
             "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
-            "device": str(model.device), "metrics": test_metrics,
+            "device": str(model.device),
+            "metrics": test_metrics,
         }
         atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
     if trainer.global_rank == 0:
-        runfolder.write_completion_marker(out_dir, "qcm-train", runfolder.task_overrides(),
-                                          [getattr(datamodule, "path", None), cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")])
+        runfolder.write_completion_marker(
+            out_dir,
+            "qcm-train",
+            runfolder.task_overrides(),
+            [getattr(datamodule, "path", None), cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")],
+        )
     return metrics
 
 
@@ -278,10 +314,14 @@ def _write_estimator_outputs(model, results: Mapping, out_dir: Path, writer) -> 
     _write_csv(written[0], rows, fields)
     if true is not None:
         table = error_distribution_rows(pred, true, names)
-        written += list(write_error_distribution(table, out_dir, title=f"{type(model).__name__}: test set ({len(pred)} samples)"))
+        written += list(
+            write_error_distribution(table, out_dir, title=f"{type(model).__name__}: test set ({len(pred)} samples)")
+        )
         for j, name in enumerate(names):
             path = out_dir / f"sorted_predictions_{name}.png"
-            fig = plot_sorted_predictions(pred[:, j], true[:, j], name, path=path, title=f"{name}: test, sorted by true value")
+            fig = plot_sorted_predictions(
+                pred[:, j], true[:, j], name, path=path, title=f"{name}: test, sorted by true value"
+            )
             if writer is not None:
                 writer.add_figure(f"test/sorted_{name}", fig)
             close(fig)
@@ -314,16 +354,25 @@ def _write_signal_outputs(model, results: Mapping, out_dir: Path, writer) -> lis
     summary = []
     for j, name in enumerate(names):
         m = mse[:, j]
-        entry = {"channel": name, "n": int(m.size), "mean_mse": float(m.mean()), "median_mse": float(np.median(m)),
-                 "p95_mse": float(np.quantile(m, 0.95)), "max_mse": float(m.max()),
-                 "frac_below_1e-5": float((m < 1e-5).mean()), "frac_below_1e-4": float((m < 1e-4).mean()),
-                 "mean_rel_mse": float(rel[:, j].mean()), "max_rel_mse": float(rel[:, j].max())}
+        entry = {
+            "channel": name,
+            "n": int(m.size),
+            "mean_mse": float(m.mean()),
+            "median_mse": float(np.median(m)),
+            "p95_mse": float(np.quantile(m, 0.95)),
+            "max_mse": float(m.max()),
+            "frac_below_1e-5": float((m < 1e-5).mean()),
+            "frac_below_1e-4": float((m < 1e-4).mean()),
+            "mean_rel_mse": float(rel[:, j].mean()),
+            "max_rel_mse": float(rel[:, j].max()),
+        }
         if base is not None:
             entry["mean_noisy_input_mse"] = float(base[:, j].mean())
         summary.append(entry)
         path = out_dir / f"mse_hist_{name}.png"
-        fig = plot_histogram(m, path=path, title=f"{type(model).__name__}: per-sample MSE of {name} (test)",
-                             xlabel="MSE [(m/s²)²]")
+        fig = plot_histogram(
+            m, path=path, title=f"{type(model).__name__}: per-sample MSE of {name} (test)", xlabel="MSE [(m/s²)²]"
+        )
         if writer is not None:
             writer.add_figure(f"test/mse_hist_{name}", fig)
         close(fig)
@@ -331,7 +380,9 @@ def _write_signal_outputs(model, results: Mapping, out_dir: Path, writer) -> lis
     written.append(out_dir / "mse_summary.csv")
     _write_csv(written[-1], summary)
     lines = ["| " + " | ".join(summary[0].keys()) + " |", "|" + "---|" * len(summary[0])]
-    lines += ["| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in s.values()) + " |" for s in summary]
+    lines += [
+        "| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in s.values()) + " |" for s in summary
+    ]
     atomic_write_text(out_dir / "mse_summary.md", "\n".join(lines) + "\n")
     written.append(out_dir / "mse_summary.md")
     if "examples" in results:
@@ -398,8 +449,16 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from hybridqcm.data.hdf5 import DatasetError
     from hybridqcm.models.modules import CheckpointMismatch
 
-    return (HybridQCMError, ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError, InstantiationException,
-            ValueError, KeyError)
+    return (
+        HybridQCMError,
+        ConfigError,
+        DatasetError,
+        CheckpointMismatch,
+        FileNotFoundError,
+        InstantiationException,
+        ValueError,
+        KeyError,
+    )
 
 
 def run(cfg) -> float | None:

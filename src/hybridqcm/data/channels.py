@@ -12,9 +12,10 @@ Parameter "channels" p1..p10 are columns of `params` [M, 10].
 
 Works on numpy arrays and torch tensors alike (the simulator returns tensors, HDF5 numpy).
 """
+
 from __future__ import annotations
 
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -45,7 +46,9 @@ def _as_list(names: str | Iterable[str] | None) -> list[str]:
     return [str(n) for n in names]
 
 
-def validate_channels(names: str | Iterable[str] | None, what: str = "channels", allow_params: bool = True) -> list[str]:
+def validate_channels(
+    names: str | Iterable[str] | None, what: str = "channels", allow_params: bool = True
+) -> list[str]:
     """Check names; a list is either all time channels or all parameters. Returns the list."""
     names = _as_list(names)
     valid = set(CHANNEL_NAMES) | (set(PARAM_CHANNELS) if allow_params else set())
@@ -126,5 +129,14 @@ def select(arrays: Mapping, names: Sequence[str], dtype=None):
     return select_channels(arrays, names, dtype)
 
 
-__all__ = ["CHANNEL_NAMES", "PARAM_CHANNELS", "ChannelError", "validate_channels", "is_param",
-           "required_keys", "select_channels", "select_params", "select"]
+__all__ = [
+    "CHANNEL_NAMES",
+    "PARAM_CHANNELS",
+    "ChannelError",
+    "validate_channels",
+    "is_param",
+    "required_keys",
+    "select_channels",
+    "select_params",
+    "select",
+]

@@ -22,20 +22,28 @@ Normalisation statistics (per channel mean/std of inputs and targets over the tr
 are computed in `setup` and kept in `stats` (and in the datamodule's state_dict, hence in
 checkpoints). The models compute their own normalisation buffers from `stats_batch()`.
 """
+
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 from lightning import LightningDataModule
 from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
 
-from hybridqcm.data.channels import (ChannelError, is_param, required_keys, select_channels, select_params,
-                                     validate_channels)
+from hybridqcm.data.channels import (
+    ChannelError,
+    is_param,
+    required_keys,
+    select_channels,
+    select_params,
+    validate_channels,
+)
 from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
 from hybridqcm.data.sensor import SensorModel, additive_augmentation, apply_to_channels, build_sensor
 
@@ -55,8 +63,11 @@ def apply_noise(x: torch.Tensor, sigma: float | torch.Tensor, generator: torch.G
     """
     if isinstance(sigma, (int, float)) and sigma == 0:
         return x
-    eta = torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device) if generator is not None \
+    eta = (
+        torch.randn(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+        if generator is not None
         else torch.randn_like(x)
+    )
     if isinstance(sigma, torch.Tensor):
         sigma = sigma.to(x).reshape(-1, *([1] * (x.ndim - 1)))
     return x * (1 + sigma * eta)
@@ -72,8 +83,13 @@ def _check_sigma(sigma: float, where: str) -> float:
 class ChannelSpec:
     """Which channels a task reads: inputs (time), targets (time or parameters), clean auxiliaries."""
 
-    def __init__(self, inputs: Sequence[str], targets: Sequence[str] | None = None, aux: Sequence[str] | None = None,
-                 targets_optional: bool = False) -> None:
+    def __init__(
+        self,
+        inputs: Sequence[str],
+        targets: Sequence[str] | None = None,
+        aux: Sequence[str] | None = None,
+        targets_optional: bool = False,
+    ) -> None:
         self.inputs = validate_channels(inputs, "inputs")
         if not self.inputs or is_param(self.inputs[0]):
             raise ChannelError(f"inputs: need at least one time channel, got {self.inputs}")
@@ -110,8 +126,9 @@ class ChannelSpec:
             # Kept in the source's precision: float32 from HDF5 (as stored; halves memory), float64 from the simulator.
             out["aux"] = torch.as_tensor(select_channels(arrays, self.aux))
         if "params" in arrays:
-            out["params"] = torch.as_tensor(np.asarray(arrays["params"]) if not isinstance(arrays["params"], torch.Tensor)
-                                            else arrays["params"]).double()
+            out["params"] = torch.as_tensor(
+                np.asarray(arrays["params"]) if not isinstance(arrays["params"], torch.Tensor) else arrays["params"]
+            ).double()
         return out
 
 
@@ -135,8 +152,15 @@ def channel_stats(tensors: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor
 class TensorBatches(Dataset):
     """In-memory samples; fetched a batch at a time (`__getitems__`), noise applied per batch."""
 
-    def __init__(self, tensors: Mapping[str, torch.Tensor], noise_sigma: float = 0.0, fixed_noise_seed: int | None = None,
-                 sensor: SensorModel | None = None, names: Sequence[str] = (), augment_max: float = 0.0) -> None:
+    def __init__(
+        self,
+        tensors: Mapping[str, torch.Tensor],
+        noise_sigma: float = 0.0,
+        fixed_noise_seed: int | None = None,
+        sensor: SensorModel | None = None,
+        names: Sequence[str] = (),
+        augment_max: float = 0.0,
+    ) -> None:
         self.tensors = dict(tensors)
         self.noise_sigma = float(noise_sigma)
         self.sensor = sensor if sensor is not None and sensor.active else None
@@ -147,8 +171,9 @@ class TensorBatches(Dataset):
             generator = torch.Generator().manual_seed(int(fixed_noise_seed))
             self.noisy_x = apply_noise(self.tensors["x"], self.noise_sigma, generator)
         if self.sensor is not None and fixed_noise_seed is not None:
-            self.noisy_x = apply_to_channels(self.sensor, self.tensors["x"], self.names, self.tensors["index"],
-                                             salt=int(fixed_noise_seed))
+            self.noisy_x = apply_to_channels(
+                self.sensor, self.tensors["x"], self.names, self.tensors["index"], salt=int(fixed_noise_seed)
+            )
 
     def __len__(self) -> int:
         return self.n
@@ -161,7 +186,7 @@ class TensorBatches(Dataset):
         elif self.noise_sigma > 0:
             batch["x"] = apply_noise(batch["x"], self.noise_sigma)
         elif self.sensor is not None:  # training: fresh noise per batch (the salt comes from the seeded global RNG)
-            salt = int(torch.randint(1, 2 ** 62, ()))
+            salt = int(torch.randint(1, 2**62, ()))
             batch["x"] = apply_to_channels(self.sensor, batch["x"], self.names, batch["index"], salt)
         if self.augment_max > 0:
             batch["x"] = additive_augmentation(batch["x"], self.names, self.augment_max)
@@ -174,11 +199,23 @@ class TensorBatches(Dataset):
 class _BaseDataModule(LightningDataModule):
     """Shared channel handling, statistics and loaders."""
 
-    def __init__(self, inputs: Sequence[str] = ("a3", "a2"), targets: Sequence[str] | None = ("p1", "p2"),
-                 aux: Sequence[str] | None = None, window: int = 500, noise_sigma: float = 0.0,
-                 batch_size: int = 256, eval_batch_size: int | None = None, num_workers: int = 0,
-                 pin_memory: bool = False, seed: int = 0, targets_optional: bool = False, stats_samples: int = 2048,
-                 sensor: Mapping | SensorModel | None = None, train_additive_max: float = 0.0) -> None:
+    def __init__(
+        self,
+        inputs: Sequence[str] = ("a3", "a2"),
+        targets: Sequence[str] | None = ("p1", "p2"),
+        aux: Sequence[str] | None = None,
+        window: int = 500,
+        noise_sigma: float = 0.0,
+        batch_size: int = 256,
+        eval_batch_size: int | None = None,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        seed: int = 0,
+        targets_optional: bool = False,
+        stats_samples: int = 2048,
+        sensor: Mapping | SensorModel | None = None,
+        train_additive_max: float = 0.0,
+    ) -> None:
         super().__init__()
         self.spec = ChannelSpec(inputs, targets, aux, targets_optional)
         self.window = int(window)
@@ -187,11 +224,15 @@ class _BaseDataModule(LightningDataModule):
         self.noise_sigma = _check_sigma(noise_sigma, type(self).__name__)
         self.sensor = build_sensor(sensor)
         if self.sensor.active and self.noise_sigma > 0:
-            raise ValueError(f"{type(self).__name__}: noise_sigma = {self.noise_sigma} and sensor.kind = {self.sensor.kind!r} "
-                             f"both add noise; use one (noise_sigma is the source's multiplicative model)")
+            raise ValueError(
+                f"{type(self).__name__}: noise_sigma = {self.noise_sigma} and sensor.kind = {self.sensor.kind!r} "
+                f"both add noise; use one (noise_sigma is the source's multiplicative model)"
+            )
         self.train_additive_max = float(train_additive_max)
         if not (math.isfinite(self.train_additive_max) and self.train_additive_max >= 0):
-            raise ValueError(f"{type(self).__name__}: train_additive_max must be a finite number >= 0, got {train_additive_max}")
+            raise ValueError(
+                f"{type(self).__name__}: train_additive_max must be a finite number >= 0, got {train_additive_max}"
+            )
         if int(batch_size) < 1:
             raise ValueError(f"{type(self).__name__}: batch_size must be >= 1, got {batch_size}")
         self.batch_size = int(batch_size)
@@ -214,9 +255,15 @@ class _BaseDataModule(LightningDataModule):
     def _loader(self, dataset: Dataset | None, shuffle: bool, batch_size: int) -> DataLoader:
         if dataset is None:
             raise RuntimeError(f"{type(self).__name__}: call setup() before asking for a dataloader")
-        return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, collate_fn=_identity_collate,
-                          num_workers=self.num_workers, pin_memory=self.pin_memory,
-                          persistent_workers=False)
+        return DataLoader(
+            dataset,
+            batch_size=batch_size,
+            shuffle=shuffle,
+            collate_fn=_identity_collate,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=False,
+        )
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.data_val, False, self.eval_batch_size)
@@ -228,8 +275,12 @@ class _BaseDataModule(LightningDataModule):
         return self.test_dataloader()
 
     def state_dict(self) -> dict[str, Any]:
-        return {"stats": {k: v.clone() for k, v in self.stats.items()}, "inputs": self.spec.inputs,
-                "targets": self.spec.targets, "window": self.window}
+        return {
+            "stats": {k: v.clone() for k, v in self.stats.items()},
+            "inputs": self.spec.inputs,
+            "targets": self.spec.targets,
+            "window": self.window,
+        }
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.stats = dict(state_dict.get("stats", {}))
@@ -243,8 +294,16 @@ class HDF5DataModule(_BaseDataModule):
     quick runs (prefixes; the file's splits are shuffled by class at generation).
     """
 
-    def __init__(self, path: str, train_split: str = "train", test_split: str = "test", val_fraction: float = 0.1,
-                 limit_train: int | None = None, limit_test: int | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        path: str,
+        train_split: str = "train",
+        test_split: str = "test",
+        val_fraction: float = 0.1,
+        limit_train: int | None = None,
+        limit_test: int | None = None,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(**kwargs)
         self.path = Path(str(path))
         self.train_split, self.test_split = train_split, test_split
@@ -262,15 +321,21 @@ class HDF5DataModule(_BaseDataModule):
         splits = ([self.train_split] if "fit" in stages else []) + ([self.test_split] if "test" in stages else [])
         for split in splits:
             if split not in info["splits"]:
-                raise DatasetError(f"{self.path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
+                raise DatasetError(
+                    f"{self.path}: split {split!r} not found; available splits: {sorted(info['splits'])}"
+                )
             have = info["splits"][split]["keys"]
             missing = sorted(needed - set(have))
             if missing:
-                raise DatasetError(f"{self.path}: /{split} lacks dataset(s) {missing} needed for channels "
-                                   f"inputs={self.spec.inputs} targets={self.spec.targets} aux={self.spec.aux}; it has {have}")
+                raise DatasetError(
+                    f"{self.path}: /{split} lacks dataset(s) {missing} needed for channels "
+                    f"inputs={self.spec.inputs} targets={self.spec.targets} aux={self.spec.aux}; it has {have}"
+                )
             stored = info["splits"][split]["n_steps"]
             if stored is not None and self.window > stored:
-                raise DatasetError(f"{self.path}: window = {self.window} is longer than the {stored} steps stored in /{split}")
+                raise DatasetError(
+                    f"{self.path}: window = {self.window} is longer than the {stored} steps stored in /{split}"
+                )
         return info
 
     def _read(self, split: str, limit: int | None, info: dict) -> dict[str, torch.Tensor]:
@@ -287,8 +352,10 @@ class HDF5DataModule(_BaseDataModule):
                 # a file may hold an unrecorded (all-NaN) channel; only a channel this task reads is an error
                 missing = [n for c, n in enumerate(names) if bool(torch.isnan(tensors[part][:, c]).all())]
                 if missing:
-                    raise DatasetError(f"{self.path}: /{split} channel(s) {missing} are not recorded (all NaN) "
-                                       f"but this task reads them as {'inputs' if part == 'x' else part}")
+                    raise DatasetError(
+                        f"{self.path}: /{split} channel(s) {missing} are not recorded (all NaN) "
+                        f"but this task reads them as {'inputs' if part == 'x' else part}"
+                    )
         if "profile_id" in arrays:
             tensors["profile_id"] = torch.as_tensor(arrays["profile_id"]).long()
         return tensors
@@ -305,10 +372,10 @@ class HDF5DataModule(_BaseDataModule):
             is_val = torch.isin(tensors["profile_id"], chosen)
         else:
             is_val = torch.zeros(m, dtype=torch.bool)
-            is_val[torch.randperm(m, generator=generator)[:max(1, round(self.val_fraction * m))]] = True
+            is_val[torch.randperm(m, generator=generator)[: max(1, round(self.val_fraction * m))]] = True
         if is_val.all() or not is_val.any():  # too few profiles: fall back to samples
             is_val = torch.zeros(m, dtype=torch.bool)
-            is_val[torch.randperm(m, generator=generator)[:max(1, round(self.val_fraction * m))]] = True
+            is_val[torch.randperm(m, generator=generator)[: max(1, round(self.val_fraction * m))]] = True
         return ({k: v[~is_val] for k, v in tensors.items()}, {k: v[is_val] for k, v in tensors.items()})
 
     def setup(self, stage: str | None = None) -> None:
@@ -318,16 +385,25 @@ class HDF5DataModule(_BaseDataModule):
             train, val = self._carve(self._read(self.train_split, self.limit_train, info))
             self._train_tensors = train
             self.stats = channel_stats(train)
-            self.data_train = TensorBatches(train, self.noise_sigma, sensor=self.sensor, names=self.spec.inputs,
-                                            augment_max=self.train_additive_max)
-            self.data_val = TensorBatches(val, self.noise_sigma, fixed_noise_seed=self.seed + 1, sensor=self.sensor,
-                                          names=self.spec.inputs)
-            log.info("HDF5DataModule %s: %d train / %d val samples, window %d, sigma %g",
-                     self.path, len(self.data_train), len(self.data_val), self.window, self.noise_sigma)
+            self.data_train = TensorBatches(
+                train, self.noise_sigma, sensor=self.sensor, names=self.spec.inputs, augment_max=self.train_additive_max
+            )
+            self.data_val = TensorBatches(
+                val, self.noise_sigma, fixed_noise_seed=self.seed + 1, sensor=self.sensor, names=self.spec.inputs
+            )
+            log.info(
+                "HDF5DataModule %s: %d train / %d val samples, window %d, sigma %g",
+                self.path,
+                len(self.data_train),
+                len(self.data_val),
+                self.window,
+                self.noise_sigma,
+            )
         if "test" in stages and self.data_test is None:
             test = self._read(self.test_split, self.limit_test, info)
-            self.data_test = TensorBatches(test, self.noise_sigma, fixed_noise_seed=self.seed + 2, sensor=self.sensor,
-                                           names=self.spec.inputs)
+            self.data_test = TensorBatches(
+                test, self.noise_sigma, fixed_noise_seed=self.seed + 2, sensor=self.sensor, names=self.spec.inputs
+            )
             log.info("HDF5DataModule %s: %d test samples", self.path, len(self.data_test))
 
     def train_dataloader(self) -> DataLoader:
@@ -350,8 +426,17 @@ class SimulatedStream(IterableDataset):
     split across ranks and workers.
     """
 
-    def __init__(self, simulator: "StreamSimulator", spec: ChannelSpec, batch_size: int, batches_per_epoch: int,
-                 noise_sigma: float, seed: int, sensor: SensorModel | None = None, augment_max: float = 0.0) -> None:
+    def __init__(
+        self,
+        simulator: StreamSimulator,
+        spec: ChannelSpec,
+        batch_size: int,
+        batches_per_epoch: int,
+        noise_sigma: float,
+        seed: int,
+        sensor: SensorModel | None = None,
+        augment_max: float = 0.0,
+    ) -> None:
         self.simulator, self.spec = simulator, spec
         self.sensor = sensor if sensor is not None and sensor.active else None
         self.augment_max = float(augment_max)
@@ -373,9 +458,9 @@ class SimulatedStream(IterableDataset):
             worker, n_workers, salt = 0, 1, self._passes
             self._passes += 1
         else:
-            worker, n_workers, salt = info.id, info.num_workers, (info.seed - info.id) % (2 ** 62)
+            worker, n_workers, salt = info.id, info.num_workers, (info.seed - info.id) % (2**62)
         sequence = np.random.SeedSequence([self.seed, rank, worker, salt])
-        return int(sequence.generate_state(1, np.uint64)[0] % (2 ** 63 - 1)), world * n_workers, rank * n_workers + worker
+        return int(sequence.generate_state(1, np.uint64)[0] % (2**63 - 1)), world * n_workers, rank * n_workers + worker
 
     def __len__(self) -> int:
         return self.batches_per_epoch
@@ -389,7 +474,7 @@ class SimulatedStream(IterableDataset):
             batch = self.spec.build(arrays, torch.full((self.batch_size,), -1, dtype=torch.long))
             batch["x"] = apply_noise(batch["x"], self.noise_sigma, generator)
             if self.sensor is not None:  # fresh, seeded noise: random sample ids from the stream's generator
-                ids = torch.randint(0, 2 ** 62, (self.batch_size,), generator=generator)
+                ids = torch.randint(0, 2**62, (self.batch_size,), generator=generator)
                 batch["x"] = apply_to_channels(self.sensor, batch["x"], self.spec.inputs, ids, salt=self.seed)
             if self.augment_max > 0:
                 batch["x"] = additive_augmentation(batch["x"], self.spec.inputs, self.augment_max, generator)
@@ -399,9 +484,18 @@ class SimulatedStream(IterableDataset):
 class StreamSimulator:
     """Callable (n, generator) -> arrays dict of n fresh samples (picklable, for DataLoader workers)."""
 
-    def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, n_steps: int = 500,
-                 h: float = 0.01, speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", n_waves: int = 1000,
-                 physics: str = "euler", warmup_s: float | Sequence[float] = 0.0) -> None:
+    def __init__(
+        self,
+        prior: Mapping | None = None,
+        road_classes: Mapping[str, float] | None = None,
+        n_steps: int = 500,
+        h: float = 0.01,
+        speed_kmh: float = 30.0,
+        integrator: str = "semi_explicit_euler",
+        n_waves: int = 1000,
+        physics: str = "euler",
+        warmup_s: float | Sequence[float] = 0.0,
+    ) -> None:
         from hybridqcm.data.simulate import check_physics, check_warmup
         from hybridqcm.physics import RoadProfile, build_prior, road_class_index
 
@@ -422,15 +516,31 @@ class StreamSimulator:
         self.class_index = torch.tensor([road_class_index(c) for c in road_classes], dtype=torch.long)
         self.class_weights = torch.tensor(weights, dtype=torch.float64)
         self.road = RoadProfile(n_waves=n_waves)
-        self.n_steps, self.h, self.speed_mps, self.integrator = int(n_steps), float(h), float(speed_kmh) * KMH, integrator
+        self.n_steps, self.h, self.speed_mps, self.integrator = (
+            int(n_steps),
+            float(h),
+            float(speed_kmh) * KMH,
+            integrator,
+        )
 
     def __call__(self, n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         from hybridqcm.data.simulate import simulate_samples
 
         pick = torch.multinomial(self.class_weights, n, replacement=True, generator=generator)
         classes = self.class_index[pick]
-        arrays = simulate_samples(self.prior, self.road, classes, self.n_steps, self.h, self.speed_mps, generator,
-                                  1, self.integrator, self.physics, self.warmup_s)
+        arrays = simulate_samples(
+            self.prior,
+            self.road,
+            classes,
+            self.n_steps,
+            self.h,
+            self.speed_mps,
+            generator,
+            1,
+            self.integrator,
+            self.physics,
+            self.warmup_s,
+        )
         arrays["profile_id"] = arrays.pop("profile")
         return arrays
 
@@ -444,17 +554,34 @@ class StreamingDataModule(_BaseDataModule):
     datamodules.
     """
 
-    def __init__(self, prior: Mapping | None = None, road_classes: Mapping[str, float] | None = None, h: float = 0.01,
-                 speed_kmh: float = 30.0, integrator: str = "semi_explicit_euler", physics: str = "euler",
-                 warmup_s: float | Sequence[float] = 0.0, samples_per_epoch: int = 51200,
-                 val_samples: int = 2000, test_samples: int = 2000, val_seed: int = 1_000_001, test_seed: int = 2_000_002,
-                 path: str | None = None, test_split: str = "test", limit_test: int | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        prior: Mapping | None = None,
+        road_classes: Mapping[str, float] | None = None,
+        h: float = 0.01,
+        speed_kmh: float = 30.0,
+        integrator: str = "semi_explicit_euler",
+        physics: str = "euler",
+        warmup_s: float | Sequence[float] = 0.0,
+        samples_per_epoch: int = 51200,
+        val_samples: int = 2000,
+        test_samples: int = 2000,
+        val_seed: int = 1_000_001,
+        test_seed: int = 2_000_002,
+        path: str | None = None,
+        test_split: str = "test",
+        limit_test: int | None = None,
+        **kwargs: Any,
+    ) -> None:
         super().__init__(**kwargs)
-        self.simulator = StreamSimulator(prior, road_classes, self.window, h, speed_kmh, integrator,
-                                         physics=physics, warmup_s=warmup_s)
+        self.simulator = StreamSimulator(
+            prior, road_classes, self.window, h, speed_kmh, integrator, physics=physics, warmup_s=warmup_s
+        )
         if int(samples_per_epoch) < 1 or int(val_samples) < 0 or int(test_samples) < 0:
-            raise ValueError(f"StreamingDataModule: need samples_per_epoch >= 1 and val/test_samples >= 0, got "
-                             f"{samples_per_epoch}, {val_samples}, {test_samples}")
+            raise ValueError(
+                f"StreamingDataModule: need samples_per_epoch >= 1 and val/test_samples >= 0, got "
+                f"{samples_per_epoch}, {val_samples}, {test_samples}"
+            )
         self.samples_per_epoch = int(samples_per_epoch)
         self.val_samples, self.test_samples = int(val_samples), int(test_samples)
         self.val_seed, self.test_seed = int(val_seed), int(test_seed)
@@ -473,15 +600,26 @@ class StreamingDataModule(_BaseDataModule):
         info = hdf5.check(("test",))
         h = info["attrs"].get("h")
         if h is not None and abs(float(h) - self.simulator.h) > 1e-12:
-            raise DatasetError(f"{self.path}: attribute h = {h} differs from the stream's h = {self.simulator.h}; "
-                               f"set data.h={h} so training and test data share the time step")
+            raise DatasetError(
+                f"{self.path}: attribute h = {h} differs from the stream's h = {self.simulator.h}; "
+                f"set data.h={h} so training and test data share the time step"
+            )
         return info
 
-    def _hdf5_test(self) -> "HDF5DataModule":
-        return HDF5DataModule(self.path, test_split=self.test_split, inputs=self.spec.inputs, targets=self.spec.targets,
-                              aux=self.spec.aux, window=self.window, noise_sigma=self.noise_sigma, seed=self.seed,
-                              sensor=self.sensor,
-                              limit_test=self.limit_test, targets_optional=self.spec.targets_optional)
+    def _hdf5_test(self) -> HDF5DataModule:
+        return HDF5DataModule(
+            self.path,
+            test_split=self.test_split,
+            inputs=self.spec.inputs,
+            targets=self.spec.targets,
+            aux=self.spec.aux,
+            window=self.window,
+            noise_sigma=self.noise_sigma,
+            seed=self.seed,
+            sensor=self.sensor,
+            limit_test=self.limit_test,
+            targets_optional=self.spec.targets_optional,
+        )
 
     def _fixed_set(self, n: int, seed: int, chunk: int = 1000) -> dict[str, torch.Tensor]:
         generator = torch.Generator().manual_seed(seed)
@@ -499,11 +637,23 @@ class StreamingDataModule(_BaseDataModule):
         if "fit" in stages and self.data_train is None:
             self._val_tensors = self._fixed_set(self.val_samples, self.val_seed)
             self.stats = channel_stats(self.stats_batch())
-            self.data_val = TensorBatches(self._val_tensors, self.noise_sigma, fixed_noise_seed=self.val_seed + 1,
-                                          sensor=self.sensor, names=self.spec.inputs)
-            self.data_train = SimulatedStream(self.simulator, self.spec, self.batch_size,
-                                              max(1, self.samples_per_epoch // self.batch_size), self.noise_sigma, self.seed,
-                                              sensor=self.sensor, augment_max=self.train_additive_max)
+            self.data_val = TensorBatches(
+                self._val_tensors,
+                self.noise_sigma,
+                fixed_noise_seed=self.val_seed + 1,
+                sensor=self.sensor,
+                names=self.spec.inputs,
+            )
+            self.data_train = SimulatedStream(
+                self.simulator,
+                self.spec,
+                self.batch_size,
+                max(1, self.samples_per_epoch // self.batch_size),
+                self.noise_sigma,
+                self.seed,
+                sensor=self.sensor,
+                augment_max=self.train_additive_max,
+            )
         if "test" in stages and self.data_test is None:
             if self.path:
                 self.check(("test",))
@@ -511,8 +661,13 @@ class StreamingDataModule(_BaseDataModule):
                 hdf5.setup("test")
                 self.data_test = hdf5.data_test
             else:
-                self.data_test = TensorBatches(self._fixed_set(self.test_samples, self.test_seed), self.noise_sigma,
-                                               fixed_noise_seed=self.test_seed + 1, sensor=self.sensor, names=self.spec.inputs)
+                self.data_test = TensorBatches(
+                    self._fixed_set(self.test_samples, self.test_seed),
+                    self.noise_sigma,
+                    fixed_noise_seed=self.test_seed + 1,
+                    sensor=self.sensor,
+                    names=self.spec.inputs,
+                )
 
     def train_dataloader(self) -> DataLoader:
         if self.data_train is None:
@@ -528,5 +683,13 @@ class StreamingDataModule(_BaseDataModule):
         return {k: v[:n] for k, v in self._stats_tensors.items()}
 
 
-__all__ = ["HDF5DataModule", "StreamingDataModule", "SimulatedStream", "StreamSimulator", "TensorBatches",
-           "ChannelSpec", "apply_noise", "channel_stats"]
+__all__ = [
+    "HDF5DataModule",
+    "StreamingDataModule",
+    "SimulatedStream",
+    "StreamSimulator",
+    "TensorBatches",
+    "ChannelSpec",
+    "apply_noise",
+    "channel_stats",
+]

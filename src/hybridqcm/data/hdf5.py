@@ -16,13 +16,14 @@ Readers accept any producer's file that has the keys the task needs. Writers nev
 half-written file that looks valid: they write to a temporary file beside the target and
 rename it into place only after everything was written and flushed.
 """
+
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Iterable, Mapping
 
 import h5py
 import numpy as np
@@ -73,7 +74,9 @@ def _check_schema(path: Path, handle: h5py.File) -> None:
         return  # other producers may omit it; the layout checks below still apply
     schema = schema.decode() if isinstance(schema, bytes) else str(schema)
     if schema not in SUPPORTED_SCHEMAS:
-        raise DatasetError(f"{path}: attribute schema = {schema!r} is not supported (expected one of {list(SUPPORTED_SCHEMAS)})")
+        raise DatasetError(
+            f"{path}: attribute schema = {schema!r} is not supported (expected one of {list(SUPPORTED_SCHEMAS)})"
+        )
 
 
 def _step(path: Path, handle: h5py.File) -> float:
@@ -95,13 +98,15 @@ def _physics(attrs: Mapping) -> tuple[str, str]:
     if physics is None:
         if ours and "integrator" in attrs:  # schema /1 from our generator: Euler from rest
             return "euler", "rest"
-        return "continuous", "unknown"      # another producer, e.g. a real logger
+        return "continuous", "unknown"  # another producer, e.g. a real logger
     warmup = attrs.get("warmup_s")
     if isinstance(warmup, str):  # lists are stored as JSON text by DatasetWriter
         try:
             warmup = json.loads(warmup)
         except ValueError:
-            raise DatasetError(f"attribute warmup_s = {warmup!r} is not a number or [low, high] range of seconds") from None
+            raise DatasetError(
+                f"attribute warmup_s = {warmup!r} is not a number or [low, high] range of seconds"
+            ) from None
     try:
         high = max(np.atleast_1d(np.asarray(warmup, dtype=float))) if warmup is not None else None
     except (TypeError, ValueError):
@@ -130,12 +135,16 @@ def _row_selection(path: Path, split: str, index, n_samples: int):
             raise DatasetError(f"{path}: boolean index of shape {index.shape} for /{split} with {n_samples} samples")
         index = np.flatnonzero(index)
     if index.ndim != 1 or index.dtype.kind not in "iu":
-        raise DatasetError(f"{path}: index must be a slice, a boolean mask or a 1-D integer array, got {index.dtype} {index.shape}")
+        raise DatasetError(
+            f"{path}: index must be a slice, a boolean mask or a 1-D integer array, got {index.dtype} {index.shape}"
+        )
     index = np.where(index < 0, index + n_samples, index)
     if index.size and (index.min() < 0 or index.max() >= n_samples):
-        raise DatasetError(f"{path}: index out of range for /{split} with {n_samples} samples "
-                           f"(min {int(index.min())}, max {int(index.max())})")
-    unique, inverse = np.unique(index, return_inverse=True)   # h5py reads increasing, unique rows only
+        raise DatasetError(
+            f"{path}: index out of range for /{split} with {n_samples} samples "
+            f"(min {int(index.min())}, max {int(index.max())})"
+        )
+    unique, inverse = np.unique(index, return_inverse=True)  # h5py reads increasing, unique rows only
     return unique, inverse
 
 
@@ -153,8 +162,9 @@ def dataset_info(path: str | os.PathLike) -> dict:
             keys = sorted(group.keys())
             for key in ("accel", "road"):
                 if key in group and not isinstance(group[key], h5py.Dataset):
-                    raise DatasetError(f"{path}: /{name}/{key} is a {type(group[key]).__name__}, not an array "
-                                       f"with one row per sample")
+                    raise DatasetError(
+                        f"{path}: /{name}/{key} is a {type(group[key]).__name__}, not an array with one row per sample"
+                    )
             first = next((group[k] for k in ("accel", "road") if k in group), None)
             splits[name] = {
                 "n_samples": int(first.shape[0]) if first is not None else 0,
@@ -171,9 +181,14 @@ def recorded_channels(path: str | os.PathLike, split: str = "test") -> list[str]
     return [name for name, ok in zip(ACCEL_CHANNELS, finite) if ok]
 
 
-def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str] = ("accel", "road", "params"),
-               n_steps: int | None = None, index: slice | np.ndarray | None = None,
-               check_finite: bool = True) -> dict[str, np.ndarray]:
+def read_split(
+    path: str | os.PathLike,
+    split: str = "test",
+    keys: Iterable[str] = ("accel", "road", "params"),
+    n_steps: int | None = None,
+    index: slice | np.ndarray | None = None,
+    check_finite: bool = True,
+) -> dict[str, np.ndarray]:
     """Read `keys` of one split, time-series cropped to the first `n_steps` steps.
 
     `index` (a slice, a boolean mask or integer rows, in any order, repeats allowed) selects
@@ -194,7 +209,9 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
             raise DatasetError(f"{path}: /{split} is a {type(group).__name__}, not a group of datasets")
         missing = [k for k in keys if k not in group]
         if missing:
-            raise DatasetError(f"{path}: /{split} lacks dataset(s) {missing} needed here; it has {sorted(group.keys())}")
+            raise DatasetError(
+                f"{path}: /{split} lacks dataset(s) {missing} needed here; it has {sorted(group.keys())}"
+            )
         out: dict[str, np.ndarray] = {}
         n_samples = None
         rows = inverse = None
@@ -211,14 +228,18 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
                 stored = data.shape[1] if data.ndim > 1 else 0
                 expected_tail = (3,) if key != "road" else ()
                 if data.ndim != 2 + len(expected_tail) or tuple(data.shape[2:]) != expected_tail:
-                    raise DatasetError(f"{path}: /{split}/{key} has shape {data.shape}, expected [M, n_steps{', 3' if expected_tail else ''}]")
+                    raise DatasetError(
+                        f"{path}: /{split}/{key} has shape {data.shape}, expected [M, n_steps{', 3' if expected_tail else ''}]"
+                    )
                 window = stored if n_steps is None else int(n_steps)
                 if window < 1 or window > stored:
                     raise DatasetError(f"{path}: window n_steps = {n_steps} but /{split}/{key} stores {stored} steps")
                 array = data[:, :window] if rows is None else data[rows, :window]
             else:
                 if key in LAYOUT and tuple(data.shape[1:]) != _trailing_shape(key, 0):
-                    raise DatasetError(f"{path}: /{split}/{key} has shape {data.shape}, expected [M{', ' if LAYOUT[key][1] else ''}{', '.join(map(str, LAYOUT[key][1]))}]")
+                    raise DatasetError(
+                        f"{path}: /{split}/{key} has shape {data.shape}, expected [M{', ' if LAYOUT[key][1] else ''}{', '.join(map(str, LAYOUT[key][1]))}]"
+                    )
                 array = data[()] if rows is None else data[rows]
             array = np.asarray(array)
             if inverse is not None:
@@ -232,7 +253,9 @@ def read_split(path: str | os.PathLike, split: str = "test", keys: Iterable[str]
                 finite = finite | unrecorded[None, None, :]
             if finite is not None and not finite.all():
                 bad = np.argwhere(~finite)[0]
-                raise DatasetError(f"{path}: /{split}/{key} contains non-finite values (first at index {tuple(int(i) for i in bad)}: {array[tuple(bad)]})")
+                raise DatasetError(
+                    f"{path}: /{split}/{key} contains non-finite values (first at index {tuple(int(i) for i in bad)}: {array[tuple(bad)]})"
+                )
             out[key] = array
         if "h" in handle.attrs:
             out["h"] = _step(path, handle)
@@ -255,8 +278,15 @@ class DatasetWriter:
     Stale `.partial` files and locks of dead writers are removed and reported (`self.stale`).
     """
 
-    def __init__(self, path: str | os.PathLike, attrs: Mapping | None = None, overwrite: bool = False,
-                 compression: str | None = "gzip", compression_level: int | None = 1, chunk_samples: int = 256) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        attrs: Mapping | None = None,
+        overwrite: bool = False,
+        compression: str | None = "gzip",
+        compression_level: int | None = 1,
+        chunk_samples: int = 256,
+    ) -> None:
         self.path = Path(path)
         if self.path.is_dir():
             raise DatasetError(f"{self.path} is a directory, not a file path")
@@ -274,7 +304,7 @@ class DatasetWriter:
         self._lock: Path | None = None
         self.stale: list[Path] = []
 
-    def __enter__(self) -> "DatasetWriter":
+    def __enter__(self) -> DatasetWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = acquire_write_lock(self.path)
         self.stale = remove_stale_partials(self.path)
@@ -311,10 +341,15 @@ class DatasetWriter:
             dtype, _ = LAYOUT[key]
             shape = (n_samples, *_trailing_shape(key, n_steps))
             chunks = (max(1, min(self.chunk_samples, n_samples)), *shape[1:]) if n_samples else None
-            group.create_dataset(key, shape=shape, dtype=dtype, chunks=chunks,
-                                 compression=self.compression if n_samples else None,
-                                 compression_opts=self.compression_opts if n_samples else None,
-                                 shuffle=bool(self.compression) and n_samples > 0)
+            group.create_dataset(
+                key,
+                shape=shape,
+                dtype=dtype,
+                chunks=chunks,
+                compression=self.compression if n_samples else None,
+                compression_opts=self.compression_opts if n_samples else None,
+                shuffle=bool(self.compression) and n_samples > 0,
+            )
 
     def write(self, split: str, start: int, **arrays: np.ndarray) -> None:
         """Write rows [start, start + len) of each given key."""
@@ -326,12 +361,20 @@ class DatasetWriter:
             if key not in group:
                 raise DatasetError(f"{self.path}: /{split} has no dataset {key!r}; created: {sorted(group.keys())}")
             target = group[key]
-            if array.ndim != target.ndim or array.shape[1:] != target.shape[1:] or not 0 <= start <= target.shape[0] - array.shape[0]:
-                raise DatasetError(f"{self.path}: cannot write {key} of shape {array.shape} at row {start} into "
-                                   f"/{split}/{key} of shape {target.shape}")
+            if (
+                array.ndim != target.ndim
+                or array.shape[1:] != target.shape[1:]
+                or not 0 <= start <= target.shape[0] - array.shape[0]
+            ):
+                raise DatasetError(
+                    f"{self.path}: cannot write {key} of shape {array.shape} at row {start} into "
+                    f"/{split}/{key} of shape {target.shape}"
+                )
             if array.dtype.kind == "f" and not np.isfinite(array).all():
-                raise DatasetError(f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}..")
-            group[key][start:start + array.shape[0]] = array
+                raise DatasetError(
+                    f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}.."
+                )
+            group[key][start : start + array.shape[0]] = array
 
     def set_attr(self, key: str, value) -> None:
         assert self._handle is not None
@@ -353,8 +396,10 @@ class DatasetWriter:
                     try:
                         os.link(self._tmp, self.path)  # atomic create-if-absent: never replaces another's file
                     except FileExistsError:
-                        raise FileExistsError(f"{self.path} appeared while this run was writing it; "
-                                              f"not replaced (pass overwrite=true to replace it)") from None
+                        raise FileExistsError(
+                            f"{self.path} appeared while this run was writing it; "
+                            f"not replaced (pass overwrite=true to replace it)"
+                        ) from None
                     finally:
                         self._tmp.unlink(missing_ok=True)
             else:
@@ -390,8 +435,10 @@ def acquire_write_lock(path: str | os.PathLike) -> Path:
             if pid > 0 and not _pid_alive(pid):
                 lock.unlink(missing_ok=True)  # its writer died: the lock is stale
                 continue
-            raise FileExistsError(f"{path} is being written by another process (pid {pid or '?'}, lock {lock}); "
-                                  f"wait for it or choose another output") from None
+            raise FileExistsError(
+                f"{path} is being written by another process (pid {pid or '?'}, lock {lock}); "
+                f"wait for it or choose another output"
+            ) from None
         with os.fdopen(fd, "w") as handle:
             handle.write(f"{os.getpid()}\n")
         return lock

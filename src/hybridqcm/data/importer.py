@@ -24,15 +24,16 @@ which is what readers assume for files without one.
 Every error is one line naming the file, the column and the row: the row is the 1-based data
 row, and the line number in the file (the header is line 1) is given beside it.
 """
+
 from __future__ import annotations
 
 import csv
 import json
 import os
 import tempfile
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import h5py
 import numpy as np
@@ -57,16 +58,16 @@ class RecordingError(DatasetError):
 class ImportedRecordings:
     """Arrays in the dataset layout plus what the summary and the file attributes need."""
 
-    accel: np.ndarray                    # float32 [M, T, 3], m/s², NaN where not recorded
-    road: np.ndarray | None              # float32 [M, T] metres, or None
-    profile_id: np.ndarray               # int32 [M]
-    t_start: np.ndarray                  # float64 [M] seconds
-    h: float                             # sampling period [s]
-    channels: tuple[str, ...]            # recorded acceleration channels, in (a3, a2, a1) order
-    source_columns: dict[str, str]       # channel (and road) -> CSV column name
-    source_units: dict[str, str]         # channel -> unit in the CSV
-    recordings: list[str]                # recording ids in order of appearance
-    rows: list[int]                      # data rows per recording
+    accel: np.ndarray  # float32 [M, T, 3], m/s², NaN where not recorded
+    road: np.ndarray | None  # float32 [M, T] metres, or None
+    profile_id: np.ndarray  # int32 [M]
+    t_start: np.ndarray  # float64 [M] seconds
+    h: float  # sampling period [s]
+    channels: tuple[str, ...]  # recorded acceleration channels, in (a3, a2, a1) order
+    source_columns: dict[str, str]  # channel (and road) -> CSV column name
+    source_units: dict[str, str]  # channel -> unit in the CSV
+    recordings: list[str]  # recording ids in order of appearance
+    rows: list[int]  # data rows per recording
     window: int | None = None
     stride: int | None = None
 
@@ -85,8 +86,10 @@ def _where(row: int) -> str:
 
 def _unit_factor(path: Path, column: str, channel: str, unit, key: str) -> float:
     if str(unit).strip() not in UNITS:
-        raise RecordingError(f"{path}: column {column!r} ({channel}), header line 1: unknown unit {key} = {unit!r}; "
-                             f"use one of {sorted(set(UNITS) - {'m/s^2', 'm/s²'})}")
+        raise RecordingError(
+            f"{path}: column {column!r} ({channel}), header line 1: unknown unit {key} = {unit!r}; "
+            f"use one of {sorted(set(UNITS) - {'m/s^2', 'm/s²'})}"
+        )
     return UNITS[str(unit).strip()]
     return UNITS[key]
 
@@ -99,8 +102,13 @@ def _sniff_delimiter(header_line: str) -> str:
     return found[0] if found else ","
 
 
-def _resolve_columns(path: Path, header: Sequence[str], columns: Mapping[str, str | None] | None,
-                     time_column: str | None, recording_column: str | None) -> tuple[str, dict[str, str]]:
+def _resolve_columns(
+    path: Path,
+    header: Sequence[str],
+    columns: Mapping[str, str | None] | None,
+    time_column: str | None,
+    recording_column: str | None,
+) -> tuple[str, dict[str, str]]:
     """(time column name, {channel or 'road': CSV column name}) for the columns to import."""
     present = set(header)
     columns = dict(columns or {})
@@ -110,10 +118,14 @@ def _resolve_columns(path: Path, header: Sequence[str], columns: Mapping[str, st
     if time_column is None:
         time_column = next((name for name in DEFAULT_TIME_COLUMNS if name in present), None)
         if time_column is None:
-            raise RecordingError(f"{path}: column 't' or 'time' (the time column) is missing from the header (line 1) "
-                                 f"{list(header)}; name yours with time_column=NAME")
+            raise RecordingError(
+                f"{path}: column 't' or 'time' (the time column) is missing from the header (line 1) "
+                f"{list(header)}; name yours with time_column=NAME"
+            )
     elif time_column not in present:
-        raise RecordingError(f"{path}: column {time_column!r} (time_column) is missing from the header (line 1) {list(header)}")
+        raise RecordingError(
+            f"{path}: column {time_column!r} (time_column) is missing from the header (line 1) {list(header)}"
+        )
     mapping: dict[str, str] = {}
     for key in (*CHANNELS, ROAD):
         if key in columns:
@@ -126,21 +138,29 @@ def _resolve_columns(path: Path, header: Sequence[str], columns: Mapping[str, st
                 continue  # explicitly not imported
             name = str(name)
             if name not in present:
-                raise RecordingError(f"{path}: column {name!r} (columns.{key}) is missing from the header (line 1) {list(header)}")
+                raise RecordingError(
+                    f"{path}: column {name!r} (columns.{key}) is missing from the header (line 1) {list(header)}"
+                )
             mapping[key] = name
         elif key in present:
             mapping[key] = key
     if not any(key in mapping for key in CHANNELS):
-        raise RecordingError(f"{path}: no acceleration column: none of a3, a2, a1 in the header (line 1) {list(header)}; "
-                             f"map yours with columns.a3=NAME, columns.a2=NAME, columns.a1=NAME")
+        raise RecordingError(
+            f"{path}: no acceleration column: none of a3, a2, a1 in the header (line 1) {list(header)}; "
+            f"map yours with columns.a3=NAME, columns.a2=NAME, columns.a1=NAME"
+        )
     used = [time_column, *mapping.values()]
     if recording_column is not None:
         if recording_column not in present:
-            raise RecordingError(f"{path}: column {recording_column!r} (recording_column) is missing from the header (line 1) {list(header)}")
+            raise RecordingError(
+                f"{path}: column {recording_column!r} (recording_column) is missing from the header (line 1) {list(header)}"
+            )
         used.append(recording_column)
     duplicated = sorted({name for name in used if used.count(name) > 1})
     if duplicated:
-        raise RecordingError(f"{path}: column {duplicated[0]!r} is mapped to more than one role (time, a3, a2, a1, road, recording)")
+        raise RecordingError(
+            f"{path}: column {duplicated[0]!r} is mapped to more than one role (time, a3, a2, a1, road, recording)"
+        )
     return time_column, mapping
 
 
@@ -160,13 +180,16 @@ def _to_float(path: Path, name: str, cells: list[str], data_rows: np.ndarray, fi
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             i = int(bad[0])
-            raise RecordingError(f"{path}: column {name!r}, {_where(int(data_rows[i]))}: cell = {cells[i].strip()!r} "
-                                 f"(NaN or infinite values are not allowed in a recorded column)")
+            raise RecordingError(
+                f"{path}: column {name!r}, {_where(int(data_rows[i]))}: cell = {cells[i].strip()!r} "
+                f"(NaN or infinite values are not allowed in a recorded column)"
+            )
     return values
 
 
-def _check_time(path: Path, name: str, t: np.ndarray, rows: np.ndarray, label: str,
-                gap_factor: float, rate_tolerance: float) -> float:
+def _check_time(
+    path: Path, name: str, t: np.ndarray, rows: np.ndarray, label: str, gap_factor: float, rate_tolerance: float
+) -> float:
     """The sampling period of one recording's time column t [n] (seconds) after the checks.
 
     Checks, in this order: strictly increasing; no step above gap_factor x the median step
@@ -174,36 +197,54 @@ def _check_time(path: Path, name: str, t: np.ndarray, rows: np.ndarray, label: s
     rate: a jittery or drifting clock is a different discretisation). Returns h = (t[-1] - t[0]) / (n - 1).
     """
     if t.size < 2:
-        raise RecordingError(f"{path}: column {name!r}{label}: {t.size} row(s) at {_where(int(rows[0]))}; "
-                             f"a recording needs at least 2 rows to have a rate")
+        raise RecordingError(
+            f"{path}: column {name!r}{label}: {t.size} row(s) at {_where(int(rows[0]))}; "
+            f"a recording needs at least 2 rows to have a rate"
+        )
     steps = np.diff(t)
     back = np.flatnonzero(steps <= 0)
     if back.size:
         k = int(back[0])
-        raise RecordingError(f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: time {t[k + 1]:.9g} s is not after "
-                             f"the previous row's {t[k]:.9g} s (time must be strictly increasing)")
+        raise RecordingError(
+            f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: time {t[k + 1]:.9g} s is not after "
+            f"the previous row's {t[k]:.9g} s (time must be strictly increasing)"
+        )
     median = float(np.median(steps))
     gaps = np.flatnonzero(steps > gap_factor * median)
     if gaps.size:
         k = int(gaps[0])
-        raise RecordingError(f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: gap of {steps[k]:.6g} s after "
-                             f"t = {t[k]:.9g} s (more than {gap_factor:g} x the median step {median:.6g} s: samples are missing)")
+        raise RecordingError(
+            f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: gap of {steps[k]:.6g} s after "
+            f"t = {t[k]:.9g} s (more than {gap_factor:g} x the median step {median:.6g} s: samples are missing)"
+        )
     h = float((t[-1] - t[0]) / (t.size - 1))
     jitter = np.abs(steps - h) / h
     off = np.flatnonzero(jitter > rate_tolerance)
     if off.size:
         k = int(off[0])
-        raise RecordingError(f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: step {steps[k]:.6g} s differs from "
-                             f"the mean step {h:.6g} s by {jitter[k]:.2g} x h > rate_tolerance = {rate_tolerance:g} "
-                             f"(the rate is not constant; or the time is printed with too few digits)")
+        raise RecordingError(
+            f"{path}: column {name!r}{label}, {_where(int(rows[k + 1]))}: step {steps[k]:.6g} s differs from "
+            f"the mean step {h:.6g} s by {jitter[k]:.2g} x h > rate_tolerance = {rate_tolerance:g} "
+            f"(the rate is not constant; or the time is printed with too few digits)"
+        )
     return h
 
 
-def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_units: Mapping[str, str] | None = None,
-                    columns: Mapping[str, str | None] | None = None, time_column: str | None = None,
-                    time_unit: str = "s", recording_column: str | None = None, window: int | None = None,
-                    stride: int | None = None, rate_tolerance: float = 1e-3, gap_factor: float = 1.5,
-                    delimiter: str | None = None) -> ImportedRecordings:
+def read_recordings(
+    path: str | os.PathLike,
+    *,
+    units: str = "m/s2",
+    column_units: Mapping[str, str] | None = None,
+    columns: Mapping[str, str | None] | None = None,
+    time_column: str | None = None,
+    time_unit: str = "s",
+    recording_column: str | None = None,
+    window: int | None = None,
+    stride: int | None = None,
+    rate_tolerance: float = 1e-3,
+    gap_factor: float = 1.5,
+    delimiter: str | None = None,
+) -> ImportedRecordings:
     """Read a CSV recording into the dataset layout (module docstring); raises RecordingError.
 
     units: the accelerations' unit in the file, "m/s2" or "g" (1 g = 9.80665 m/s²);
@@ -220,7 +261,9 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
     if time_unit not in TIME_UNITS:
         raise RecordingError(f"{path}: time_unit = {time_unit!r} is not supported; use one of {list(TIME_UNITS)}")
     if not (rate_tolerance > 0 and gap_factor > 1):
-        raise RecordingError(f"{path}: rate_tolerance must be > 0 and gap_factor > 1, got {rate_tolerance} and {gap_factor}")
+        raise RecordingError(
+            f"{path}: rate_tolerance must be > 0 and gap_factor > 1, got {rate_tolerance} and {gap_factor}"
+        )
     if window is not None and int(window) < 2:
         raise RecordingError(f"{path}: window must be >= 2 samples, got {window}")
     if stride is not None and (window is None or int(stride) < 1):
@@ -237,9 +280,13 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
         sep = delimiter or _sniff_delimiter(first)
         header = [name.strip() for name in next(csv.reader([first], delimiter=sep))]
         time_name, mapping = _resolve_columns(path, header, columns, time_column, recording_column)
-        factors = {c: _unit_factor(path, mapping[c], c, column_units.get(c, units),
-                                   f"column_units.{c}" if c in column_units else "units")
-                   for c in CHANNELS if c in mapping}
+        factors = {
+            c: _unit_factor(
+                path, mapping[c], c, column_units.get(c, units), f"column_units.{c}" if c in column_units else "units"
+            )
+            for c in CHANNELS
+            if c in mapping
+        }
         wanted = [time_name, *mapping.values()] + ([recording_column] if recording_column else [])
         index = {name: header.index(name) for name in wanted}
         cells: dict[str, list[str]] = {name: [] for name in wanted}
@@ -253,8 +300,10 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
             if len(fields) < len(header):
                 missing = header[len(fields)]
                 if missing in index:
-                    raise RecordingError(f"{path}: column {missing!r}, {_where(row)}: cell is empty "
-                                         f"(the row has {len(fields)} of {len(header)} fields)")
+                    raise RecordingError(
+                        f"{path}: column {missing!r}, {_where(row)}: cell is empty "
+                        f"(the row has {len(fields)} of {len(header)} fields)"
+                    )
                 fields = fields + [""] * (len(header) - len(fields))
             for name, i in index.items():
                 cells[name].append(fields[i])
@@ -276,8 +325,10 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
         seen: set[str] = set()
         for i, name in zip(starts, names):
             if name in seen:
-                raise RecordingError(f"{path}: column {recording_column!r}, {_where(int(rows[i]))}: recording {name!r} "
-                                     f"appears again after other recordings (keep each recording's rows together)")
+                raise RecordingError(
+                    f"{path}: column {recording_column!r}, {_where(int(rows[i]))}: recording {name!r} "
+                    f"appears again after other recordings (keep each recording's rows together)"
+                )
             seen.add(name)
         blocks = list(zip(starts, starts[1:] + [len(ids)]))
     else:
@@ -290,14 +341,18 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
     h = float(np.mean(hs))
     for name, (a, _), h_i in zip(names, blocks, hs):
         if abs(h_i - h) > rate_tolerance * h:
-            raise RecordingError(f"{path}: column {time_name!r} (recording {name!r}), {_where(int(rows[a]))}: step {h_i:.6g} s "
-                                 f"differs from the file's mean step {h:.6g} s (one file holds one rate)")
+            raise RecordingError(
+                f"{path}: column {time_name!r} (recording {name!r}), {_where(int(rows[a]))}: step {h_i:.6g} s "
+                f"differs from the file's mean step {h:.6g} s (one file holds one rate)"
+            )
 
     lengths = [b - a for a, b in blocks]
     if window is None:
         if len(set(lengths)) > 1:
-            raise RecordingError(f"{path}: column {recording_column!r}: recordings have different lengths "
-                                 f"({dict(zip(names, lengths))}); cut them into equal samples with window=N")
+            raise RecordingError(
+                f"{path}: column {recording_column!r}: recordings have different lengths "
+                f"({dict(zip(names, lengths))}); cut them into equal samples with window=N"
+            )
         cuts = [(r, a, lengths[0]) for r, (a, _) in enumerate(blocks)]
         n_steps = lengths[0]
     else:
@@ -307,8 +362,10 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
         for r, ((a, b), name) in enumerate(zip(blocks, names)):
             if b - a < window:
                 label = f" (recording {name!r})" if recording_column else ""
-                raise RecordingError(f"{path}: column {time_name!r}{label}, {_where(int(rows[a]))}: {b - a} rows, "
-                                     f"fewer than window = {window}")
+                raise RecordingError(
+                    f"{path}: column {time_name!r}{label}, {_where(int(rows[a]))}: {b - a} rows, "
+                    f"fewer than window = {window}"
+                )
             cuts.extend((r, start, window) for start in range(a, b - window + 1, stride))
         n_steps = window
 
@@ -317,20 +374,34 @@ def read_recordings(path: str | os.PathLike, *, units: str = "m/s2", column_unit
     for m, (_, start, length) in enumerate(cuts):
         for c, channel in enumerate(CHANNELS):
             if channel in values:
-                accel[m, :, c] = values[channel][start:start + length] * factors[channel]
+                accel[m, :, c] = values[channel][start : start + length] * factors[channel]
         if road is not None:
-            road[m] = values[ROAD][start:start + length]
+            road[m] = values[ROAD][start : start + length]
     channels = tuple(c for c in CHANNELS if c in mapping)
     return ImportedRecordings(
-        accel=accel, road=road, profile_id=np.asarray([r for r, _, _ in cuts], dtype=np.int32),
-        t_start=np.asarray([t_all[start] for _, start, _ in cuts], dtype=np.float64), h=h, channels=channels,
-        source_columns={"time": time_name, **mapping}, source_units={c: str(column_units.get(c, units)).strip() for c in channels},
-        recordings=list(names), rows=lengths, window=window, stride=stride if window is not None else None,
+        accel=accel,
+        road=road,
+        profile_id=np.asarray([r for r, _, _ in cuts], dtype=np.int32),
+        t_start=np.asarray([t_all[start] for _, start, _ in cuts], dtype=np.float64),
+        h=h,
+        channels=channels,
+        source_columns={"time": time_name, **mapping},
+        source_units={c: str(column_units.get(c, units)).strip() for c in channels},
+        recordings=list(names),
+        rows=lengths,
+        window=window,
+        stride=stride if window is not None else None,
     )
 
 
-def write_recordings(output: str | os.PathLike, data: ImportedRecordings, split: str = "test", source: str = "",
-                     overwrite: bool = False, created_by: str = "qcm-import") -> Path:
+def write_recordings(
+    output: str | os.PathLike,
+    data: ImportedRecordings,
+    split: str = "test",
+    source: str = "",
+    overwrite: bool = False,
+    created_by: str = "qcm-import",
+) -> Path:
     """Write `data` as a schema-2 dataset file, atomically (temporary file beside it, renamed when complete).
 
     No `physics` attribute (module docstring). DatasetWriter is not used because it refuses
@@ -350,10 +421,16 @@ def write_recordings(output: str | os.PathLike, data: ImportedRecordings, split:
     try:
         with h5py.File(tmp, "w") as handle:
             attrs = {
-                "schema": SCHEMA_V2, "h": float(data.h), "n_steps": int(data.n_steps), "created_by": created_by,
-                "source": str(source), "units": json.dumps({"accel": "m/s2", "road": "m", "time": "s"}),
-                "source_units": json.dumps(data.source_units), "source_columns": json.dumps(data.source_columns),
-                "channels": json.dumps(list(data.channels)), "recordings": json.dumps(data.recordings),
+                "schema": SCHEMA_V2,
+                "h": float(data.h),
+                "n_steps": int(data.n_steps),
+                "created_by": created_by,
+                "source": str(source),
+                "units": json.dumps({"accel": "m/s2", "road": "m", "time": "s"}),
+                "source_units": json.dumps(data.source_units),
+                "source_columns": json.dumps(data.source_columns),
+                "channels": json.dumps(list(data.channels)),
+                "recordings": json.dumps(data.recordings),
             }
             if data.window is not None:
                 attrs.update(window=int(data.window), stride=int(data.stride))
@@ -364,8 +441,9 @@ def write_recordings(output: str | os.PathLike, data: ImportedRecordings, split:
                 arrays["road"] = data.road
             for key, array in arrays.items():
                 chunked = array.ndim > 1 and array.shape[0] > 0
-                group.create_dataset(key, data=array, compression="gzip" if chunked else None,
-                                     compression_opts=1 if chunked else None)
+                group.create_dataset(
+                    key, data=array, compression="gzip" if chunked else None, compression_opts=1 if chunked else None
+                )
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
     except BaseException:

@@ -12,11 +12,12 @@ Reproducibility: the noise of sample i comes from its own generator seeded by (s
 so it is the same whatever the batching or order; evaluation uses a fixed salt, training a
 fresh one per batch (fresh noise every epoch).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -43,14 +44,14 @@ def _per_channel(value, name: str) -> tuple[float, float, float]:
 
 @dataclass
 class SensorModel:
-    kind: str = "none"                       # none | additive | multiplicative
-    sigma: float | Sequence[float] = 0.0     # noise std per channel (a3, a2, a1)
-    relative: bool = True                    # sigma and bias as fractions of each sample's channel RMS; else m/s^2
-    bias: float | Sequence[float] = 0.0      # constant bias per channel
-    quantisation: float = 0.0                # step in m/s^2, 0 = none
+    kind: str = "none"  # none | additive | multiplicative
+    sigma: float | Sequence[float] = 0.0  # noise std per channel (a3, a2, a1)
+    relative: bool = True  # sigma and bias as fractions of each sample's channel RMS; else m/s^2
+    bias: float | Sequence[float] = 0.0  # constant bias per channel
+    quantisation: float = 0.0  # step in m/s^2, 0 = none
     seed: int = 0
 
-    def validate(self) -> "SensorModel":
+    def validate(self) -> SensorModel:
         """Checks every field (one-line ValueError); returns self."""
         if self.kind not in KINDS:
             raise ValueError(f"sensor.kind = {self.kind!r} is not known; choose one of {list(KINDS)}")
@@ -60,15 +61,17 @@ class SensorModel:
         if not (math.isfinite(q) and q >= 0):
             raise ValueError(f"sensor.quantisation must be finite and >= 0, got {self.quantisation!r}")
         if self.kind == "none" and (any(self._sigma) or any(self._bias) or q > 0):
-            raise ValueError(f"sensor.kind = 'none' takes no sigma, bias or quantisation (got sigma={self.sigma!r}, "
-                             f"bias={self.bias!r}, quantisation={q}); pick sensor=additive or sensor=multiplicative")
+            raise ValueError(
+                f"sensor.kind = 'none' takes no sigma, bias or quantisation (got sigma={self.sigma!r}, "
+                f"bias={self.bias!r}, quantisation={q}); pick sensor=additive or sensor=multiplicative"
+            )
         return self
 
     @property
     def active(self) -> bool:
         return self.kind != "none"
 
-    def _checked(self) -> "SensorModel":
+    def _checked(self) -> SensorModel:
         return self if hasattr(self, "_sigma") else self.validate()
 
     def _noise(self, index: Tensor, n_steps: int, salt: int) -> Tensor:
@@ -76,7 +79,9 @@ class SensorModel:
         out = torch.empty(index.shape[0], n_steps, 3, dtype=torch.float64)
         generator = torch.Generator()
         for row, i in enumerate(index.tolist()):
-            state = np.random.SeedSequence([int(self.seed), int(salt) % 2 ** 63, int(i) % 2 ** 63]).generate_state(2, np.uint32)
+            state = np.random.SeedSequence([int(self.seed), int(salt) % 2**63, int(i) % 2**63]).generate_state(
+                2, np.uint32
+            )
             generator.manual_seed(int(state[0]) << 32 | int(state[1]))
             out[row] = torch.randn(n_steps, 3, generator=generator, dtype=torch.float64)
         return out
@@ -94,11 +99,13 @@ class SensorModel:
         if not self.active:
             return accel
         if accel.ndim != 3 or accel.shape[-1] != 3 or index.shape != accel.shape[:1]:
-            raise ValueError(f"sensor: accel must be [b, T, 3] and index [b], got {tuple(accel.shape)}, {tuple(index.shape)}")
+            raise ValueError(
+                f"sensor: accel must be [b, T, 3] and index [b], got {tuple(accel.shape)}, {tuple(index.shape)}"
+            )
         x = accel.double()
         sigma = torch.tensor(self._sigma, dtype=torch.float64)
         bias = torch.tensor(self._bias, dtype=torch.float64)
-        scale = self._scale(x)[:, None, :]                                        # [b, 1, 3]
+        scale = self._scale(x)[:, None, :]  # [b, 1, 3]
         eta = self._noise(index, x.shape[1], salt).to(x.device)
         if self.kind == "additive":
             x = x + sigma * scale * eta
@@ -153,7 +160,9 @@ def apply_to_channels(sensor: SensorModel, x: Tensor, names: Sequence[str], inde
     return out
 
 
-def additive_augmentation(x: Tensor, names: Sequence[str], sigma_max: float, generator: torch.Generator | None = None) -> Tensor:
+def additive_augmentation(
+    x: Tensor, names: Sequence[str], sigma_max: float, generator: torch.Generator | None = None
+) -> Tensor:
     """Training augmentation: additive white noise on the accelerometer channels of x [b, C, N],
     std = s * RMS of the sample's channel, s ~ U[0, sigma_max] per sample."""
     if sigma_max <= 0:

@@ -4,15 +4,16 @@ One road profile is shared by `samples_per_profile` parameter draws (the referen
 340 train / 170 test profiles x 100 draws). Generation runs in chunks of whole profiles and
 each chunk is written before the next is simulated, so memory stays bounded by the chunk.
 """
+
 from __future__ import annotations
 
 import getpass
 import math
 import platform
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import torch
@@ -23,7 +24,6 @@ from hybridqcm.physics.continuous import simulate_continuous, time_basis
 from hybridqcm.physics.integrators import METHODS, simulate
 from hybridqcm.physics.prior import _RejectionPrior
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index
-
 
 PHYSICS = ("continuous", "euler")
 # seconds driven before a window when none is given: mid-drive for continuous data, the source's
@@ -56,30 +56,55 @@ def _warmups(n: int, warmup_s: tuple[float, float], generator: torch.Generator) 
     return low + (high - low) * torch.rand(n, generator=generator, dtype=torch.float64)
 
 
-def _euler_mid_drive(params: torch.Tensor, amplitude: torch.Tensor, phase: torch.Tensor, road_profile: RoadProfile,
-                     steps_before: torch.Tensor, n_steps: int, h: float, speed_mps: float, method: str) -> dict:
+def _euler_mid_drive(
+    params: torch.Tensor,
+    amplitude: torch.Tensor,
+    phase: torch.Tensor,
+    road_profile: RoadProfile,
+    steps_before: torch.Tensor,
+    n_steps: int,
+    h: float,
+    speed_mps: float,
+    method: str,
+) -> dict:
     """Euler recursion from rest `steps_before[i]` steps before the window. All samples share one grid
     of max(steps_before) + n_steps steps; sample i's drive starts at index max - steps_before[i] and its
     forcing is zero before that, so its state stays exactly at rest until then."""
     lead = int(steps_before.max())
     total = lead + n_steps
-    start = lead - steps_before                                                     # [b]
-    shift = (start.to(torch.float64) * h * speed_mps)[:, None]                     # distance offset
+    start = lead - steps_before  # [b]
+    shift = (start.to(torch.float64) * h * speed_mps)[:, None]  # distance offset
     # u at index j is the road at time (j - start) h: the phases absorb the start offset
-    road_full = road_profile.evaluate(amplitude, phase + road_profile.omega[None, :] * shift,
-                                      road_profile._distance(total, h, speed_mps))
+    road_full = road_profile.evaluate(
+        amplitude, phase + road_profile.omega[None, :] * shift, road_profile._distance(total, h, speed_mps)
+    )
     road_full = road_full * (torch.arange(total)[None, :] >= start[:, None])
     trajectory = simulate(params, road_full, h, method)
     window = slice(lead, total)
     vel, disp = trajectory.vel[:, window], trajectory.disp[:, window]
-    return {"accel": trajectory.accel[:, window], "vel": vel, "disp": disp, "road": road_full[:, window],
-            "state0": torch.cat([vel[:, 0], disp[:, 0]], -1)}
+    return {
+        "accel": trajectory.accel[:, window],
+        "vel": vel,
+        "disp": disp,
+        "road": road_full[:, window],
+        "state0": torch.cat([vel[:, 0], disp[:, 0]], -1),
+    }
 
 
-def simulate_samples(prior: _RejectionPrior, road_profile: RoadProfile, road_class: torch.Tensor, n_steps: int,
-                     h: float, speed_mps: float, generator: torch.Generator, samples_per_profile: int = 1,
-                     method: str = "semi_explicit_euler", physics: str = "euler",
-                     warmup_s: tuple[float, float] = (0.0, 0.0), basis: torch.Tensor | None = None) -> dict[str, torch.Tensor | int]:
+def simulate_samples(
+    prior: _RejectionPrior,
+    road_profile: RoadProfile,
+    road_class: torch.Tensor,
+    n_steps: int,
+    h: float,
+    speed_mps: float,
+    generator: torch.Generator,
+    samples_per_profile: int = 1,
+    method: str = "semi_explicit_euler",
+    physics: str = "euler",
+    warmup_s: tuple[float, float] = (0.0, 0.0),
+    basis: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor | int]:
     """Simulate `len(road_class) * samples_per_profile` samples.
 
     road_class: LongTensor [profiles]. Returns float64 tensors accel/vel/disp [M, n_steps, 3],
@@ -98,28 +123,66 @@ def simulate_samples(prior: _RejectionPrior, road_profile: RoadProfile, road_cla
     profile = torch.arange(n_profiles).repeat_interleave(samples_per_profile)
     mid_drive = warmup_s[1] > 0
     if physics == "euler" and not mid_drive:
-        roads = road_profile.sample(road_class, n_steps, h, speed_mps, generator)      # [profiles, n_steps]
+        roads = road_profile.sample(road_class, n_steps, h, speed_mps, generator)  # [profiles, n_steps]
         draw = prior.sample(n_profiles * samples_per_profile, generator)
         road = roads[profile]
         trajectory = simulate(draw.params, road, h, method)
-        out = {"accel": trajectory.accel, "vel": trajectory.vel, "disp": trajectory.disp, "road": road,
-               "state0": torch.zeros(road.shape[0], 6, dtype=torch.float64), "warmup": torch.zeros(road.shape[0], dtype=torch.float64)}
+        out = {
+            "accel": trajectory.accel,
+            "vel": trajectory.vel,
+            "disp": trajectory.disp,
+            "road": road,
+            "state0": torch.zeros(road.shape[0], 6, dtype=torch.float64),
+            "warmup": torch.zeros(road.shape[0], dtype=torch.float64),
+        }
     else:
         amplitude, phase = road_profile.draw(road_class, generator)
         draw = prior.sample(n_profiles * samples_per_profile, generator)
-        warmup = _warmups(profile.shape[0], warmup_s, generator) if mid_drive else torch.zeros(profile.shape[0], dtype=torch.float64)
+        warmup = (
+            _warmups(profile.shape[0], warmup_s, generator)
+            if mid_drive
+            else torch.zeros(profile.shape[0], dtype=torch.float64)
+        )
         if physics == "euler":
             steps_before = torch.round(warmup / h).long()
-            out = _euler_mid_drive(draw.params, amplitude[profile], phase[profile], road_profile, steps_before,
-                                   n_steps, h, speed_mps, method)
+            out = _euler_mid_drive(
+                draw.params,
+                amplitude[profile],
+                phase[profile],
+                road_profile,
+                steps_before,
+                n_steps,
+                h,
+                speed_mps,
+                method,
+            )
             warmup = steps_before.to(torch.float64) * h
         else:
-            response = simulate_continuous(draw.params, amplitude[profile], phase[profile], road_profile.omega * speed_mps,
-                                           n_steps, h, warmup, basis=basis)
-            out = {"accel": response.accel, "vel": response.vel, "disp": response.disp, "road": response.road,
-                   "state0": response.state0}
+            response = simulate_continuous(
+                draw.params,
+                amplitude[profile],
+                phase[profile],
+                road_profile.omega * speed_mps,
+                n_steps,
+                h,
+                warmup,
+                basis=basis,
+            )
+            out = {
+                "accel": response.accel,
+                "vel": response.vel,
+                "disp": response.disp,
+                "road": response.road,
+                "state0": response.state0,
+            }
         out["warmup"] = warmup
-    return {**out, "params": draw.params, "road_class": road_class[profile], "profile": profile, "n_drawn": draw.n_drawn}
+    return {
+        **out,
+        "params": draw.params,
+        "road_class": road_class[profile],
+        "profile": profile,
+        "n_drawn": draw.n_drawn,
+    }
 
 
 @dataclass
@@ -152,7 +215,8 @@ class SplitSummary:
 
     def as_dict(self) -> dict:
         return {
-            "n_samples": self.n_samples, "per_class": self.per_class,
+            "n_samples": self.n_samples,
+            "per_class": self.per_class,
             "prior_acceptance_rate": round(self.acceptance_rate, 5),
             "param_min": [float(x) for x in (self.param_min if self.param_min is not None else [])],
             "param_max": [float(x) for x in (self.param_max if self.param_max is not None else [])],
@@ -181,11 +245,25 @@ def _user() -> str:
         return "unknown"
 
 
-def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _RejectionPrior, road_profile: RoadProfile,
-                  n_steps: int, h: float, speed_mps: float, samples_per_profile: int, seed: int,
-                  overwrite: bool = False, profiles_per_chunk: int = 10, method: str = "semi_explicit_euler",
-                  attrs: Mapping | None = None, progress: bool = True, compression: str | None = "gzip",
-                  physics: str = "euler", warmup_s=(0.0, 0.0)) -> dict[str, SplitSummary]:
+def write_dataset(
+    output: str | Path,
+    splits: Mapping[str, Mapping],
+    prior: _RejectionPrior,
+    road_profile: RoadProfile,
+    n_steps: int,
+    h: float,
+    speed_mps: float,
+    samples_per_profile: int,
+    seed: int,
+    overwrite: bool = False,
+    profiles_per_chunk: int = 10,
+    method: str = "semi_explicit_euler",
+    attrs: Mapping | None = None,
+    progress: bool = True,
+    compression: str | None = "gzip",
+    physics: str = "euler",
+    warmup_s=(0.0, 0.0),
+) -> dict[str, SplitSummary]:
     """Simulate every split and stream it into `output` (atomically). Returns a summary per split.
 
     physics: "euler" (the recursion `method`, the source protocol) or "continuous" (exact
@@ -195,8 +273,10 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
     split has its own generator seeded from (seed, split position).
     """
     if n_steps < 1 or samples_per_profile < 1 or h <= 0 or speed_mps <= 0:
-        raise ValueError(f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
-                         f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}")
+        raise ValueError(
+            f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
+            f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}"
+        )
     if profiles_per_chunk < 1:
         raise ValueError(f"profiles_per_chunk must be >= 1, got {profiles_per_chunk}")
     if method not in METHODS:
@@ -212,19 +292,33 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
     if total == 0:
         raise ValueError("nothing to simulate: every split has zero profiles")
     file_attrs = {
-        "h": float(h), "n_steps": int(n_steps), "speed_mps": float(speed_mps), "prior": getattr(prior, "name", "custom"),
-        "seed": int(seed), "samples_per_profile": int(samples_per_profile), "integrator": method if physics == "euler" else "exact",
-        "physics": physics, "warmup_s": np.array(warmup_s, dtype=np.float64),
+        "h": float(h),
+        "n_steps": int(n_steps),
+        "speed_mps": float(speed_mps),
+        "prior": getattr(prior, "name", "custom"),
+        "seed": int(seed),
+        "samples_per_profile": int(samples_per_profile),
+        "integrator": method if physics == "euler" else "exact",
+        "physics": physics,
+        "warmup_s": np.array(warmup_s, dtype=np.float64),
         "created_by": f"hybridqcm {__version__} qcm-simulate ({_user()}@{platform.node()})",
         **dict(attrs or {}),
     }
     summaries: dict[str, SplitSummary] = {}
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("samples"), TimeRemainingColumn())
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("samples"),
+        TimeRemainingColumn(),
+    )
     basis = time_basis(road_profile.omega * speed_mps, n_steps, h) if physics == "continuous" else None
-    with DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer, \
-            Progress(*columns, disable=not progress, transient=False) as bar:
+    with (
+        DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer,
+        Progress(*columns, disable=not progress, transient=False) as bar,
+    ):
         task = bar.add_task(f"simulating {Path(output).name}", total=total)
         for split_index, (split, classes) in enumerate(plan.items()):
             generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
@@ -234,18 +328,37 @@ def write_dataset(output: str | Path, splits: Mapping[str, Mapping], prior: _Rej
             start_time = time.perf_counter()
             # Shuffle the class order so a prefix of the split is a fair mix of classes.
             order = torch.randperm(len(classes), generator=generator)
-            classes_tensor = torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
+            classes_tensor = (
+                torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
+            )
             for first in range(0, len(classes), profiles_per_chunk):
-                chunk = classes_tensor[first:first + profiles_per_chunk]
-                batch = simulate_samples(prior, road_profile, chunk, n_steps, h, speed_mps, generator, samples_per_profile,
-                                         method, physics, warmup_s, basis)
+                chunk = classes_tensor[first : first + profiles_per_chunk]
+                batch = simulate_samples(
+                    prior,
+                    road_profile,
+                    chunk,
+                    n_steps,
+                    h,
+                    speed_mps,
+                    generator,
+                    samples_per_profile,
+                    method,
+                    physics,
+                    warmup_s,
+                    basis,
+                )
                 row = first * samples_per_profile
                 if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
                     raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
                 writer.write(
-                    split, row,
-                    accel=batch["accel"].float().numpy(), vel=batch["vel"].float().numpy(), disp=batch["disp"].float().numpy(),
-                    road=batch["road"].float().numpy(), params=batch["params"].numpy(), state0=batch["state0"].numpy(),
+                    split,
+                    row,
+                    accel=batch["accel"].float().numpy(),
+                    vel=batch["vel"].float().numpy(),
+                    disp=batch["disp"].float().numpy(),
+                    road=batch["road"].float().numpy(),
+                    params=batch["params"].numpy(),
+                    state0=batch["state0"].numpy(),
                     road_class=batch["road_class"].numpy().astype(np.int8),
                     profile_id=(batch["profile"] + first).numpy().astype(np.int32),
                 )
@@ -262,4 +375,13 @@ def kmh_to_mps(speed_kmh: float) -> float:
     return float(speed_kmh) / 3.6
 
 
-__all__ = ["simulate_samples", "write_dataset", "SplitSummary", "kmh_to_mps", "check_warmup", "check_physics", "PHYSICS", "DEFAULT_WARMUP_S"]
+__all__ = [
+    "simulate_samples",
+    "write_dataset",
+    "SplitSummary",
+    "kmh_to_mps",
+    "check_warmup",
+    "check_physics",
+    "PHYSICS",
+    "DEFAULT_WARMUP_S",
+]

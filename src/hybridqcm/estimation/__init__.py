@@ -1,15 +1,53 @@
 """Parameter estimation: forward-mode sensitivities, batched Gauss-Newton / LM, hybrid pipeline."""
-from hybridqcm.estimation.sensitivity import (EulerSensitivity, accelerations_and_jacobian, euler_accelerations,
-                                              euler_sensitivities)
-from hybridqcm.estimation.solver import (SOLVERS, STATUS_LABELS, GaussNewton, LeastSquaresProblem, LevenbergMarquardt,
-                                         NonlinearLeastSquares, SolverConfig, SolverResult, SolverStatus, build_solver)
-from hybridqcm.estimation.hybrid import (CheckpointKindError, GaussNewtonRefinement, GaussNewtonStage, HybridEstimator,
-                                         check_networks, equation_error_params, load_network)
+
+from hybridqcm.estimation.hybrid import (
+    CheckpointKindError,
+    GaussNewtonRefinement,
+    GaussNewtonStage,
+    HybridEstimator,
+    check_networks,
+    equation_error_params,
+    load_network,
+)
+from hybridqcm.estimation.sensitivity import (
+    EulerSensitivity,
+    accelerations_and_jacobian,
+    euler_accelerations,
+    euler_sensitivities,
+)
+from hybridqcm.estimation.solver import (
+    SOLVERS,
+    STATUS_LABELS,
+    GaussNewton,
+    LeastSquaresProblem,
+    LevenbergMarquardt,
+    NonlinearLeastSquares,
+    SolverConfig,
+    SolverResult,
+    SolverStatus,
+    build_solver,
+)
 
 __all__ = [
-    "EulerSensitivity", "accelerations_and_jacobian", "euler_accelerations", "euler_sensitivities",
-    "SOLVERS", "STATUS_LABELS", "GaussNewton", "LeastSquaresProblem", "LevenbergMarquardt", "NonlinearLeastSquares",
-    "SolverConfig", "SolverResult", "SolverStatus", "build_solver",
-    "CheckpointKindError", "GaussNewtonRefinement", "GaussNewtonStage", "HybridEstimator", "equation_error_params",
-    "load_network", "check_networks",
+    "EulerSensitivity",
+    "accelerations_and_jacobian",
+    "euler_accelerations",
+    "euler_sensitivities",
+    "SOLVERS",
+    "STATUS_LABELS",
+    "GaussNewton",
+    "LeastSquaresProblem",
+    "LevenbergMarquardt",
+    "NonlinearLeastSquares",
+    "SolverConfig",
+    "SolverResult",
+    "SolverStatus",
+    "build_solver",
+    "CheckpointKindError",
+    "GaussNewtonRefinement",
+    "GaussNewtonStage",
+    "HybridEstimator",
+    "equation_error_params",
+    "load_network",
+    "check_networks",
 ]

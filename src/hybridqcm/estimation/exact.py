@@ -50,6 +50,7 @@ products, and the only fast form of the per-step recursion. Each step's [o, 1 + 
 of the result is transposed (a 2-D transpose, PyTorch's fast path) into the batch-first
 [b, T, o, 1 + P + n] result while still in cache. Timings: docs/notes/estimation.md.
 """
+
 from __future__ import annotations
 
 import math
@@ -70,8 +71,18 @@ _TAYLOR_DEGREE = 11
 
 
 # ----------------------------------------------------------------------------- validation
-def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, substeps: int, start: int = 0,
-           n_steps: int | None = None, spline_degree: int = 5) -> tuple[Tensor, int]:
+def _check(
+    model,
+    params: Tensor,
+    x0,
+    inputs: Tensor,
+    h: float,
+    hold: str,
+    substeps: int,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+) -> tuple[Tensor, int]:
     """Validate; return inputs as [b, T_in, m] (a [b, T_in] input is accepted for one-input models)
     and the window length n_steps (default T_in - start)."""
     if not isinstance(model, LinearModel):
@@ -89,11 +100,13 @@ def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, subst
     if inputs.ndim == 2 and m == 1:
         inputs = inputs.unsqueeze(-1)
     if inputs.ndim != 3 or inputs.shape[0] != batch or inputs.shape[2] != m or inputs.shape[1] < 1:
-        raise ValueError(f"exact: inputs must be [batch={batch}, time>=1, {m}] for {model.name}, "
-                         f"got {tuple(inputs.shape)}")
+        raise ValueError(
+            f"exact: inputs must be [batch={batch}, time>=1, {m}] for {model.name}, got {tuple(inputs.shape)}"
+        )
     if x0 is not None and (x0.ndim != 2 or x0.shape != (batch, n)):
-        raise ValueError(f"exact: x0 must be [batch={batch}, {n}] ({', '.join(model.state_names)}) or None, "
-                         f"got {tuple(x0.shape)}")
+        raise ValueError(
+            f"exact: x0 must be [batch={batch}, {n}] ({', '.join(model.state_names)}) or None, got {tuple(x0.shape)}"
+        )
     if spline_degree not in SPLINE_DEGREES:
         raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
     n_in = inputs.shape[1]
@@ -102,8 +115,10 @@ def _check(model, params: Tensor, x0, inputs: Tensor, h: float, hold: str, subst
     if n_steps is None:
         n_steps = n_in - start
     if isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral) or not 1 <= n_steps <= n_in - start:
-        raise ValueError(f"exact: n_steps must be an integer in [1, {n_in - start}] (start={start}, "
-                         f"{n_in} input samples), got {n_steps!r}")
+        raise ValueError(
+            f"exact: n_steps must be an integer in [1, {n_in - start}] (start={start}, "
+            f"{n_in} input samples), got {n_steps!r}"
+        )
     return inputs, int(n_steps)
 
 
@@ -135,7 +150,7 @@ def _cubic_spline_matrix(T: int, m: int) -> Tensor:
         lhs = torch.zeros(T, T, dtype=_DTYPE)
         rhs = torch.zeros(T, T, dtype=_DTYPE)
         for i in range(1, T - 1):
-            lhs[i, i - 1:i + 2] = torch.tensor([1.0, 4.0, 1.0], dtype=_DTYPE)
+            lhs[i, i - 1 : i + 2] = torch.tensor([1.0, 4.0, 1.0], dtype=_DTYPE)
             rhs[i] = 6 * (eye[i - 1] - 2 * eye[i] + eye[i + 1])
         if T >= 4:  # not-a-knot: third derivative continuous at t_1 and t_{T-2}
             lhs[0, :3] = torch.tensor([1.0, -2.0, 1.0], dtype=_DTYPE)
@@ -149,9 +164,10 @@ def _cubic_spline_matrix(T: int, m: int) -> Tensor:
     w_cub = torch.stack([(a**3 - a) / 6, (c**3 - c) / 6], -1)  # weights of M_i, M_{i+1}
     rows = []
     for i in range(T - 1):
-        rows.append(w_lin[:, :1] * eye[i] + w_lin[:, 1:] * eye[i + 1]
-                    + w_cub[:, :1] * second[i] + w_cub[:, 1:] * second[i + 1])
-    rows.append(eye[T - 1:T])
+        rows.append(
+            w_lin[:, :1] * eye[i] + w_lin[:, 1:] * eye[i + 1] + w_cub[:, :1] * second[i] + w_cub[:, 1:] * second[i + 1]
+        )
+    rows.append(eye[T - 1 : T])
     return torch.cat(rows)
 
 
@@ -176,12 +192,13 @@ _SPLINE_REACH = 64
 def _window_spline(n_local: int, substeps: int, degree: int, start: int, n_steps: int) -> Tensor:
     """Rows of spline_matrix(n_local, substeps, degree) for the fine samples of the window
     start .. start + n_steps - 1, [(n_steps - 1) m + 1, n_local]."""
-    rows = spline_matrix(n_local, substeps, degree)[start * substeps:(start + n_steps - 1) * substeps + 1]
+    rows = spline_matrix(n_local, substeps, degree)[start * substeps : (start + n_steps - 1) * substeps + 1]
     return rows.contiguous()
 
 
-def _sub_samples(inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None,
-                 degree: int = 5) -> Tensor:
+def _sub_samples(
+    inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None, degree: int = 5
+) -> Tensor:
     """inputs [b, T_in, m] -> s [m_sub+1, m, n_steps-1, b] (batch innermost, a strided view):
     s[j, c, k] = w_c(t_{start+k} + j h/m_sub), the spline through the samples (all of them up to
     _SPLINE_REACH beyond each end of the window) for "spline", the samples themselves otherwise."""
@@ -194,7 +211,7 @@ def _sub_samples(inputs: Tensor, hold: str, substeps: int, start: int = 0, n_ste
         columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
         fine = torch.mm(weights.to(inputs.device), columns)  # [(n_steps-1) m_sub + 1, (c, b)]
     else:
-        fine = inputs[:, start:start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
+        fine = inputs[:, start : start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
     return fine.as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (n_ch * batch, batch, m_sub * n_ch * batch, 1))
 
 
@@ -232,7 +249,7 @@ def _iprod(S: Tensor, dS: Tensor | None, T: Tensor, dT: Tensor | None) -> tuple[
         for l in range(1, k):
             dout.addcmul_(dS[:, :, l, None, :], T[l])
     if dT is not None:
-        S_top = S[:dT.shape[0] if dS is None else dS.shape[0]]
+        S_top = S[: dT.shape[0] if dS is None else dS.shape[0]]
         if dS is None:
             dout = S_top[:, 0, None, None, :] * dT[0]
         for l in range(0 if dS is not None else 1, dT.shape[0]):
@@ -281,14 +298,14 @@ def _expm_inner(M: Tensor, dM: Tensor | None) -> tuple[Tensor, Tensor | None]:
     norm = float(X.abs().sum(0).amax()) if X.numel() else 0.0
     s = max(0, math.ceil(math.log2(norm / _TAYLOR_THETA))) if norm > _TAYLOR_THETA else 0
     X = X * 2.0**-s
-    dX = None if dM is None else dM * (ratio[:dM.shape[0]] * 2.0**-s)[:, None]
+    dX = None if dM is None else dM * (ratio[: dM.shape[0]] * 2.0**-s)[:, None]
     eye = torch.eye(N, dtype=M.dtype, device=M.device)[:, :, None]
     X2, dX2 = _iprod(X, dX, X, dX)
     X3, dX3 = _iprod(X2, dX2, X, dX)
     coef = [1.0 / math.factorial(k) for k in range(_TAYLOR_DEGREE + 1)]
 
     def block(i):  # sum_{r<3} coef[3i + r] X^r and its tangent
-        a, b, c = coef[3 * i:3 * i + 3]
+        a, b, c = coef[3 * i : 3 * i + 3]
         tangent = None if dX is None else torch.mul(dX2, c).add_(dX, alpha=b)
         return (a * eye + b * X).add_(X2, alpha=c), tangent
 
@@ -302,7 +319,7 @@ def _expm_inner(M: Tensor, dM: Tensor | None) -> tuple[Tensor, Tensor | None]:
     for _ in range(s):
         S, dS = _iprod(S, dS, S, dS)
     inverse = 1.0 / ratio  # back: D exp(X) D^-1
-    return S * inverse, None if dS is None else dS * inverse[:dS.shape[0], None]
+    return S * inverse, None if dS is None else dS * inverse[: dS.shape[0], None]
 
 
 def expm_taylor(M: Tensor) -> Tensor:
@@ -317,13 +334,14 @@ def _van_loan(A: Tensor, B: Tensor, tau: float) -> Tensor:
     batch, n, m = B.shape
     M = torch.zeros(n + 2 * m, n + 2 * m, batch, dtype=A.dtype, device=A.device)
     M[:n, :n] = A.permute(1, 2, 0) * tau
-    M[:n, n:n + m] = B.permute(1, 2, 0) * tau
-    M[n:n + m, n + m:] = torch.eye(m, dtype=A.dtype, device=A.device)[:, :, None]
+    M[:n, n : n + m] = B.permute(1, 2, 0) * tau
+    M[n : n + m, n + m :] = torch.eye(m, dtype=A.dtype, device=A.device)[:, :, None]
     return M
 
 
-def discrete_maps(model: LinearModel, params: Tensor, h: float, hold: str = "spline", substeps: int = 4,
-                  tangents: bool = False):
+def discrete_maps(
+    model: LinearModel, params: Tensor, h: float, hold: str = "spline", substeps: int = 4, tangents: bool = False
+):
     """Per-sample maps of one sampling interval.
 
     Returns (Phi [b, n, n], Lam [b, m_sub+1, n, m]) and, with ``tangents``, also
@@ -350,13 +368,13 @@ def _maps(model, p, h, hold, substeps, tangents):
         dA, dB, _, _ = model.matrix_derivatives(p)
         dM = torch.zeros(n, p.shape[1], n + 2 * m, p.shape[0], dtype=_DTYPE, device=p.device)
         dM[:, :, :n] = dA.permute(2, 1, 3, 0) * tau
-        dM[:, :, n:n + m] = dB.permute(2, 1, 3, 0) * tau
+        dM[:, :, n : n + m] = dB.permute(2, 1, 3, 0) * tau
     F, dF = _expm_inner(M, dM)
     # exp(Van Loan) = [[phi, F1, F2], ...]; FOH: g0 = F1 - F2, g1 = F2; ZOH: g0 = F1, g1 = 0
-    phi, F1, F2 = F[:n, :n], F[:n, n:n + m], F[:n, n + m:]
+    phi, F1, F2 = F[:n, :n], F[:n, n : n + m], F[:n, n + m :]
     g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
     if dF is not None:
-        dphi, dF1, dF2 = dF[:, :, :n], dF[:, :, n:n + m], dF[:, :, n + m:]
+        dphi, dF1, dF2 = dF[:, :, :n], dF[:, :, n : n + m], dF[:, :, n + m :]
         dg0, dg1 = (dF1, torch.zeros_like(dF2)) if hold == "zoh" else (dF1 - dF2, dF2)
     if m_sub == 1:
         if dF is None:
@@ -376,8 +394,8 @@ def _maps(model, p, h, hold, substeps, tangents):
             W, _ = _iprod(phi, None, W, None)
             if i < m_sub - 1:
                 lam[m_sub - 1 - i] = W[:, :m]
-        lam[0] = W[:, m:2 * m]
-        return W[:, 2 * m:].contiguous(), torch.stack(lam)
+        lam[0] = W[:, m : 2 * m]
+        return W[:, 2 * m :].contiguous(), torch.stack(lam)
     dc.add_(dg0)
     dW = torch.cat([dc, dg0, dphi], 2)
     dlam = [None] * (m_sub + 1)
@@ -386,8 +404,8 @@ def _maps(model, p, h, hold, substeps, tangents):
         W, dW = _iprod(phi, dphi, W, dW)
         if i < m_sub - 1:
             lam[m_sub - 1 - i], dlam[m_sub - 1 - i] = W[:, :m], dW[:, :, :m]
-    lam[0], dlam[0] = W[:, m:2 * m], dW[:, :, m:2 * m]
-    return W[:, 2 * m:].contiguous(), torch.stack(lam), dW[:, :, 2 * m:].contiguous(), torch.stack(dlam)
+    lam[0], dlam[0] = W[:, m : 2 * m], dW[:, :, m : 2 * m]
+    return W[:, 2 * m :].contiguous(), torch.stack(lam), dW[:, :, 2 * m :].contiguous(), torch.stack(dlam)
 
 
 # ----------------------------------------------------------------------------- recursions
@@ -431,9 +449,18 @@ def _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, splin
 
 
 @torch.no_grad()
-def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
-                  hold: str = "spline", substeps: int = 4, start: int = 0, n_steps: int | None = None,
-                  spline_degree: int = 5) -> Tensor:
+def exact_outputs(
+    model: LinearModel,
+    params: Tensor,
+    x0: Tensor | None,
+    inputs: Tensor,
+    h: float,
+    hold: str = "spline",
+    substeps: int = 4,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+) -> Tensor:
     """params [b, P], x0 [b, n] (None = rest), inputs [b, T_in, m] -> y [b, n_steps, o] (float64).
 
     The outputs are for the samples start .. start + n_steps - 1 (n_steps default T_in - start) and
@@ -441,8 +468,7 @@ def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs:
     interpolates all T_in samples, so samples outside the window (margins) make the held input
     near the window's edges as accurate as inside it.
     """
-    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps,
-                                            spline_degree)
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
     batch = inputs.shape[0]
     _, _, C, E = model.matrices(params)
     if T > 1:
@@ -451,27 +477,36 @@ def exact_outputs(model: LinearModel, params: Tensor, x0: Tensor | None, inputs:
     else:
         phi, forcing = None, None
     states = _primal_states(phi, forcing, x0, batch, model.n_state, T, params.device)
-    y = _outputs_inner(states, inputs[:, start:start + T], C, E)  # [T, o, b]
+    y = _outputs_inner(states, inputs[:, start : start + T], C, E)  # [T, o, b]
     return y.view(T * model.n_output, batch).t().contiguous().view(batch, T, model.n_output)  # 2-D transpose
 
 
 @torch.no_grad()
-def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, inputs: Tensor, h: float,
-                        hold: str = "spline", substeps: int = 4, with_x0: bool = True, start: int = 0,
-                        n_steps: int | None = None, spline_degree: int = 5) -> Tensor:
+def exact_sensitivities(
+    model: LinearModel,
+    params: Tensor,
+    x0: Tensor | None,
+    inputs: Tensor,
+    h: float,
+    hold: str = "spline",
+    substeps: int = 4,
+    with_x0: bool = True,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+) -> Tensor:
     """Prediction and Jacobian in one forward pass.
 
     -> [b, n_steps, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
     [..., 1 + P + i] = dy/dx0_i (x0 = the state at sample ``start``). Window and margins as in
     exact_outputs. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
     """
-    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps,
-                                            spline_degree)
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
     batch = inputs.shape[0]
     n, o, n_params, n_in = model.n_state, model.n_output, model.n_params, model.n_input
     _, _, C, E = model.matrices(params)
     _, _, dC, dE = model.matrix_derivatives(params)
-    window = inputs[:, start:start + T]
+    window = inputs[:, start : start + T]
     if T > 1:
         phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # batch innermost
         s = _sub_samples(inputs, hold, substeps, start, T, spline_degree)
@@ -495,7 +530,7 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     x_rows = states.unbind(0)
     blocks = [torch.empty(o, n_col, batch, dtype=_DTYPE, device=params.device) for _ in range(2)]  # ping-pong
     if with_x0:
-        blocks[1][:, 1 + n_params:] = C.permute(1, 2, 0)  # H_0, moved to blocks[0] at k = 0 below
+        blocks[1][:, 1 + n_params :] = C.permute(1, 2, 0)  # H_0, moved to blocks[0] at k = 0 below
     if T > 1:
         phi_rows = phi.unbind(0)  # [l][j, b]: row l of every Phi
         phi_cols = phi.permute(1, 0, 2)[:, :, None, :].contiguous().unbind(0)  # [l][i, 1, b]
@@ -513,7 +548,7 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
     for k in range(T):
         block, previous = blocks[k % 2], blocks[(k + 1) % 2]
         block[:, 0] = primal[k]
-        tangent = block[:, 1:1 + n_params]
+        tangent = block[:, 1 : 1 + n_params]
         if k:
             x_prev, z_rows = x_rows[k - 1].unbind(0), z.unbind(0)
             torch.mul(dphi_cols[0], x_prev[0], out=z_next)
@@ -538,7 +573,7 @@ def exact_sensitivities(model: LinearModel, params: Tensor, x0: Tensor | None, i
             for l in range(n):
                 tangent.addcmul_(c_cols[l], z_rows[l])
         if with_x0:
-            H, H_prev = block[:, 1 + n_params:], previous[:, 1 + n_params:]
+            H, H_prev = block[:, 1 + n_params :], previous[:, 1 + n_params :]
             if k:
                 torch.mul(H_prev[:, 0, None, :], phi_rows[0], out=H)
                 for l in range(1, n):

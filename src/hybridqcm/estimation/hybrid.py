@@ -14,8 +14,9 @@ results and writes per-iteration losses to TensorBoard. Used together::
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any
 
 import torch
 from lightning.pytorch import Callback, LightningModule
@@ -62,28 +63,39 @@ def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> Non
     All: trained at the data's step h (when given) under Euler physics the GN model shares."""
     if cae is not None and list(cae.hparams.channels) != ["a3", "a2"]:
         raise CheckpointKindError(f"cae_ckpt: denoiser channels {list(cae.hparams.channels)}, expected ['a3', 'a2']")
-    if unet is not None and (list(unet.hparams.input_channels) != ["a3", "pu_u"]
-                             or list(unet.hparams.target_channels) != ["a2", "a1"]):
-        raise CheckpointKindError("unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
-                                  f"{list(unet.hparams.input_channels)} -> {list(unet.hparams.target_channels)}")
+    if unet is not None and (
+        list(unet.hparams.input_channels) != ["a3", "pu_u"] or list(unet.hparams.target_channels) != ["a2", "a1"]
+    ):
+        raise CheckpointKindError(
+            "unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
+            f"{list(unet.hparams.input_channels)} -> {list(unet.hparams.target_channels)}"
+        )
     if cnn is not None and list(cnn.hparams.input_channels) != ["a3", "a2"]:
-        raise CheckpointKindError(f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']")
+        raise CheckpointKindError(
+            f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']"
+        )
     if cnn is not None and list(cnn.hparams.target_channels) != ["p1", "p2"]:
-        raise CheckpointKindError(f"cnn_ckpt: estimator targets {list(cnn.hparams.target_channels)}, but the initialiser "
-                                  f"needs ['p1', 'p2']")
+        raise CheckpointKindError(
+            f"cnn_ckpt: estimator targets {list(cnn.hparams.target_channels)}, but the initialiser needs ['p1', 'p2']"
+        )
     for key, net in (("cnn_ckpt", cnn), ("unet_ckpt", unet), ("cae_ckpt", cae)):
         if net is None:
             continue
         physics = net.hparams.get("physics", "euler")
         if physics != "euler":
-            raise CheckpointKindError(f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)")
+            raise CheckpointKindError(
+                f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)"
+            )
         if h is not None and abs(float(net.hparams.get("h", 0.01)) - float(h)) > 1e-9 * float(h):
-            raise CheckpointKindError(f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s")
+            raise CheckpointKindError(
+                f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s"
+            )
 
 
 # ----------------------------------------------------------------------------------------------
-def equation_error_params(accel: Tensor, road: Tensor, h: float, fallback: Tensor, known: Tensor,
-                          scaled_road: bool = False) -> Tensor:
+def equation_error_params(
+    accel: Tensor, road: Tensor, h: float, fallback: Tensor, known: Tensor, scaled_road: bool = False
+) -> Tensor:
     """Parameters from accelerations of all three bodies by linear least squares ("equation error").
 
     Integrating the accelerations with the model's own Euler recursion (from rest) gives v_k, q_k
@@ -145,11 +157,22 @@ class HybridEstimator(LightningModule):
     (observed channels, completed ones where the U-Net filled them in), ``road``, ``pu``, ``init``.
     """
 
-    def __init__(self, cnn_ckpt: str | None = None, unet_ckpt: str | None = None, cae_ckpt: str | None = None,
-                 observed: Sequence[str] = CHANNELS, n_steps: int = 100, h: float = 0.01,
-                 cnn_init: bool = True, equation_error_init: bool = False, known: Sequence[str] = (),
-                 pu_known: bool = True, cnn_a2_from_data: bool = False, base_excitation: str | None = None,
-                 input_margin: Sequence[int] = (0, 0)):
+    def __init__(
+        self,
+        cnn_ckpt: str | None = None,
+        unet_ckpt: str | None = None,
+        cae_ckpt: str | None = None,
+        observed: Sequence[str] = CHANNELS,
+        n_steps: int = 100,
+        h: float = 0.01,
+        cnn_init: bool = True,
+        equation_error_init: bool = False,
+        known: Sequence[str] = (),
+        pu_known: bool = True,
+        cnn_a2_from_data: bool = False,
+        base_excitation: str | None = None,
+        input_margin: Sequence[int] = (0, 0),
+    ):
         super().__init__()
         # (before, after): input samples around the GN window handed to the model with it — the
         # exact model interpolates the road through them, so its window edges are as accurate as
@@ -200,14 +223,22 @@ class HybridEstimator(LightningModule):
     @torch.no_grad()
     def prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
         accel = batch["accel"].double().clone()
-        road = batch["road"].double() if batch.get("road") is not None else torch.zeros(accel.shape[:2], dtype=torch.float64)
+        road = (
+            batch["road"].double()
+            if batch.get("road") is not None
+            else torch.zeros(accel.shape[:2], dtype=torch.float64)
+        )
         pu = batch["pu"].double()
         init = batch["init"].double().clone()
         if accel.shape[1] < self.required_steps():
-            raise ValueError(f"the pipeline needs {self.required_steps()} steps of input, the batch has {accel.shape[1]}")
+            raise ValueError(
+                f"the pipeline needs {self.required_steps()} steps of input, the batch has {accel.shape[1]}"
+            )
         a2_observed = "a2" in self.observed
         if self.completes:
-            accel[:, :, 1:] = self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+            accel[:, :, 1:] = (
+                self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+            )
         if self.cae is not None:
             if not a2_observed and not self.completes:
                 raise ValueError("the CAE denoises (a3, a2): a2 must be observed or completed by the U-Net")
@@ -216,7 +247,9 @@ class HybridEstimator(LightningModule):
             if a2_observed:
                 accel[:, :, 1] = denoised[:, :, 1]
             if self.completes:  # complete again from the denoised a3
-                accel[:, :, 1:] = self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+                accel[:, :, 1:] = (
+                    self.unet.complete(accel[:, :, 0].float(), (pu[:, None] * road).float()).double().transpose(1, 2)
+                )
         if self.cnn_init:
             if not a2_observed and not self.completes and not self.cnn_a2_from_data:
                 raise ValueError("the CNN initialiser reads a2: observe a2 or give a U-Net (unet_ckpt) to complete it")
@@ -226,16 +259,22 @@ class HybridEstimator(LightningModule):
         before, after = self.input_margin
         stop = min(accel.shape[1], before + self.n_steps + after)
         signals, road_in = accel[:, :stop], road[:, :stop]  # the model's inputs, margins included
-        accel = accel[:, before:before + self.n_steps]
-        road = road[:, before:before + self.n_steps]
+        accel = accel[:, before : before + self.n_steps]
+        road = road[:, before : before + self.n_steps]
         if self.equation_error_init:
             if not all(self.gn_channels()):
                 raise ValueError("equation-error initialisation needs all three accelerations (observed or completed)")
             # p_u known: the forcing is data (scaled road); otherwise p9, p10 carry it.
             forcing = pu[:, None] * road if self.pu_known else road
             init = equation_error_params(accel, forcing, self.h, init, self.known_mask, scaled_road=self.pu_known)
-        prepared = {"targets": accel, "road": road_in, "pu": pu, "init": init, "index": batch["index"],
-                    "input_offset": before}
+        prepared = {
+            "targets": accel,
+            "road": road_in,
+            "pu": pu,
+            "init": init,
+            "index": batch["index"],
+            "input_offset": before,
+        }
         if batch.get("noise_sigma") is not None and float(batch["noise_sigma"].max()) > 0:
             # Noise-aware weighting for multiplicative noise a(1 + η): a channel's noise std is
             # σ·rms(a_c), so weights 1/(σ rms_c) standardise every channel (completed ones too,
@@ -248,7 +287,9 @@ class HybridEstimator(LightningModule):
             # The measured driving channel becomes the model's input, the rest its targets.
             driver, outputs, n_params = BASE_EXCITATION[self.base_excitation]
             columns = [CHANNELS.index(c) for c in outputs]
-            prepared.update(targets=accel[:, :, columns], road=signals[:, :, CHANNELS.index(driver)], init=init[:, :n_params])
+            prepared.update(
+                targets=accel[:, :, columns], road=signals[:, :, CHANNELS.index(driver)], init=init[:, :n_params]
+            )
             if "weights" in prepared:
                 prepared["weights"] = prepared["weights"][:, columns]
         return prepared
@@ -275,7 +316,7 @@ class GaussNewtonStage:
     name: str
     solver: NonlinearLeastSquares
     channels: Any = "all"
-    n_steps: Optional[int] = None  # residual on the first n_steps only (window continuation); None: all
+    n_steps: int | None = None  # residual on the first n_steps only (window continuation); None: all
     # For stages on network-completed channels: keep the result only where it fits the *measured*
     # channels better than its start, and skip the stage in restarts (a poor completion must not
     # drag every attempt away from the measurement).
@@ -291,8 +332,8 @@ class RefinementResult:
     result: SolverResult
     stage_loss: dict = field(default_factory=dict)  # stage -> mean loss per iteration (list)
     stage_status: dict = field(default_factory=dict)  # stage -> status counts
-    restarts: Optional[Tensor] = None  # [batch] restarts run per sample
-    relative_loss: Optional[Tensor] = None  # [batch] final L / ½Σa² (observed channels)
+    restarts: Tensor | None = None  # [batch] restarts run per sample
+    relative_loss: Tensor | None = None  # [batch] final L / ½Σa² (observed channels)
 
 
 class GaussNewtonRefinement(Callback):
@@ -305,12 +346,24 @@ class GaussNewtonRefinement(Callback):
     Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
     """
 
-    def __init__(self, stages: Sequence[GaussNewtonStage], known: Tensor | None = None, pu_known: bool = False,
-                 h: float = 0.01, log_dir: str | os.PathLike | None = None, restarts: int = 0,
-                 restart_threshold: float = 1e-10, restart_sigma: float = 0.1, seed: int = 0,
-                 observed: Sequence[str] = CHANNELS, restart_mass_factors: Sequence[float] = (),
-                 response: ResponseModel | None = None, reweight: bool = False, peer_factor: float | None = 10.0,
-                 peer_min_batch: int = 20):
+    def __init__(
+        self,
+        stages: Sequence[GaussNewtonStage],
+        known: Tensor | None = None,
+        pu_known: bool = False,
+        h: float = 0.01,
+        log_dir: str | os.PathLike | None = None,
+        restarts: int = 0,
+        restart_threshold: float = 1e-10,
+        restart_sigma: float = 0.1,
+        seed: int = 0,
+        observed: Sequence[str] = CHANNELS,
+        restart_mass_factors: Sequence[float] = (),
+        response: ResponseModel | None = None,
+        reweight: bool = False,
+        peer_factor: float | None = 10.0,
+        peer_min_batch: int = 20,
+    ):
         super().__init__()
         if not stages:
             raise ValueError("GaussNewtonRefinement needs at least one stage")
@@ -366,7 +419,9 @@ class GaussNewtonRefinement(Callback):
             raise ValueError(f"stage {stage.name!r} uses channels {missing} that are neither observed nor completed")
         return wanted
 
-    def _run_stages(self, outputs, init: Tensor, module, restart: bool = False) -> tuple[dict, SolverResult, Tensor, Tensor]:
+    def _run_stages(
+        self, outputs, init: Tensor, module, restart: bool = False
+    ) -> tuple[dict, SolverResult, Tensor, Tensor]:
         """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
         guess directly, in case the completed channels were what misled the first attempt);
         returns (per-stage results, last result, params, relative loss)."""
@@ -384,17 +439,30 @@ class GaussNewtonRefinement(Callback):
             observed = self._channels(stage, module)
             if self.reweight and number == len(stages) - 1 and number > 0:
                 weights = self._residual_weights(outputs["targets"].double(), road, params, observed, offset)
-            window = outputs["targets"].shape[1] if stage.n_steps is None else min(int(stage.n_steps), outputs["targets"].shape[1])
-            problem = LeastSquaresProblem(outputs["targets"][:, :window].double(), road, self.h,
-                                          scaled_road=self.pu_known, observed=observed, known=self.known,
-                                          weights=weights, model=self.response, input_offset=offset)
+            window = (
+                outputs["targets"].shape[1]
+                if stage.n_steps is None
+                else min(int(stage.n_steps), outputs["targets"].shape[1])
+            )
+            problem = LeastSquaresProblem(
+                outputs["targets"][:, :window].double(),
+                road,
+                self.h,
+                scaled_road=self.pu_known,
+                observed=observed,
+                known=self.known,
+                weights=weights,
+                model=self.response,
+                input_offset=offset,
+            )
             result = stage.solver.solve(problem, params)
             per_stage[stage.name] = result
             # A stage that diverged keeps its input for the next stage rather than garbage.
             keep_input = result.status == SolverStatus.DIVERGED
             if stage.guard:
-                measured = tuple(c in (module.observed if isinstance(module, HybridEstimator) else self.observed)
-                                 for c in CHANNELS)
+                measured = tuple(
+                    c in (module.observed if isinstance(module, HybridEstimator) else self.observed) for c in CHANNELS
+                )
                 before = self._measured_loss(outputs, road, params, measured)
                 after = self._measured_loss(outputs, road, result.params, measured)
                 keep_input |= ~(after <= before)
@@ -405,13 +473,17 @@ class GaussNewtonRefinement(Callback):
             weighted = weighted * weights.double()[:, None, :]
         energy = 0.5 * weighted[:, :, channels].square().sum((1, 2))
         relative = result.loss / energy.clamp_min(1e-300)
-        relative = torch.where(result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative)
+        relative = torch.where(
+            result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative
+        )
         return per_stage, result, params, relative
 
     def _theta(self, init: Tensor) -> Tensor:
         """θ0 [batch, n_theta] from p0 [batch, 10]: initial states (if estimated) start at rest."""
         extra = self.response.n_theta - self.response.n_params
-        return torch.cat([init.double(), init.new_zeros(init.shape[0], extra, dtype=torch.float64)], 1) if extra else init
+        return (
+            torch.cat([init.double(), init.new_zeros(init.shape[0], extra, dtype=torch.float64)], 1) if extra else init
+        )
 
     def _residual_weights(self, targets: Tensor, road: Tensor, params: Tensor, observed, offset: int = 0) -> Tensor:
         """[batch, n_out] weights 1/σ̂_c from each observed channel's RMS residual at ``params`` over the
@@ -431,7 +503,9 @@ class GaussNewtonRefinement(Callback):
         """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite)."""
         channels = [i for i, m in enumerate(measured) if m]
         targets = outputs["targets"]
-        accel = self.response.outputs(params.double(), road, int(outputs.get("input_offset", 0)), targets.shape[1])[:, :, channels]
+        accel = self.response.outputs(params.double(), road, int(outputs.get("input_offset", 0)), targets.shape[1])[
+            :, :, channels
+        ]
         residual = accel - outputs["targets"].double()[:, :, channels]
         if outputs.get("weights") is not None:
             residual = residual * outputs["weights"].double()[:, None, channels]
@@ -449,8 +523,10 @@ class GaussNewtonRefinement(Callback):
             retry = ((relative > self.restart_threshold) | failed).nonzero().squeeze(1)
             if retry.numel() == 0:
                 break
-            sub = {k: (v[retry] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
-                   for k, v in outputs.items()}
+            sub = {
+                k: (v[retry] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
+                for k, v in outputs.items()
+            }
             delta = torch.randn(retry.numel(), init.shape[1], generator=self.generator, dtype=torch.float64)
             new_init = init[retry] * (1.0 + self.restart_sigma * delta)
             if attempt < len(self.restart_mass_factors):
@@ -462,13 +538,29 @@ class GaussNewtonRefinement(Callback):
             restarted[retry] += 1
             params[take] = sub_params[better]
             relative[take] = sub_relative[better]
-            for name in ("status", "iterations", "loss", "std", "covariance", "singular_values", "residual_variance",
-                         "relative_residual", "whiteness"):
+            for name in (
+                "status",
+                "iterations",
+                "loss",
+                "std",
+                "covariance",
+                "singular_values",
+                "residual_variance",
+                "relative_residual",
+                "whiteness",
+            ):
                 getattr(result, name)[take] = getattr(sub_result, name)[better]
             result.params[take] = sub_result.params[better]
             self._flag_outliers(result, typical)
-        record = {"index": outputs["index"].cpu(), "init": init.cpu(), "stages": per_stage,
-                  "final": result, "params": params, "restarts": restarted, "relative_loss": relative}
+        record = {
+            "index": outputs["index"].cpu(),
+            "init": init.cpu(),
+            "stages": per_stage,
+            "final": result,
+            "params": params,
+            "restarts": restarted,
+            "relative_loss": relative,
+        }
         self._batches.append(record)
         return record
 
@@ -533,7 +625,12 @@ class GaussNewtonRefinement(Callback):
             loss_history=torch.cat([pad_history(f.loss_history) for f in final], 1),
             std=torch.cat([f.std for f in final]),
             covariance=torch.cat([f.covariance for f in final]),
-            singular_values=torch.cat([torch.nn.functional.pad(f.singular_values, (0, n_free_max - f.singular_values.shape[1])) for f in final]),
+            singular_values=torch.cat(
+                [
+                    torch.nn.functional.pad(f.singular_values, (0, n_free_max - f.singular_values.shape[1]))
+                    for f in final
+                ]
+            ),
             residual_variance=torch.cat([f.residual_variance for f in final]),
             seconds=[s for f in final for s in f.seconds],
             relative_residual=torch.cat([f.relative_residual for f in final]),
@@ -556,11 +653,18 @@ class GaussNewtonRefinement(Callback):
                 for k, v in x.status_counts().items():
                     counts[k] = counts.get(k, 0) + v
             stage_status[stage.name] = counts
-            stage_status[stage.name + "_iterations_mean"] = float(torch.cat([x.iterations for x in results]).double().mean())
-        return RefinementResult(index=torch.cat([r["index"] for r in b]), init=torch.cat([r["init"] for r in b]),
-                                result=merged, stage_loss=stage_loss, stage_status=stage_status,
-                                restarts=torch.cat([r["restarts"] for r in b]),
-                                relative_loss=torch.cat([r["relative_loss"] for r in b]))
+            stage_status[stage.name + "_iterations_mean"] = float(
+                torch.cat([x.iterations for x in results]).double().mean()
+            )
+        return RefinementResult(
+            index=torch.cat([r["index"] for r in b]),
+            init=torch.cat([r["init"] for r in b]),
+            result=merged,
+            stage_loss=stage_loss,
+            stage_status=stage_status,
+            restarts=torch.cat([r["restarts"] for r in b]),
+            relative_loss=torch.cat([r["relative_loss"] for r in b]),
+        )
 
     def _log_tensorboard(self) -> None:
         if self.log_dir is None or not self._batches:

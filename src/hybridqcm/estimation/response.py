@@ -77,14 +77,15 @@ class EulerResponse(ResponseModel):
     # The recursion holds the input over each step: samples outside the window play no part.
     def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         x0 = theta[:, 10:] if self.with_x0 else None
-        road = inputs[:, start:start + n_steps] if n_steps is not None else inputs[:, start:]
+        road = inputs[:, start : start + n_steps] if n_steps is not None else inputs[:, start:]
         return euler_accelerations(theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0)
 
     def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         x0 = theta[:, 10:] if self.with_x0 else None
-        road = inputs[:, start:start + n_steps] if n_steps is not None else inputs[:, start:]
-        return euler_sensitivities(theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0,
-                                   with_x0=self.with_x0)
+        road = inputs[:, start : start + n_steps] if n_steps is not None else inputs[:, start:]
+        return euler_sensitivities(
+            theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0, with_x0=self.with_x0
+        )
 
 
 class ExactResponse(ResponseModel):
@@ -94,8 +95,14 @@ class ExactResponse(ResponseModel):
     inputs [b, time, n_in] sampled every h; the input between samples follows ``hold``.
     """
 
-    def __init__(self, model: LinearModel, h: float = 0.01, hold: str = "spline", substeps: int = 4,
-                 initial_state: str = "unknown") -> None:
+    def __init__(
+        self,
+        model: LinearModel,
+        h: float = 0.01,
+        hold: str = "spline",
+        substeps: int = 4,
+        initial_state: str = "unknown",
+    ) -> None:
         if initial_state not in INITIAL_STATES:
             raise ValueError(f"initial_state={initial_state!r}: choose one of {list(INITIAL_STATES)}")
         if hold not in HOLDS:
@@ -105,21 +112,33 @@ class ExactResponse(ResponseModel):
         self.model, self.h, self.hold, self.substeps = model, float(h), hold, int(substeps)
         self.with_x0 = initial_state == "unknown"
         self.n_params = len(model.param_names)
-        self.theta_names = tuple(model.param_names) + (tuple(f"x0_{s}" for s in model.state_names) if self.with_x0 else ())
+        self.theta_names = tuple(model.param_names) + (
+            tuple(f"x0_{s}" for s in model.state_names) if self.with_x0 else ()
+        )
         self.output_names = tuple(model.output_names)
 
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
-        return theta[:, : self.n_params], (theta[:, self.n_params:] if self.with_x0 else None)
+        return theta[:, : self.n_params], (theta[:, self.n_params :] if self.with_x0 else None)
 
     def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
-        return exact_outputs(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps,
-                             **_window(inputs, start, n_steps))
+        return exact_outputs(
+            self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps, **_window(inputs, start, n_steps)
+        )
 
     def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
-        return exact_sensitivities(self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps,
-                                   with_x0=self.with_x0, **_window(inputs, start, n_steps))
+        return exact_sensitivities(
+            self.model,
+            params,
+            x0,
+            _as_3d(inputs),
+            self.h,
+            self.hold,
+            self.substeps,
+            with_x0=self.with_x0,
+            **_window(inputs, start, n_steps),
+        )
 
 
 def _window(inputs: Tensor, start: int, n_steps: int | None) -> dict:
@@ -134,8 +153,9 @@ def _as_3d(inputs: Tensor) -> Tensor:
     return inputs.unsqueeze(-1) if inputs.ndim == 2 else inputs
 
 
-def quarter_car_response(model: str, h: float, scaled_road: bool, initial_state: str = "unknown",
-                         hold: str = "spline", substeps: int = 4) -> ResponseModel:
+def quarter_car_response(
+    model: str, h: float, scaled_road: bool, initial_state: str = "unknown", hold: str = "spline", substeps: int = 4
+) -> ResponseModel:
     """The road-driven quarter car as the solver's model: ``model="euler"`` (source protocol, from rest)
     or ``"exact"`` (continuous-time physics)."""
     if model == "euler":
@@ -148,8 +168,9 @@ def quarter_car_response(model: str, h: float, scaled_road: bool, initial_state:
 BASE_MODELS = {"seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}
 
 
-def base_excitation_response(name: str, h: float, initial_state: str = "unknown", hold: str = "spline",
-                             substeps: int = 4) -> ResponseModel:
+def base_excitation_response(
+    name: str, h: float, initial_state: str = "unknown", hold: str = "spline", substeps: int = 4
+) -> ResponseModel:
     """A road-free model driven by a measured acceleration (SPEC §9): ``seat`` (a2 -> a3; p1, p2) or
     ``sprung`` (a1 -> a3, a2; p1..p6), always continuous-time (exact discretisation)."""
     if name not in BASE_MODELS:

@@ -71,8 +71,9 @@ def _check_inputs(params: Tensor, road: Tensor) -> None:
 
 
 @torch.no_grad()
-def euler_accelerations(params: Tensor, road: Tensor, h: float, scaled_road: bool = False,
-                        x0: Tensor | None = None) -> Tensor:
+def euler_accelerations(
+    params: Tensor, road: Tensor, h: float, scaled_road: bool = False, x0: Tensor | None = None
+) -> Tensor:
     """Model accelerations without tangents (forward only, the line-search evaluation).
 
     params [batch, 10], road [batch, time] (u in metres, or p_u·u when ``scaled_road``), x0
@@ -83,8 +84,9 @@ def euler_accelerations(params: Tensor, road: Tensor, h: float, scaled_road: boo
 
 
 @torch.no_grad()
-def euler_sensitivities(params: Tensor, road: Tensor, h: float, scaled_road: bool = False,
-                        x0: Tensor | None = None, with_x0: bool = False) -> Tensor:
+def euler_sensitivities(
+    params: Tensor, road: Tensor, h: float, scaled_road: bool = False, x0: Tensor | None = None, with_x0: bool = False
+) -> Tensor:
     """Accelerations and their derivatives w.r.t. all 10 parameters (and x0) in one forward pass.
 
     Returns ``[batch, time, 3, 11]`` (``[batch, time, 3, 17]`` with ``with_x0``): [..., 0] the
@@ -103,8 +105,15 @@ def accelerations_and_jacobian(
     return out[..., 0], out[..., 1:]
 
 
-def _recursion(params: Tensor, road: Tensor, h: float, scaled_road: bool, with_tangents: bool,
-               x0: Tensor | None = None, with_x0: bool = False) -> Tensor:
+def _recursion(
+    params: Tensor,
+    road: Tensor,
+    h: float,
+    scaled_road: bool,
+    with_tangents: bool,
+    x0: Tensor | None = None,
+    with_x0: bool = False,
+) -> Tensor:
     """The Euler recursion on the augmented state; returns [batch, time, 3, width]."""
     _check_inputs(params, road)
     dtype, device = params.dtype, params.device

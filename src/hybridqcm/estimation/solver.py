@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Callable, Optional, Sequence
 
 import torch
 from scipy.stats import chi2
@@ -73,7 +73,7 @@ class SolverConfig:
     chunk_size: int = 512  # samples per Jacobian pass (keeps the per-step working set in cache)
     # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
     # 2-core machine each op waited milliseconds for the second thread (measured). None: leave as is.
-    num_threads: Optional[int] = 1
+    num_threads: int | None = 1
     # How a step is applied (with column scaling all three give the same direction):
     #   "unconstrained": p <- p - αδ; iterates may leave p > 0 on the way, a final estimate
     #                    with any p_j <= 0 gets status DIVERGED (default: see docs/notes/estimation.md,
@@ -85,7 +85,7 @@ class SolverConfig:
     # fraction (|αδ_j| ≤ cap·p_j) in one iteration; null/0 disables it. Weakly identified
     # parameters (p3, p5) otherwise take huge early steps that Armijo accepts (the other
     # parameters reduce the loss) and land near zero, where they get stuck.
-    max_relative_step: Optional[float] = None
+    max_relative_step: float | None = None
     # Misfit test (module docstring): structured residual (Ljung-Box over misfit_lags lags above the
     # chi² quantile at misfit_alpha) larger than misfit_floor x the channel RMS. 0 lags: no test.
     misfit_floor: float = 0.005
@@ -117,17 +117,17 @@ class LeastSquaresProblem:
     h: float = 0.01
     scaled_road: bool = False
     observed: Sequence[bool] = (True, True, True)
-    known: Optional[Tensor] = None
+    known: Tensor | None = None
     # [batch, n_out] per-channel residual weights (noise-aware weighting: 1/σ_c of each channel's
     # measurement noise); None = 1. Rows of R and J are multiplied by them.
-    weights: Optional[Tensor] = None
-    model: Optional[ResponseModel] = None
+    weights: Tensor | None = None
+    model: ResponseModel | None = None
     # Gaussian prior on θ (MAP estimation, e.g. a network's prediction and variance): loss
     # + ½ Σ_j λ_j (θ_j − μ_j)², mean [batch, n_theta], precision λ [batch, n_theta] (0 = no prior
     # on that entry), in the units of the *weighted* residual (weights = 1/σ_noise make it a
     # posterior). None = maximum likelihood.
-    prior_mean: Optional[Tensor] = None
-    prior_precision: Optional[Tensor] = None
+    prior_mean: Tensor | None = None
+    prior_precision: Tensor | None = None
     input_offset: int = 0
 
     def __post_init__(self):
@@ -138,17 +138,29 @@ class LeastSquaresProblem:
             raise ValueError(f"targets must be [batch, time, {n_out}], got {tuple(self.targets.shape)}")
         batch, n_steps = self.targets.shape[:2]
         self.input_offset = int(self.input_offset)
-        if (self.inputs.ndim not in (2, 3) or self.inputs.shape[0] != batch or self.input_offset < 0
-                or self.inputs.shape[1] < self.input_offset + n_steps):
-            raise ValueError(f"inputs {tuple(self.inputs.shape)} must be [batch, time_in(, n_in)] with batch = {batch} "
-                             f"and time_in >= input_offset + time = {self.input_offset} + {n_steps}")
+        if (
+            self.inputs.ndim not in (2, 3)
+            or self.inputs.shape[0] != batch
+            or self.input_offset < 0
+            or self.inputs.shape[1] < self.input_offset + n_steps
+        ):
+            raise ValueError(
+                f"inputs {tuple(self.inputs.shape)} must be [batch, time_in(, n_in)] with batch = {batch} "
+                f"and time_in >= input_offset + time = {self.input_offset} + {n_steps}"
+            )
         self.observed = tuple(bool(o) for o in self.observed)
         if len(self.observed) != n_out or not any(self.observed):
             raise ValueError(f"observed must name {n_out} channel flags with at least one True, got {self.observed}")
-        known = torch.zeros(n_theta, dtype=torch.bool) if self.known is None else torch.as_tensor(self.known, dtype=torch.bool).cpu()
+        known = (
+            torch.zeros(n_theta, dtype=torch.bool)
+            if self.known is None
+            else torch.as_tensor(self.known, dtype=torch.bool).cpu()
+        )
         if known.shape != (n_theta,):
-            raise ValueError(f"known must be a [{n_theta}] bool mask ({', '.join(self.model.theta_names)}), "
-                             f"got shape {tuple(known.shape)}")
+            raise ValueError(
+                f"known must be a [{n_theta}] bool mask ({', '.join(self.model.theta_names)}), "
+                f"got shape {tuple(known.shape)}"
+            )
         if bool(known.all()):
             raise ValueError(f"all {n_theta} unknowns are known: nothing to estimate")
         self.known = known
@@ -163,10 +175,15 @@ class LeastSquaresProblem:
             self.prior_precision = torch.as_tensor(self.prior_precision, dtype=torch.float64)
             shape = (self.targets.shape[0], n_theta)
             if tuple(self.prior_mean.shape) != shape or tuple(self.prior_precision.shape) != shape:
-                raise ValueError(f"prior_mean and prior_precision must be [batch, n_theta] = {list(shape)}, got "
-                                 f"{list(self.prior_mean.shape)} and {list(self.prior_precision.shape)}")
-            if not (torch.isfinite(self.prior_mean).all() and torch.isfinite(self.prior_precision).all()
-                    and (self.prior_precision >= 0).all()):
+                raise ValueError(
+                    f"prior_mean and prior_precision must be [batch, n_theta] = {list(shape)}, got "
+                    f"{list(self.prior_mean.shape)} and {list(self.prior_precision.shape)}"
+                )
+            if not (
+                torch.isfinite(self.prior_mean).all()
+                and torch.isfinite(self.prior_precision).all()
+                and (self.prior_precision >= 0).all()
+            ):
                 raise ValueError("prior_mean must be finite and prior_precision finite and >= 0")
         if self.weights is not None:
             self.weights = torch.as_tensor(self.weights, dtype=torch.float64)
@@ -226,8 +243,8 @@ class SolverResult:
     seconds: list = field(default_factory=list)
     # [batch] max over observed channels of ‖R_c‖/‖a_c‖, and of the Ljung-Box statistic over its
     # χ² threshold (> 1: the residual is not white); inf where not evaluated (diverged).
-    relative_residual: Optional[Tensor] = None
-    whiteness: Optional[Tensor] = None
+    relative_residual: Tensor | None = None
+    whiteness: Tensor | None = None
 
     def status_counts(self) -> dict[str, int]:
         return {s.label: int((self.status == s.value).sum()) for s in SolverStatus}
@@ -265,7 +282,9 @@ class NonlinearLeastSquares:
         """Update method state after the line search of the samples ``index``."""
 
     # --- the loop -----------------------------------------------------------------------
-    def solve(self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None) -> SolverResult:
+    def solve(
+        self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None
+    ) -> SolverResult:
         """Minimise every sample's loss from ``initial_params`` = θ0 [batch, n_theta] (known entries kept)."""
         threads = torch.get_num_threads()
         if self.config.num_threads:
@@ -282,8 +301,10 @@ class NonlinearLeastSquares:
         params = initial_params.detach().to(dtype).clone()
         n_theta = problem.n_theta
         if params.ndim != 2 or params.shape != (problem.targets.shape[0], n_theta):
-            raise ValueError(f"initial params must be [batch, n_theta] = [{problem.targets.shape[0]}, {n_theta}], "
-                             f"got {tuple(params.shape)}")
+            raise ValueError(
+                f"initial params must be [batch, n_theta] = [{problem.targets.shape[0]}, {n_theta}], "
+                f"got {tuple(params.shape)}"
+            )
         if not torch.isfinite(params).all():
             raise ValueError("initial params contain NaN/inf")
         batch = params.shape[0]
@@ -295,7 +316,9 @@ class NonlinearLeastSquares:
         # [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
         targets = problem.targets.to(dtype)[:, :, obs].contiguous()
         road = problem.inputs.to(dtype)
-        self._weights = None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()  # [batch, n_obs]
+        self._weights = (
+            None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
+        )  # [batch, n_obs]
         weighted_targets = targets if self._weights is None else targets * self._weights[:, None, :]
         data_energy = 0.5 * weighted_targets.square().sum(dim=(1, 2))  # [batch]
 
@@ -322,7 +345,9 @@ class NonlinearLeastSquares:
                 status[exact] = SolverStatus.CONVERGED
                 break
             fisher, gradient, loss_now = self._normal_equations(problem, params, targets, road, index)
-            finite = torch.isfinite(loss_now) & torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(gradient).all(1)
+            finite = (
+                torch.isfinite(loss_now) & torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(gradient).all(1)
+            )
             loss[index] = torch.where(finite, loss_now, loss[index])
             if iteration == 0:
                 history.append(torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)))
@@ -351,7 +376,9 @@ class NonlinearLeastSquares:
             full_rel_step = self._relative_step(step, params[index][:, free])
             stationary = (full_rel_step <= cfg.step_tol) | (predicted <= cfg.decrease_tol * loss_now)
 
-            accepted_alpha, new_loss = self._line_search(problem, params, targets, road, index, free, step, loss_now, predicted)
+            accepted_alpha, new_loss = self._line_search(
+                problem, params, targets, road, index, free, step, loss_now, predicted
+            )
             accepted = accepted_alpha > 0
             self.after_line_search(index, accepted_alpha == cfg.initial_step, accepted)
 
@@ -372,7 +399,9 @@ class NonlinearLeastSquares:
             rej_index = index[rejected]
             at_minimum = predicted[rejected] <= 1e-10 * loss_now[rejected] + 1e-300
             status[rej_index] = torch.where(
-                at_minimum, torch.tensor(SolverStatus.CONVERGED, dtype=torch.int8), torch.tensor(SolverStatus.STALLED, dtype=torch.int8)
+                at_minimum,
+                torch.tensor(SolverStatus.CONVERGED, dtype=torch.int8),
+                torch.tensor(SolverStatus.STALLED, dtype=torch.int8),
             )
             active[rej_index] = False
 
@@ -419,7 +448,7 @@ class NonlinearLeastSquares:
         for chunk in index.split(self.config.chunk_size):
             out = problem.model.sensitivities(params[chunk], road[chunk], *problem.window)  # [b, T, n_out, 1 + n_theta]
             if len(obs) < out.shape[2]:
-                out = out[:, :, obs[0]:obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
+                out = out[:, :, obs[0] : obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
             out[..., 0] -= targets[chunk]  # residual R in column 0
             if self._weights is not None:
                 out *= self._weights[chunk][:, None, :, None]
@@ -465,8 +494,11 @@ class NonlinearLeastSquares:
                 break
             trial = params[index[pos]].clone()
             trial[:, free] = self._apply_step(trial[:, free], alpha[pos].unsqueeze(1) * step[pos])
-            positive = ((trial[:, free][:, self._positive] > 0).all(1) if cfg.parametrization != "unconstrained"
-                        else torch.ones(pos.numel(), dtype=torch.bool))
+            positive = (
+                (trial[:, free][:, self._positive] > 0).all(1)
+                if cfg.parametrization != "unconstrained"
+                else torch.ones(pos.numel(), dtype=torch.bool)
+            )
             trial_loss = torch.full((pos.numel(),), math.inf, dtype=params.dtype)
             if bool(positive.any()):
                 # Evaluate only positive trials; the others count as Armijo failures.
@@ -519,7 +551,9 @@ class NonlinearLeastSquares:
             scale = fisher.diagonal(dim1=1, dim2=2).sqrt()
             safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
             fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
-            fisher_scaled = torch.where((scale > 0).unsqueeze(2) & (scale > 0).unsqueeze(1), fisher_scaled, torch.zeros_like(fisher_scaled))
+            fisher_scaled = torch.where(
+                (scale > 0).unsqueeze(2) & (scale > 0).unsqueeze(1), fisher_scaled, torch.zeros_like(fisher_scaled)
+            )
             eigval, eigvec = torch.linalg.eigh(fisher_scaled)  # ascending
             eigval = eigval.clamp_min(0.0)
             sv = eigval.sqrt().flip(1)
@@ -531,8 +565,12 @@ class NonlinearLeastSquares:
             dof = max(problem.n_residuals - n_free, 1)
             sigma2 = 2.0 * final_loss / dof
             residual_variance[index] = sigma2
-            misfit, relative_residual[index], whiteness[index], inflation = self._residual_tests(problem, params, targets, road, index)
-            cov_free = (inflation * sigma2)[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            misfit, relative_residual[index], whiteness[index], inflation = self._residual_tests(
+                problem, params, targets, road, index
+            )
+            cov_free = (
+                (inflation * sigma2)[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
+            )
             # A parameter with any weight on a zero-eigenvalue direction has unbounded variance.
             null_weight = (eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2)  # [b, n_free]
             unidentified = (null_weight > 1e-6) | (scale == 0)
@@ -540,10 +578,14 @@ class NonlinearLeastSquares:
                 # Laplace posterior: (data information + prior precision)⁻¹; the prior identifies
                 # what the data alone cannot.
                 precision, _ = self._prior_terms(problem, params[index][:, free], index)
-                information = fisher / (inflation * sigma2).clamp_min(1e-300)[:, None, None] + torch.diag_embed(precision)
+                information = fisher / (inflation * sigma2).clamp_min(1e-300)[:, None, None] + torch.diag_embed(
+                    precision
+                )
                 cov_free, singular_posterior = _pseudo_inverse(information, cfg.rcond)
                 unidentified = singular_posterior
-            std_free = torch.where(unidentified, torch.full_like(scale, math.inf), cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt())
+            std_free = torch.where(
+                unidentified, torch.full_like(scale, math.inf), cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+            )
             rows = index.unsqueeze(1)
             std[rows, free.unsqueeze(0)] = std_free
             cov_full = torch.zeros(index.numel(), n_theta, n_theta, dtype=params.dtype)
@@ -555,10 +597,18 @@ class NonlinearLeastSquares:
             status[index[rank_deficient]] = SolverStatus.SINGULAR
             status[index[misfit]] = SolverStatus.MISFIT  # a wrong answer is never `converged`
         return SolverResult(
-            params=params, status=status, iterations=iterations, loss=loss, loss_history=history,
-            std=std, covariance=covariance, singular_values=singular_values,
-            residual_variance=residual_variance, seconds=seconds,
-            relative_residual=relative_residual, whiteness=whiteness,
+            params=params,
+            status=status,
+            iterations=iterations,
+            loss=loss,
+            loss_history=history,
+            std=std,
+            covariance=covariance,
+            singular_values=singular_values,
+            residual_variance=residual_variance,
+            seconds=seconds,
+            relative_residual=relative_residual,
+            whiteness=whiteness,
         )
 
     def _residual_tests(self, problem, params, targets, inputs, index) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -575,8 +625,11 @@ class NonlinearLeastSquares:
         lags = min(int(cfg.misfit_lags), n_steps - 2)
         threshold = float(chi2.ppf(1.0 - cfg.misfit_alpha, lags)) if lags > 0 else math.inf
         for start in range(0, index.numel(), self.config.chunk_size * 2):
-            chunk = index[start:start + self.config.chunk_size * 2]
-            residual = problem.model.outputs(params[chunk], inputs[chunk], *problem.window)[:, :, problem.observed_index] - targets[chunk]
+            chunk = index[start : start + self.config.chunk_size * 2]
+            residual = (
+                problem.model.outputs(params[chunk], inputs[chunk], *problem.window)[:, :, problem.observed_index]
+                - targets[chunk]
+            )
             energy = residual.square().sum(1)  # [b, n_obs]
             relative = (energy / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
             q = torch.zeros_like(energy)
@@ -663,7 +716,9 @@ class LevenbergMarquardt(NonlinearLeastSquares):
     def after_line_search(self, index, full_step_accepted, any_step_accepted):
         cfg = self.config
         lam = self.damping[index]
-        lam = torch.where(full_step_accepted, (lam / 3.0).clamp_min(cfg.lm_min_damping), (lam * 4.0).clamp_max(cfg.lm_max_damping))
+        lam = torch.where(
+            full_step_accepted, (lam / 3.0).clamp_min(cfg.lm_min_damping), (lam * 4.0).clamp_max(cfg.lm_max_damping)
+        )
         self.damping[index] = lam
 
 

@@ -16,14 +16,16 @@ never executed:
     load_checkpoint(path, kind, config_key=None) -> module in eval mode on the CPU
     read_checkpoint(path, kind, config_key=None) -> CheckpointInfo (class, hparams; no module built)
 """
+
 from __future__ import annotations
 
 import inspect
 import os
 import pickle
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 from lightning import LightningModule
@@ -69,8 +71,9 @@ def _allowed_target(target: Any) -> bool:
         if module_name not in ("torch.optim", "torch.optim.lr_scheduler"):
             return False
         obj = getattr(torch.optim if module_name == "torch.optim" else torch.optim.lr_scheduler, attr, None)
-        return inspect.isclass(obj) and (issubclass(obj, torch.optim.Optimizer)
-                                         or issubclass(obj, torch.optim.lr_scheduler.LRScheduler))
+        return inspect.isclass(obj) and (
+            issubclass(obj, torch.optim.Optimizer) or issubclass(obj, torch.optim.lr_scheduler.LRScheduler)
+        )
     return False
 
 
@@ -83,8 +86,10 @@ def check_config_tree(value: Any, where: str, key: str = "hyper_parameters") -> 
                 if k not in SPECIAL_KEYS:
                     raise CheckpointError(f"{where}: {name} is refused (Hydra key {k} is not allowed in a checkpoint)")
                 if k == "_target_" and not _allowed_target(v):
-                    raise CheckpointError(f"{where}: {name} = {v!r} is not on the allow-list of networks "
-                                          f"{sorted(NETWORK_TARGETS)} and torch optimizers/schedulers; refused")
+                    raise CheckpointError(
+                        f"{where}: {name} = {v!r} is not on the allow-list of networks "
+                        f"{sorted(NETWORK_TARGETS)} and torch optimizers/schedulers; refused"
+                    )
             check_config_tree(v, where, name)
     elif isinstance(value, (list, tuple)):
         for i, v in enumerate(value):
@@ -104,12 +109,24 @@ def read_raw(path: Path, where: str) -> dict:
         culprit = next((line.strip() for line in text.splitlines() if "GLOBAL" in line), "")
         if isinstance(error, pickle.UnpicklingError) and culprit:
             # torch names the refused global ("Trying to load unsupported GLOBAL posix.system ...").
-            raise CheckpointError(f"{where}: refused, the file holds pickled objects other than tensors and plain "
-                                  f"data ({culprit[:160]})") from None
+            raise CheckpointError(
+                f"{where}: refused, the file holds pickled objects other than tensors and plain data ({culprit[:160]})"
+            ) from None
         if isinstance(error, pickle.UnpicklingError):
-            detail = next((line.strip() for line in text.splitlines()[1:] if line.strip() and "error:" not in line
-                           and "Check the documentation" not in line and "Please file" not in line), "")
-            raise CheckpointError(f"{where}: not a readable torch checkpoint ({detail[:160] or 'unpickling failed'})") from None
+            detail = next(
+                (
+                    line.strip()
+                    for line in text.splitlines()[1:]
+                    if line.strip()
+                    and "error:" not in line
+                    and "Check the documentation" not in line
+                    and "Please file" not in line
+                ),
+                "",
+            )
+            raise CheckpointError(
+                f"{where}: not a readable torch checkpoint ({detail[:160] or 'unpickling failed'})"
+            ) from None
         first = text.splitlines()[0][:160] if text else ""
         raise CheckpointError(f"{where}: not a readable torch checkpoint ({type(error).__name__}: {first})") from None
     if not isinstance(raw, dict):
@@ -160,7 +177,11 @@ def read_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key
 
 def _strict_shapes(module: LightningModule, state: Mapping[str, torch.Tensor], where: str, name: str) -> None:
     own = module.state_dict()
-    bad = [f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}" for k, v in state.items() if k in own and v.shape != own[k].shape]
+    bad = [
+        f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}"
+        for k, v in state.items()
+        if k in own and v.shape != own[k].shape
+    ]
     if bad:
         raise CheckpointError(f"{where}: state_dict shapes do not match {name}: {bad[:3]}")
 
@@ -179,15 +200,18 @@ def load_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key
         probe = cls(**info.hparams)
     except Exception as error:  # noqa: BLE001
         first = str(error).strip().splitlines()[0] if str(error).strip() else ""
-        raise CheckpointError(f"{where}: hyper_parameters do not build a {info.class_name} "
-                              f"({type(error).__name__}: {first})") from None
+        raise CheckpointError(
+            f"{where}: hyper_parameters do not build a {info.class_name} ({type(error).__name__}: {first})"
+        ) from None
     _strict_shapes(probe, info.state_dict, where, info.class_name)
     result = probe.load_state_dict(info.state_dict, strict=False)
     problems = []
     if result.missing_keys:
         problems.append(f"missing keys {result.missing_keys[:5]}{' ...' if len(result.missing_keys) > 5 else ''}")
     if result.unexpected_keys:
-        problems.append(f"unexpected keys {result.unexpected_keys[:5]}{' ...' if len(result.unexpected_keys) > 5 else ''}")
+        problems.append(
+            f"unexpected keys {result.unexpected_keys[:5]}{' ...' if len(result.unexpected_keys) > 5 else ''}"
+        )
     if problems:
         raise CheckpointError(f"{where}: state_dict does not match {info.class_name}: {'; '.join(problems)}")
     probe.eval()
@@ -199,5 +223,14 @@ def kind_of(module: LightningModule) -> str | None:
     return KIND_OF_CLASS.get(type(module).__name__)
 
 
-__all__ = ["KINDS", "NETWORK_TARGETS", "CheckpointInfo", "CheckpointError", "check_config_tree", "read_raw", "read_checkpoint",
-           "load_checkpoint", "kind_of"]
+__all__ = [
+    "KINDS",
+    "NETWORK_TARGETS",
+    "CheckpointInfo",
+    "CheckpointError",
+    "check_config_tree",
+    "read_raw",
+    "read_checkpoint",
+    "load_checkpoint",
+    "kind_of",
+]

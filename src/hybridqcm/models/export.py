@@ -13,6 +13,7 @@ the time axis is fixed at export (the convolution padding is computed from it), 
 steps for the estimators (they read exactly the first `window` steps) and `time_steps`
 (default: the training window) for the signal networks.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -60,9 +61,9 @@ class PhysicalGraph(nn.Module):
         scale = self._scale(x)
         z = self.net((x / scale - self.in_mean[:, None]) / self.in_std[:, None])
         if self.estimator:
-            y = z.double() * self.out_std.double() + self.out_mean.double()          # [batch, P] float64
+            y = z.double() * self.out_std.double() + self.out_mean.double()  # [batch, P] float64
             return y.exp() if self.log_targets else y
-        return (z * self.out_std[:, None] + self.out_mean[:, None]) * scale     # [batch, C', time] m/s^2
+        return (z * self.out_std[:, None] + self.out_mean[:, None]) * scale  # [batch, C', time] m/s^2
 
 
 def io_names(module: QCMModule) -> tuple[list[str], list[str]]:
@@ -109,7 +110,7 @@ def parity_error(module: QCMModule, reference: Tensor, other: Tensor) -> float:
         raise ValueError(f"parity: shapes differ, {tuple(ref.shape)} vs {tuple(other.shape)}")
     if isinstance(module, ParameterEstimator):
         return float(((other - ref).abs() / ref.abs().clamp_min(1e-300)).max())
-    scale = ref.pow(2).mean(-1, keepdim=True).sqrt().clamp_min(1e-300)          # [batch, C, 1]
+    scale = ref.pow(2).mean(-1, keepdim=True).sqrt().clamp_min(1e-300)  # [batch, C, 1]
     return float(((other - ref).abs() / scale).max())
 
 
@@ -118,22 +119,51 @@ def contract(module: QCMModule, time_steps: int, h: float | None = None) -> dict
     inputs, outputs = io_names(module)
     window = int(module.hparams.window)
     if isinstance(module, ParameterEstimator):
-        output = {"name": "params", "shape": ["batch", len(outputs)], "dtype": "float64", "names": outputs,
-                  "units": "model parameters p_i as in SPEC §2 (physical units)"}
+        output = {
+            "name": "params",
+            "shape": ["batch", len(outputs)],
+            "dtype": "float64",
+            "names": outputs,
+            "units": "model parameters p_i as in SPEC §2 (physical units)",
+        }
         api = "estimate(a3, a2)"
     else:
-        output = {"name": "signals", "shape": ["batch", len(outputs), time_steps], "dtype": "float32",
-                  "channels": outputs, "units": "m/s^2"}
+        output = {
+            "name": "signals",
+            "shape": ["batch", len(outputs), time_steps],
+            "dtype": "float32",
+            "channels": outputs,
+            "units": "m/s^2",
+        }
         api = "denoise(x)" if isinstance(module, DenoisingAutoencoder) else "complete(a3, pu_u)"
     return {
-        "schema": CONTRACT_SCHEMA, "model_class": type(module).__name__, "kind": module.kind, "api": api,
-        "input": {"name": "accel", "shape": ["batch", len(inputs), time_steps], "dtype": "float32",
-                  "channels": inputs, "units": "m/s^2 (raw, unnormalised" + ("; pu_u = p_u * road height u)" if "pu_u" in inputs else ")"),
-                  "layout": "[batch, channels, time]"},
-        "output": output, "dynamic_axes": ["batch"], "window": window, "time_steps": time_steps, "h": h,
+        "schema": CONTRACT_SCHEMA,
+        "model_class": type(module).__name__,
+        "kind": module.kind,
+        "api": api,
+        "input": {
+            "name": "accel",
+            "shape": ["batch", len(inputs), time_steps],
+            "dtype": "float32",
+            "channels": inputs,
+            "units": "m/s^2 (raw, unnormalised" + ("; pu_u = p_u * road height u)" if "pu_u" in inputs else ")"),
+            "layout": "[batch, channels, time]",
+        },
+        "output": output,
+        "dynamic_axes": ["batch"],
+        "window": window,
+        "time_steps": time_steps,
+        "h": h,
         "target_names": outputs,
     }
 
 
-__all__ = ["PhysicalGraph", "io_names", "export_time_steps", "reference_output", "parity_error", "contract",
-           "CONTRACT_SCHEMA"]
+__all__ = [
+    "PhysicalGraph",
+    "io_names",
+    "export_time_steps",
+    "reference_output",
+    "parity_error",
+    "contract",
+    "CONTRACT_SCHEMA",
+]

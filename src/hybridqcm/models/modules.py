@@ -16,12 +16,14 @@ Inference API (used by the hybrid estimator):
     DenoisingAutoencoder .denoise(x [B, 2, N]) -> [B, 2, N]   channels (a3, a2)
     CompletionUNet       .complete(a3 [B,N], pu_u [B,N]) -> [B, 2, N]   channels (a2, a1)
 """
+
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -85,12 +87,12 @@ def balanced_residual_loss(p12: Tensor, aux: Tensor, eps: float = 1e-30) -> Tens
     """
     aux = aux.double()
     a3, v3, v2, q3, q2 = aux.unbind(1)
-    design = torch.stack([-(v3 - v2), -(q3 - q2)], -1)                            # [B, N, 2]
+    design = torch.stack([-(v3 - v2), -(q3 - q2)], -1)  # [B, N, 2]
     with torch.no_grad():
-        p_star = torch.linalg.lstsq(design, a3[..., None]).solution[..., 0]         # [B, 2]
-        terms = design * p_star[:, None, :]                                        # [B, N, 2]
-        unit = terms / terms.norm(dim=1, keepdim=True).clamp_min(eps ** 0.5)
-    rel = p12.double() / p_star - 1                                                # [B, 2]
+        p_star = torch.linalg.lstsq(design, a3[..., None]).solution[..., 0]  # [B, 2]
+        terms = design * p_star[:, None, :]  # [B, N, 2]
+        unit = terms / terms.norm(dim=1, keepdim=True).clamp_min(eps**0.5)
+    rel = p12.double() / p_star - 1  # [B, 2]
     return (unit * rel[:, None, :]).sum(-1).pow(2).sum(-1)
 
 
@@ -98,12 +100,13 @@ def least_squares_p12(aux: Tensor) -> Tensor:
     """Per-sample minimiser of the residual (no labels): [B, 2] float64. Exact on clean data."""
     aux = aux.double()
     a3, v3, v2, q3, q2 = aux.unbind(1)
-    design = torch.stack([-(v3 - v2), -(q3 - q2)], -1)                       # [B, N, 2]
+    design = torch.stack([-(v3 - v2), -(q3 - q2)], -1)  # [B, N, 2]
     return torch.linalg.lstsq(design, a3[..., None]).solution[..., 0]
 
 
-def one_cycle_lr(progress: float, max_lr: float, pct_start: float = 0.25, div_factor: float = 25.0,
-                 final_div_factor: float = 1e4) -> float:
+def one_cycle_lr(
+    progress: float, max_lr: float, pct_start: float = 0.25, div_factor: float = 25.0, final_div_factor: float = 1e4
+) -> float:
     """Cosine one-cycle learning rate at training progress in [0, 1]."""
     progress = min(max(progress, 0.0), 1.0)
     start, end = max_lr / div_factor, max_lr / (div_factor * final_div_factor)
@@ -211,7 +214,9 @@ class QCMModule(LightningModule):
         if not bool(self.norm_fitted):
             datamodule = getattr(self.trainer, "datamodule", None)
             if datamodule is None or not hasattr(datamodule, "stats_batch"):
-                raise RuntimeError(f"{type(self).__name__}: normalisation not fitted and no datamodule with stats_batch()")
+                raise RuntimeError(
+                    f"{type(self).__name__}: normalisation not fitted and no datamodule with stats_batch()"
+                )
             self.fit_normalisation(datamodule.stats_batch())
 
     # -- optimisation -------------------------------------------------------------------------------
@@ -234,7 +239,10 @@ class QCMModule(LightningModule):
             scheduler = factory(optimizer=optimizer, total_steps=int(self.trainer.estimated_stepping_batches))
             return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
         scheduler = factory(optimizer=optimizer)
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss", "interval": "epoch"}}
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "monitor": "val/loss", "interval": "epoch"},
+        }
 
     def _progress(self) -> float:
         """Fraction of the run done: the larger of steps/max steps and elapsed/max_time."""
@@ -271,7 +279,7 @@ class QCMModule(LightningModule):
             del checkpoint["state_dict"][key]
 
     @classmethod
-    def load_checked(cls, path: str, map_location: str = "cpu") -> "QCMModule":
+    def load_checked(cls, path: str, map_location: str = "cpu") -> QCMModule:
         """This class's checkpoint via the one safe loader (models.checkpoint.load_checkpoint); eval mode.
 
         CheckpointMismatch (a CheckpointError) for a missing, refused or foreign checkpoint."""
@@ -279,7 +287,9 @@ class QCMModule(LightningModule):
 
         stored = stored_model_class(path)
         if stored != cls.__name__:
-            raise CheckpointMismatch(f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}")
+            raise CheckpointMismatch(
+                f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}"
+            )
         try:
             module = load_checkpoint(path)
         except CheckpointError as error:
@@ -325,10 +335,13 @@ class ParameterEstimator(QCMModule):
             raise ValueError(f"train_noise_max must be >= 0, got {train_noise_max}")
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
-        self._setup_common(net, len(input_channels), len(target_channels),
-                           {"in_channels": len(input_channels), "window": window, "out_features": len(target_channels)})
+        self._setup_common(
+            net,
+            len(input_channels),
+            len(target_channels),
+            {"in_channels": len(input_channels), "window": window, "out_features": len(target_channels)},
+        )
         self.denoiser = None
-
 
     def _window(self, x: Tensor) -> int:
         return int(self.hparams.window)
@@ -347,11 +360,13 @@ class ParameterEstimator(QCMModule):
         y = z.double() * self.out_std.double() + self.out_mean.double()
         return y.exp() if self.hparams.target_transform == "log" else y
 
-    def attach_denoiser(self, denoiser: "DenoisingAutoencoder") -> None:
+    def attach_denoiser(self, denoiser: DenoisingAutoencoder) -> None:
         """Use a CAE on the inputs before estimating (inference only; never saved with this model)."""
         if list(denoiser.hparams.channels) != list(self.hparams.input_channels):
-            raise CheckpointMismatch(f"denoiser channels {list(denoiser.hparams.channels)} differ from the estimator's "
-                                     f"inputs {list(self.hparams.input_channels)}")
+            raise CheckpointMismatch(
+                f"denoiser channels {list(denoiser.hparams.channels)} differ from the estimator's "
+                f"inputs {list(self.hparams.input_channels)}"
+            )
         self.denoiser = denoiser
 
     def forward(self, x: Tensor) -> Tensor:
@@ -410,7 +425,9 @@ class ParameterEstimator(QCMModule):
         record = {"pred": pred.detach().cpu(), "index": batch["index"].detach().cpu()}
         if "y" in batch:
             loss = self._loss(z, self.encode_targets(batch["y"]))
-            self.log(f"{stage}/loss", loss, on_step=False, on_epoch=True, prog_bar=stage == "val", batch_size=z.shape[0])
+            self.log(
+                f"{stage}/loss", loss, on_step=False, on_epoch=True, prog_bar=stage == "val", batch_size=z.shape[0]
+            )
             record["true"] = batch["y"].detach().cpu().double()
         return record
 
@@ -441,13 +458,22 @@ class ParameterEstimator(QCMModule):
             return
         self._log_errors(results, "val")
         every = int(self.hparams.get("plot_every_n_epochs") or 0)
-        if ("true" in results and every > 0 and not self.trainer.sanity_checking
-                and self.current_epoch % every == 0 and self._tensorboard() is not None):
+        if (
+            "true" in results
+            and every > 0
+            and not self.trainer.sanity_checking
+            and self.current_epoch % every == 0
+            and self._tensorboard() is not None
+        ):
             from hybridqcm.plots import plot_sorted_predictions
 
             for j, name in enumerate(self.hparams.target_channels):
-                fig = plot_sorted_predictions(results["pred"][:, j].numpy(), results["true"][:, j].numpy(), name,
-                                              title=f"{name}, validation, epoch {self.current_epoch}")
+                fig = plot_sorted_predictions(
+                    results["pred"][:, j].numpy(),
+                    results["true"][:, j].numpy(),
+                    name,
+                    title=f"{name}, validation, epoch {self.current_epoch}",
+                )
                 self._add_figure(f"val/sorted_{name}", fig)
 
     def on_test_epoch_start(self) -> None:
@@ -471,11 +497,23 @@ class LabelledEstimator(ParameterEstimator):
     kind = "estimator"
     default_net = {"_target_": "hybridqcm.models.networks.ParameterCNN"}
 
-    def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
-                 lr_schedule: Mapping | None = None, window: int = 500, input_channels: Sequence[str] = ("a3", "a2"),
-                 target_channels: Sequence[str] = ("p1", "p2"), scale_channel: int | None = 1,
-                 target_transform: str = "log", loss: str = "l1", train_noise_max: float = 0.0,
-                 plot_every_n_epochs: int = 5, h: float = 0.01, physics: str = "euler") -> None:
+    def __init__(
+        self,
+        net: Mapping | None = None,
+        optimizer: Mapping | None = None,
+        scheduler: Mapping | None = None,
+        lr_schedule: Mapping | None = None,
+        window: int = 500,
+        input_channels: Sequence[str] = ("a3", "a2"),
+        target_channels: Sequence[str] = ("p1", "p2"),
+        scale_channel: int | None = 1,
+        target_transform: str = "log",
+        loss: str = "l1",
+        train_noise_max: float = 0.0,
+        plot_every_n_epochs: int = 5,
+        h: float = 0.01,
+        physics: str = "euler",
+    ) -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         super().__init__()
@@ -486,8 +524,14 @@ class LabelledEstimator(ParameterEstimator):
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
     def data_requirements(self) -> dict:
-        return {"inputs": list(self.hparams.input_channels), "targets": list(self.hparams.target_channels),
-                "aux": [], "window": int(self.hparams.window), "targets_optional": False}
+        return {
+            "inputs": list(self.hparams.input_channels),
+            "targets": list(self.hparams.target_channels),
+            "aux": [],
+            "window": int(self.hparams.window),
+            "targets_optional": False,
+        }
+
 
 class PhysicsResidualEstimator(ParameterEstimator):
     """The same CNN trained without labels on the occupant equation's residual.
@@ -503,16 +547,31 @@ class PhysicsResidualEstimator(ParameterEstimator):
 
     AUX = ["a3", "v3", "v2", "q3", "q2"]
 
-    def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
-                 lr_schedule: Mapping | None = None, window: int = 500, input_channels: Sequence[str] = ("a3", "a2"),
-                 target_channels: Sequence[str] = ("p1", "p2"), scale_channel: int | None = 1,
-                 target_transform: str = "log", loss: str = "residual", train_noise_max: float = 0.0,
-                 plot_every_n_epochs: int = 5, residual_norm: str = "energy", residual_root: bool = False,
-                 h: float = 0.01, physics: str = "euler") -> None:
+    def __init__(
+        self,
+        net: Mapping | None = None,
+        optimizer: Mapping | None = None,
+        scheduler: Mapping | None = None,
+        lr_schedule: Mapping | None = None,
+        window: int = 500,
+        input_channels: Sequence[str] = ("a3", "a2"),
+        target_channels: Sequence[str] = ("p1", "p2"),
+        scale_channel: int | None = 1,
+        target_transform: str = "log",
+        loss: str = "residual",
+        train_noise_max: float = 0.0,
+        plot_every_n_epochs: int = 5,
+        residual_norm: str = "energy",
+        residual_root: bool = False,
+        h: float = 0.01,
+        physics: str = "euler",
+    ) -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         if list(target_channels) != ["p1", "p2"]:
-            raise ValueError(f"PhysicsResidualEstimator estimates exactly (p1, p2), got target_channels {target_channels}")
+            raise ValueError(
+                f"PhysicsResidualEstimator estimates exactly (p1, p2), got target_channels {target_channels}"
+            )
         if loss != "residual":
             raise ValueError(f"PhysicsResidualEstimator: loss must be 'residual', got {loss!r}")
         if residual_norm not in ("energy", "balanced"):
@@ -523,8 +582,13 @@ class PhysicsResidualEstimator(ParameterEstimator):
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
     def data_requirements(self) -> dict:
-        return {"inputs": list(self.hparams.input_channels), "targets": ["p1", "p2"], "aux": list(self.AUX),
-                "window": int(self.hparams.window), "targets_optional": True}
+        return {
+            "inputs": list(self.hparams.input_channels),
+            "targets": ["p1", "p2"],
+            "aux": list(self.AUX),
+            "window": int(self.hparams.window),
+            "targets_optional": True,
+        }
 
     def _fit_output_normalisation(self, batch: Mapping[str, Tensor], scale: Tensor) -> None:
         p = least_squares_p12(batch["aux"].to(self.out_mean.device)).clamp_min(1e-9)
@@ -553,8 +617,14 @@ class PhysicsResidualEstimator(ParameterEstimator):
         record = {"pred": pred.detach().cpu(), "index": batch["index"].detach().cpu()}
         if "aux" in batch:
             loss = self.residual_loss(pred, batch["aux"][..., : int(self.hparams.window)])
-            self.log(f"{stage}/loss", loss.float(), on_step=False, on_epoch=True, prog_bar=stage == "val",
-                     batch_size=pred.shape[0])
+            self.log(
+                f"{stage}/loss",
+                loss.float(),
+                on_step=False,
+                on_epoch=True,
+                prog_bar=stage == "val",
+                batch_size=pred.shape[0],
+            )
         if "y" in batch:
             record["true"] = batch["y"].detach().cpu().double()
         return record
@@ -605,8 +675,10 @@ class _SignalModule(QCMModule):
         if "y" in batch:
             y = batch["y"].float()
             loss = F.mse_loss(z, self._normalised_target(y, scale))
-            self.log(f"{stage}/loss", loss, on_step=False, on_epoch=True, prog_bar=stage == "val", batch_size=z.shape[0])
-            mse = (pred - y).pow(2).mean(-1)                                   # [B, C'] physical units^2
+            self.log(
+                f"{stage}/loss", loss, on_step=False, on_epoch=True, prog_bar=stage == "val", batch_size=z.shape[0]
+            )
+            mse = (pred - y).pow(2).mean(-1)  # [B, C'] physical units^2
             record["mse"] = mse.double().cpu()
             record["rel_mse"] = (mse / y.pow(2).mean(-1).clamp_min(1e-30)).double().cpu()
             if list(self.data_requirements()["inputs"]) == list(self.data_requirements()["targets"]):
@@ -640,8 +712,13 @@ class _SignalModule(QCMModule):
         out = self._summarise(self._val_records, "val")
         self._val_records = []
         every = int(self.hparams.get("plot_every_n_epochs") or 0)
-        if ("examples" in out and every > 0 and not self.trainer.sanity_checking
-                and self.current_epoch % every == 0 and self._tensorboard() is not None):
+        if (
+            "examples" in out
+            and every > 0
+            and not self.trainer.sanity_checking
+            and self.current_epoch % every == 0
+            and self._tensorboard() is not None
+        ):
             self._add_figure("val/examples", self.example_figure(out["examples"]))
 
     def example_figure(self, examples: tuple[Tensor, Tensor, Tensor], path=None):
@@ -673,10 +750,19 @@ class DenoisingAutoencoder(_SignalModule):
     kind = "denoiser"
     default_net = {"_target_": "hybridqcm.models.networks.DenoisingCAE"}
 
-    def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
-                 lr_schedule: Mapping | None = None, channels: Sequence[str] = ("a3", "a2"), window: int = 500,
-                 scale_channel: int | None = 1, plot_every_n_epochs: int = 5, h: float = 0.01,
-                 physics: str = "euler") -> None:
+    def __init__(
+        self,
+        net: Mapping | None = None,
+        optimizer: Mapping | None = None,
+        scheduler: Mapping | None = None,
+        lr_schedule: Mapping | None = None,
+        channels: Sequence[str] = ("a3", "a2"),
+        window: int = 500,
+        scale_channel: int | None = 1,
+        plot_every_n_epochs: int = 5,
+        h: float = 0.01,
+        physics: str = "euler",
+    ) -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         channels = list(channels)
         super().__init__()
@@ -685,8 +771,13 @@ class DenoisingAutoencoder(_SignalModule):
         self._setup_common(net, len(channels), len(channels), {"in_channels": len(channels)})
 
     def data_requirements(self) -> dict:
-        return {"inputs": list(self.hparams.channels), "targets": list(self.hparams.channels), "aux": [],
-                "window": int(self.hparams.window), "targets_optional": False}
+        return {
+            "inputs": list(self.hparams.channels),
+            "targets": list(self.hparams.channels),
+            "aux": [],
+            "window": int(self.hparams.window),
+            "targets_optional": False,
+        }
 
     def denoise(self, x: Tensor) -> Tensor:
         """Noisy raw signals [B, C, N] (channels as hparams.channels, any N) -> denoised [B, C, N], same dtype."""
@@ -702,21 +793,40 @@ class CompletionUNet(_SignalModule):
     kind = "completion"
     default_net = {"_target_": "hybridqcm.models.networks.UNet1d"}
 
-    def __init__(self, net: Mapping | None = None, optimizer: Mapping | None = None, scheduler: Mapping | None = None,
-                 lr_schedule: Mapping | None = None, input_channels: Sequence[str] = ("a3", "pu_u"),
-                 target_channels: Sequence[str] = ("a2", "a1"), window: int = 512, scale_channel: int | None = 0,
-                 plot_every_n_epochs: int = 5, h: float = 0.01, physics: str = "euler") -> None:
+    def __init__(
+        self,
+        net: Mapping | None = None,
+        optimizer: Mapping | None = None,
+        scheduler: Mapping | None = None,
+        lr_schedule: Mapping | None = None,
+        input_channels: Sequence[str] = ("a3", "pu_u"),
+        target_channels: Sequence[str] = ("a2", "a1"),
+        window: int = 512,
+        scale_channel: int | None = 0,
+        plot_every_n_epochs: int = 5,
+        h: float = 0.01,
+        physics: str = "euler",
+    ) -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
         super().__init__()
         self.save_hyperparameters()
         self.check_physics()
-        self._setup_common(net, len(input_channels), len(target_channels),
-                           {"in_channels": len(input_channels), "out_channels": len(target_channels)})
+        self._setup_common(
+            net,
+            len(input_channels),
+            len(target_channels),
+            {"in_channels": len(input_channels), "out_channels": len(target_channels)},
+        )
 
     def data_requirements(self) -> dict:
-        return {"inputs": list(self.hparams.input_channels), "targets": list(self.hparams.target_channels), "aux": [],
-                "window": int(self.hparams.window), "targets_optional": False}
+        return {
+            "inputs": list(self.hparams.input_channels),
+            "targets": list(self.hparams.target_channels),
+            "aux": [],
+            "window": int(self.hparams.window),
+            "targets_optional": False,
+        }
 
     def complete(self, a3: Tensor, pu_u: Tensor) -> Tensor:
         """Raw a3, p_u u [B, N] (any N) -> completed (a2, a1) [B, 2, N] in m/s^2, same dtype as a3."""
@@ -724,13 +834,30 @@ class CompletionUNet(_SignalModule):
         if a3.ndim == 1:
             a3, pu_u = a3[None], pu_u[None]
         if a3.shape != pu_u.shape or a3.ndim != 2:
-            raise ValueError(f"complete: a3 and pu_u must both be [B, N]; got {tuple(a3.shape)} and {tuple(pu_u.shape)}")
+            raise ValueError(
+                f"complete: a3 and pu_u must both be [B, N]; got {tuple(a3.shape)} and {tuple(pu_u.shape)}"
+            )
         out = self._run(torch.stack([a3, pu_u], 1))
         return out.to(a3.dtype if a3.is_floating_point() else torch.float32)
 
 
-MODULES = {cls.__name__: cls for cls in (LabelledEstimator, PhysicsResidualEstimator, DenoisingAutoencoder, CompletionUNet)}
+MODULES = {
+    cls.__name__: cls for cls in (LabelledEstimator, PhysicsResidualEstimator, DenoisingAutoencoder, CompletionUNet)
+}
 
-__all__ = ["LabelledEstimator", "PhysicsResidualEstimator", "DenoisingAutoencoder", "CompletionUNet", "QCMModule",
-           "ParameterEstimator", "CheckpointMismatch", "build_network", "physics_residual", "physics_residual_loss",
-           "balanced_residual_loss", "least_squares_p12", "one_cycle_lr", "MODULES"]
+__all__ = [
+    "LabelledEstimator",
+    "PhysicsResidualEstimator",
+    "DenoisingAutoencoder",
+    "CompletionUNet",
+    "QCMModule",
+    "ParameterEstimator",
+    "CheckpointMismatch",
+    "build_network",
+    "physics_residual",
+    "physics_residual_loss",
+    "balanced_residual_loss",
+    "least_squares_p12",
+    "one_cycle_lr",
+    "MODULES",
+]

@@ -4,16 +4,24 @@ Strided convolutions use TensorFlow-style "same" padding (output length ceil(N /
 is what reproduces the source's weight counts: ParameterCNN 1 361 332 (flatten 100 x 125 at
 N = 500) and DenoisingCAE 1 010 302 with output length N.
 """
+
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-ACTIVATIONS = {"relu": nn.ReLU, "gelu": nn.GELU, "elu": nn.ELU, "tanh": nn.Tanh, "silu": nn.SiLU, "leaky_relu": nn.LeakyReLU}
+ACTIVATIONS = {
+    "relu": nn.ReLU,
+    "gelu": nn.GELU,
+    "elu": nn.ELU,
+    "tanh": nn.Tanh,
+    "silu": nn.SiLU,
+    "leaky_relu": nn.LeakyReLU,
+}
 
 
 def activation(name: str) -> nn.Module:
@@ -43,7 +51,7 @@ class SameConvTranspose1d(nn.ConvTranspose1d):
         y = super().forward(x)  # length (n - 1) s + k
         excess = y.shape[-1] - n * s
         left = excess // 2
-        return y[..., left:left + n * s] if excess > 0 else F.pad(y, (0, -excess))
+        return y[..., left : left + n * s] if excess > 0 else F.pad(y, (0, -excess))
 
 
 class ParameterCNN(nn.Module):
@@ -52,12 +60,23 @@ class ParameterCNN(nn.Module):
     Reference: Conv1d(2->100, k50, s2) -> Conv1d(100->100, k10, s2) -> flatten -> 100 -> 10 -> 2.
     """
 
-    def __init__(self, in_channels: int = 2, window: int = 500, channels: Sequence[int] = (100, 100),
-                 kernels: Sequence[int] = (50, 10), strides: Sequence[int] = (2, 2), hidden: Sequence[int] = (100, 10),
-                 out_features: int = 2, activation_name: str = "relu", dropout: float = 0.0) -> None:
+    def __init__(
+        self,
+        in_channels: int = 2,
+        window: int = 500,
+        channels: Sequence[int] = (100, 100),
+        kernels: Sequence[int] = (50, 10),
+        strides: Sequence[int] = (2, 2),
+        hidden: Sequence[int] = (100, 10),
+        out_features: int = 2,
+        activation_name: str = "relu",
+        dropout: float = 0.0,
+    ) -> None:
         super().__init__()
         if not len(channels) == len(kernels) == len(strides):
-            raise ValueError(f"ParameterCNN: channels {channels}, kernels {kernels}, strides {strides} must have equal lengths")
+            raise ValueError(
+                f"ParameterCNN: channels {channels}, kernels {kernels}, strides {strides} must have equal lengths"
+            )
         layers: list[nn.Module] = []
         c, n = in_channels, int(window)
         for c_out, k, s in zip(channels, kernels, strides):
@@ -86,8 +105,14 @@ class DenoisingCAE(nn.Module):
     ConvT(100->50, k50, s2) -> ConvT(50->2, k50, s1), linear output.
     """
 
-    def __init__(self, in_channels: int = 2, channels: Sequence[int] = (50, 100), kernel_size: int = 50,
-                 activation_name: str = "relu", residual: bool = False) -> None:
+    def __init__(
+        self,
+        in_channels: int = 2,
+        channels: Sequence[int] = (50, 100),
+        kernel_size: int = 50,
+        activation_name: str = "relu",
+        residual: bool = False,
+    ) -> None:
         super().__init__()
         enc: list[nn.Module] = []
         c = in_channels
@@ -104,7 +129,7 @@ class DenoisingCAE(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         n = x.shape[-1]
-        multiple = 2 ** self.depth
+        multiple = 2**self.depth
         pad = (-n) % multiple
         z = F.pad(x, (0, pad)) if pad else x
         y = self.decoder(self.encoder(z))[..., :n]
@@ -128,8 +153,15 @@ class UNet1d(nn.Module):
     and skip concatenations; 29 166 weights with kernel 9 (SPEC: 30 653 for the 2-D original).
     """
 
-    def __init__(self, in_channels: int = 2, out_channels: int = 2, filters: Sequence[int] = (4, 8, 16, 32),
-                 kernel_size: int = 9, batchnorm: bool = True, activation_name: str = "relu") -> None:
+    def __init__(
+        self,
+        in_channels: int = 2,
+        out_channels: int = 2,
+        filters: Sequence[int] = (4, 8, 16, 32),
+        kernel_size: int = 9,
+        batchnorm: bool = True,
+        activation_name: str = "relu",
+    ) -> None:
         super().__init__()
         if kernel_size % 2 == 0:
             raise ValueError(f"UNet1d: kernel_size must be odd (symmetric padding), got {kernel_size}")

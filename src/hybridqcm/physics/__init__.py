@@ -1,7 +1,9 @@
 """Physics of the passenger-based quarter-car model: parameters, prior, road, integrators."""
+
+from hybridqcm.physics.integrators import METHODS, SemiExplicitEuler, Trajectory, simulate
 from hybridqcm.physics.parameters import (
-    PARAM_NAMES,
     PARAM_MEANINGS,
+    PARAM_NAMES,
     REFERENCE_VEHICLE,
     PhysicalConstants,
     euler_step_matrix,
@@ -15,12 +17,30 @@ from hybridqcm.physics.parameters import (
 )
 from hybridqcm.physics.prior import PhysicalPrior, PriorDraw, ThesisPrior, build_prior
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index, road_class_phi0
-from hybridqcm.physics.integrators import METHODS, SemiExplicitEuler, Trajectory, simulate
 
 __all__ = [
-    "PARAM_NAMES", "PARAM_MEANINGS", "REFERENCE_VEHICLE", "PhysicalConstants", "euler_step_matrix",
-    "is_stable", "matrices_to_params", "occupant_mass", "params_to_matrices", "reference_params",
-    "road_gain", "system_matrix", "PhysicalPrior", "PriorDraw", "ThesisPrior", "build_prior",
-    "ROAD_CLASSES", "RoadProfile", "road_class_index", "road_class_phi0", "METHODS",
-    "SemiExplicitEuler", "Trajectory", "simulate",
+    "PARAM_NAMES",
+    "PARAM_MEANINGS",
+    "REFERENCE_VEHICLE",
+    "PhysicalConstants",
+    "euler_step_matrix",
+    "is_stable",
+    "matrices_to_params",
+    "occupant_mass",
+    "params_to_matrices",
+    "reference_params",
+    "road_gain",
+    "system_matrix",
+    "PhysicalPrior",
+    "PriorDraw",
+    "ThesisPrior",
+    "build_prior",
+    "ROAD_CLASSES",
+    "RoadProfile",
+    "road_class_index",
+    "road_class_phi0",
+    "METHODS",
+    "SemiExplicitEuler",
+    "Trajectory",
+    "simulate",
 ]

@@ -23,6 +23,7 @@ A sample whose eigendecomposition reconstructs A poorly (a nearly defective A) f
 solve of (i w I - A) per frequency and to matrix exponentials for the homogeneous part; both
 paths are exact up to round-off, the fallback is only slower.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -56,12 +57,16 @@ def time_basis(omega_t: Tensor, n_steps: int, h: float) -> Tensor:
     return torch.stack([torch.sin(angle), torch.cos(angle)], 1).reshape(2 * omega_t.shape[0], n_steps)
 
 
-def _check(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor) -> None:
+def _check(
+    p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor
+) -> None:
     if p.ndim != 2 or p.shape[-1] != 10:
         raise ValueError(f"p must be [batch, 10], got {tuple(p.shape)}")
     b, w = p.shape[0], omega_t.shape[0]
     if amplitude.shape != (b, w) or phase.shape != (b, w):
-        raise ValueError(f"amplitude and phase must be [batch, waves] = [{b}, {w}], got {tuple(amplitude.shape)}, {tuple(phase.shape)}")
+        raise ValueError(
+            f"amplitude and phase must be [batch, waves] = [{b}, {w}], got {tuple(amplitude.shape)}, {tuple(phase.shape)}"
+        )
     if warmup.shape != (b,):
         raise ValueError(f"warmup must be [batch] = [{b}], got {tuple(warmup.shape)}")
     if not h > 0 or n_steps < 1:
@@ -72,8 +77,8 @@ def _check(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps
 
 def _gains_eig(V: Tensor, lam: Tensor, Vinv: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
     """G(w) [b, 6, W] complex = V diag(1/(i w - lambda)) V^{-1} e_v1 p_u."""
-    c = Vinv[:, :, 2] * gain[:, None].to(Vinv.dtype)                               # [b, 6]
-    modal = c[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])        # [b, 6, W]
+    c = Vinv[:, :, 2] * gain[:, None].to(Vinv.dtype)  # [b, 6]
+    modal = c[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])  # [b, 6, W]
     return V @ modal
 
 
@@ -87,9 +92,18 @@ def _gains_solve(A: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
     return torch.linalg.solve(lhs, rhs)[..., 0].transpose(1, 2)
 
 
-def simulate_continuous(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float,
-                        warmup: Tensor | float = 0.0, basis: Tensor | None = None, eig_tol: float = EIG_TOL,
-                        block: int = 256) -> ContinuousResponse:
+def simulate_continuous(
+    p: Tensor,
+    amplitude: Tensor,
+    phase: Tensor,
+    omega_t: Tensor,
+    n_steps: int,
+    h: float,
+    warmup: Tensor | float = 0.0,
+    basis: Tensor | None = None,
+    eig_tol: float = EIG_TOL,
+    block: int = 256,
+) -> ContinuousResponse:
     """Exact response, recorded at t_k = warmup + k h, for p [b, 10], road amplitudes/phases [b, W]
     (u(t) = sum_i amplitude_i sin(omega_t_i t - phase_i)), temporal frequencies omega_t [W] rad/s,
     warmup [b] seconds (the car starts from rest at t = 0). `basis` = time_basis(omega_t, n_steps, h)
@@ -103,16 +117,39 @@ def simulate_continuous(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Te
     _check(p, amplitude, phase, omega_t, n_steps, h, warmup)
     if basis is None:
         basis = time_basis(omega_t, n_steps, h)
-    parts = [_block(p[i:i + block], amplitude[i:i + block], phase[i:i + block], omega_t, n_steps, h, warmup[i:i + block],
-                    basis, eig_tol) for i in range(0, b, max(1, int(block)))]
+    parts = [
+        _block(
+            p[i : i + block],
+            amplitude[i : i + block],
+            phase[i : i + block],
+            omega_t,
+            n_steps,
+            h,
+            warmup[i : i + block],
+            basis,
+            eig_tol,
+        )
+        for i in range(0, b, max(1, int(block)))
+    ]
     if len(parts) == 1:
         return parts[0]
-    return ContinuousResponse(*(torch.cat([getattr(r, k) for r in parts]) for k in ("accel", "vel", "disp", "road", "state0")),
-                              n_fallback=sum(r.n_fallback for r in parts))
+    return ContinuousResponse(
+        *(torch.cat([getattr(r, k) for r in parts]) for k in ("accel", "vel", "disp", "road", "state0")),
+        n_fallback=sum(r.n_fallback for r in parts),
+    )
 
 
-def _block(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps: int, h: float, warmup: Tensor,
-           basis: Tensor, eig_tol: float) -> ContinuousResponse:
+def _block(
+    p: Tensor,
+    amplitude: Tensor,
+    phase: Tensor,
+    omega_t: Tensor,
+    n_steps: int,
+    h: float,
+    warmup: Tensor,
+    basis: Tensor,
+    eig_tol: float,
+) -> ContinuousResponse:
     b = p.shape[0]
     A = system_matrix(p)
     gain = road_gain(p)
@@ -120,54 +157,60 @@ def _block(p: Tensor, amplitude: Tensor, phase: Tensor, omega_t: Tensor, n_steps
     Vinv = torch.linalg.inv(V)
     rebuilt = (V * lam[:, None, :]) @ Vinv
     error = (rebuilt - A).abs().amax((-2, -1)) / A.abs().amax((-2, -1))
-    bad = ~(error <= eig_tol)                         # NaN (singular V) counts as bad
+    bad = ~(error <= eig_tol)  # NaN (singular V) counts as bad
     good = ~bad
     all_good = bool(good.all())
-    road_z = torch.polar(amplitude, omega_t[None, :] * warmup[:, None] - phase)    # a e^{-i psi} [b, W]
-    start_z = torch.polar(amplitude, -phase)                                        # a e^{-i phi}: t = 0
+    road_z = torch.polar(amplitude, omega_t[None, :] * warmup[:, None] - phase)  # a e^{-i psi} [b, W]
+    start_z = torch.polar(amplitude, -phase)  # a e^{-i phi}: t = 0
     if all_good:
         # G never formed: V (modal z) per sample, and x_p(0) = Im[V (modal @ z0)] by one small bmm
         modal = (Vinv[:, :, 2] * gain[:, None])[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])
-        states_z = V @ (modal * road_z[:, None, :])                                 # [b, 6, W]
-        xp0 = (V @ (modal @ start_z[:, :, None]))[..., 0].imag                      # [b, 6]
+        states_z = V @ (modal * road_z[:, None, :])  # [b, 6, W]
+        xp0 = (V @ (modal @ start_z[:, :, None]))[..., 0].imag  # [b, 6]
     else:
         G = torch.empty(b, 6, omega_t.shape[0], dtype=torch.complex128)
         if good.any():
             G[good] = _gains_eig(V[good], lam[good], Vinv[good], gain[good], omega_t)
         G[bad] = _gains_solve(A[bad], gain[bad], omega_t)
         states_z = G * road_z[:, None, :]
-        xp0 = (G * start_z[:, None, :]).imag.sum(-1)                                # x_p(0) [b, 6]
+        xp0 = (G * start_z[:, None, :]).imag.sum(-1)  # x_p(0) [b, 6]
 
     # Particular part at the window: the warm-up folded into the phases, one GEMM for states and road.
-    Z = torch.cat([states_z, road_z[:, None, :]], 1)                                # [b, 7, W]
+    Z = torch.cat([states_z, road_z[:, None, :]], 1)  # [b, 7, W]
     series = (torch.view_as_real(Z).reshape(b * 7, -1) @ basis).reshape(b, 7, n_steps)
-    x = series[:, :6]                                                               # [b, 6, T]
-    road = series[:, 6]                                                             # [b, T]
+    x = series[:, :6]  # [b, 6, T]
+    road = series[:, 6]  # [b, T]
 
     # Homogeneous part from rest at t = 0: x(t) = x_p(t) - exp(A t) x_p(0).
     t = warmup[:, None] + h * torch.arange(n_steps, dtype=torch.float64)[None, :]  # [b, T]
     if all_good:
-        d = (Vinv @ (-xp0).to(torch.complex128)[:, :, None])                        # V^{-1}(-x_p(0)) [b, 6, 1]
+        d = Vinv @ (-xp0).to(torch.complex128)[:, :, None]  # V^{-1}(-x_p(0)) [b, 6, 1]
         x += (V @ (d * torch.exp(lam[:, :, None] * t[:, None, :]))).real
     elif good.any():
-        d = (Vinv[good] @ (-xp0[good]).to(torch.complex128)[:, :, None])
+        d = Vinv[good] @ (-xp0[good]).to(torch.complex128)[:, :, None]
         x[good] += (V[good] @ (d * torch.exp(lam[good][:, :, None] * t[good][:, None, :]))).real
     if bad.any():
         A_bad, t_bad = A[bad], t[bad]
-        start = torch.matrix_exp(A_bad * t_bad[:, :1, None])                        # exp(A t0)
+        start = torch.matrix_exp(A_bad * t_bad[:, :1, None])  # exp(A t0)
         step = torch.matrix_exp(A_bad * h)
-        state = start @ (-xp0[bad])[:, :, None]                                     # [n, 6, 1]
+        state = start @ (-xp0[bad])[:, :, None]  # [n, 6, 1]
         columns = []
         for _ in range(n_steps):
             columns.append(state[..., 0])
             state = step @ state
         x[bad] += torch.stack(columns, -1)
 
-    vel, disp = x[:, :3].transpose(1, 2), x[:, 3:].transpose(1, 2)                  # [b, T, 3]
+    vel, disp = x[:, :3].transpose(1, 2), x[:, 3:].transpose(1, 2)  # [b, T, 3]
     accel = vel @ A[:, :3, :3].transpose(1, 2) + disp @ A[:, :3, 3:].transpose(1, 2)
     accel[..., 2] += gain[:, None] * road
-    return ContinuousResponse(accel=accel, vel=vel.contiguous(), disp=disp.contiguous(), road=road,
-                              state0=x[:, :, 0].clone(), n_fallback=int(bad.sum()))
+    return ContinuousResponse(
+        accel=accel,
+        vel=vel.contiguous(),
+        disp=disp.contiguous(),
+        road=road,
+        state0=x[:, :, 0].clone(),
+        n_fallback=int(bad.sum()),
+    )
 
 
 __all__ = ["ContinuousResponse", "simulate_continuous", "time_basis", "EIG_TOL"]

@@ -8,6 +8,7 @@ the recorded acceleration at step k is
 so (accel[k], vel[k], disp[k]) satisfy the equation of motion exactly at every k. The step
 from k to k+1 depends on the method; the input is held constant over a step (zero-order hold).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,8 +49,9 @@ def _acceleration(p: Tensor, v: Tensor, q: Tensor, force: Tensor) -> Tensor:
     return torch.stack([a3, a2, a1], -1)
 
 
-def simulate(p: Tensor, road: Tensor, h: float, method: str = "semi_explicit_euler",
-             scaled_road: bool = False) -> Trajectory:
+def simulate(
+    p: Tensor, road: Tensor, h: float, method: str = "semi_explicit_euler", scaled_road: bool = False
+) -> Trajectory:
     """Integrate from rest. p [batch, 10], road [batch, time] -> Trajectory of [batch, time, 3].
 
     Differentiable in p. `scaled_road=True` means `road` already is p_u u (the wheel forcing).

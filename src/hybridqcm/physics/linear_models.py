@@ -11,6 +11,7 @@ combination of the p_j plus a constant), so their derivatives are the constant m
 M(e_j) - M(0): computed once per call from P + 1 evaluations and expanded over the batch
 (no copy). A non-linear subclass sets ``linear_in_params = False`` and gets torch.func.jacfwd.
 """
+
 from __future__ import annotations
 
 import torch
@@ -51,8 +52,10 @@ class LinearModel:
 
     def check_params(self, p: Tensor) -> None:
         if p.ndim != 2 or p.shape[-1] != self.n_params:
-            raise ValueError(f"{self.name}: params must be [batch, {self.n_params}] "
-                             f"({', '.join(self.param_names)}), got {tuple(p.shape)}")
+            raise ValueError(
+                f"{self.name}: params must be [batch, {self.n_params}] "
+                f"({', '.join(self.param_names)}), got {tuple(p.shape)}"
+            )
 
     def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """p [batch, n_params] -> A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]."""
@@ -64,10 +67,13 @@ class LinearModel:
         self.check_params(p)
         batch, n_params = p.shape
         if self.linear_in_params:
-            basis = torch.cat([torch.zeros(1, n_params, dtype=p.dtype, device=p.device),
-                               torch.eye(n_params, dtype=p.dtype, device=p.device)])
-            return tuple((m[1:] - m[:1]).unsqueeze(0).expand(batch, *m[1:].shape)
-                         for m in self.matrices(basis))
+            basis = torch.cat(
+                [
+                    torch.zeros(1, n_params, dtype=p.dtype, device=p.device),
+                    torch.eye(n_params, dtype=p.dtype, device=p.device),
+                ]
+            )
+            return tuple((m[1:] - m[:1]).unsqueeze(0).expand(batch, *m[1:].shape) for m in self.matrices(basis))
         jac = torch.func.vmap(torch.func.jacfwd(lambda q: tuple(m[0] for m in self.matrices(q[None]))))(p)
         return tuple(d.movedim(-1, 1).contiguous() for d in jac)  # [b, ..., P] -> [b, P, ...]
 
@@ -150,12 +156,16 @@ class SprungBaseExcitation(LinearModel):
         self.check_params(p)
         p1, p2, p3, p4, p5, p6 = p.unbind(-1)
         zero, one = torch.zeros_like(p1), torch.ones_like(p1)
-        C = torch.stack([
-            torch.stack([-p1, p1, -p2, p2], -1),
-            torch.stack([p3, -(p3 + p4), p5, -(p5 + p6)], -1),
-        ], -2)
-        kinematics = torch.stack([torch.stack([one, zero, zero, zero], -1),
-                                  torch.stack([zero, one, zero, zero], -1)], -2)
+        C = torch.stack(
+            [
+                torch.stack([-p1, p1, -p2, p2], -1),
+                torch.stack([p3, -(p3 + p4), p5, -(p5 + p6)], -1),
+            ],
+            -2,
+        )
+        kinematics = torch.stack(
+            [torch.stack([one, zero, zero, zero], -1), torch.stack([zero, one, zero, zero], -1)], -2
+        )
         A = torch.cat([C, kinematics], -2)
         B = torch.stack([-one, -one, zero, zero], -1)[..., None]
         return A, B, C, torch.zeros(p.shape[0], 2, 1, dtype=p.dtype, device=p.device)

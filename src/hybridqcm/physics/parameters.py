@@ -3,6 +3,7 @@
 State order everywhere is (3, 2, 1): occupant, chassis, wheel. With v = (v3, v2, v1) and
 q = (q3, q2, q1) the model is dv/dt = D v + S q + b(t), dq/dt = v, b = (0, 0, p_u u).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -49,8 +50,18 @@ class PhysicalConstants:
         """p [10] from the physical constants."""
         c = self
         return torch.tensor(
-            [c.C3 / c.m3, c.K3 / c.m3, c.C3 / c.m2, c.C2 / c.m2, c.K3 / c.m2, c.K2 / c.m2,
-             c.C2 / c.m1, (c.C2 + c.C1) / c.m1, c.K2 / c.m1, (c.K2 + c.K1) / c.m1],
+            [
+                c.C3 / c.m3,
+                c.K3 / c.m3,
+                c.C3 / c.m2,
+                c.C2 / c.m2,
+                c.K3 / c.m2,
+                c.K2 / c.m2,
+                c.C2 / c.m1,
+                (c.C2 + c.C1) / c.m1,
+                c.K2 / c.m1,
+                (c.K2 + c.K1) / c.m1,
+            ],
             dtype=dtype,
         )
 
@@ -73,16 +84,22 @@ def params_to_matrices(p: Tensor) -> tuple[Tensor, Tensor]:
     _check_params(p)
     p1, p2, p3, p4, p5, p6, p7, p8, p9, p10 = p.unbind(-1)
     zero = torch.zeros_like(p1)
-    D = torch.stack([
-        torch.stack([-p1, p1, zero], -1),
-        torch.stack([p3, -(p3 + p4), p4], -1),
-        torch.stack([zero, p7, -p8], -1),
-    ], -2)
-    S = torch.stack([
-        torch.stack([-p2, p2, zero], -1),
-        torch.stack([p5, -(p5 + p6), p6], -1),
-        torch.stack([zero, p9, -p10], -1),
-    ], -2)
+    D = torch.stack(
+        [
+            torch.stack([-p1, p1, zero], -1),
+            torch.stack([p3, -(p3 + p4), p4], -1),
+            torch.stack([zero, p7, -p8], -1),
+        ],
+        -2,
+    )
+    S = torch.stack(
+        [
+            torch.stack([-p2, p2, zero], -1),
+            torch.stack([p5, -(p5 + p6), p6], -1),
+            torch.stack([zero, p9, -p10], -1),
+        ],
+        -2,
+    )
     return D, S
 
 
@@ -90,14 +107,29 @@ def matrices_to_params(D: Tensor, S: Tensor, atol: float = 1e-9) -> Tensor:
     """(D, S) [..., 3, 3] -> p [..., 10]; rejects matrices outside the model's structure."""
     if D.shape[-2:] != (3, 3) or S.shape[-2:] != (3, 3) or D.shape != S.shape:
         raise ValueError(f"D and S must both be [..., 3, 3], got {tuple(D.shape)} and {tuple(S.shape)}")
-    p = torch.stack([
-        D[..., 0, 1], S[..., 0, 1], D[..., 1, 0], D[..., 1, 2], S[..., 1, 0], S[..., 1, 2],
-        D[..., 2, 1], -D[..., 2, 2], S[..., 2, 1], -S[..., 2, 2],
-    ], -1)
+    p = torch.stack(
+        [
+            D[..., 0, 1],
+            S[..., 0, 1],
+            D[..., 1, 0],
+            D[..., 1, 2],
+            S[..., 1, 0],
+            S[..., 1, 2],
+            D[..., 2, 1],
+            -D[..., 2, 2],
+            S[..., 2, 1],
+            -S[..., 2, 2],
+        ],
+        -1,
+    )
     D_back, S_back = params_to_matrices(p)
     scale = max(1.0, float(torch.cat([D.abs().flatten(), S.abs().flatten()]).max()))
-    if not (torch.allclose(D_back, D, atol=atol * scale, rtol=0) and torch.allclose(S_back, S, atol=atol * scale, rtol=0)):
-        raise ValueError("D, S do not have the quarter-car structure (zeros at (1,3)/(3,1), rows of D and S consistent)")
+    if not (
+        torch.allclose(D_back, D, atol=atol * scale, rtol=0) and torch.allclose(S_back, S, atol=atol * scale, rtol=0)
+    ):
+        raise ValueError(
+            "D, S do not have the quarter-car structure (zeros at (1,3)/(3,1), rows of D and S consistent)"
+        )
     if (p <= 0).any():
         bad = [PARAM_NAMES[i] for i in range(10) if bool((p[..., i] <= 0).any())]
         raise ValueError(f"parameters must be > 0; non-positive: {', '.join(bad)}")

@@ -8,6 +8,7 @@ rejected and redrawn: an unstable sample is never returned.
 `physical`: perturb the physical constants (C2, K2, K1, m1, m2 and optionally C3, K3) by the
 same relative sigma and derive p, which keeps the parameters consistent (p7 = p8 when C1 = 0).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,8 +36,13 @@ class _RejectionPrior:
 
     max_rounds = 1000
 
-    def __init__(self, h: float | None = 0.01, mass_range: tuple[float, float] = (30.0, 150.0), sigma: float = 0.1,
-                 vehicle: PhysicalConstants = REFERENCE_VEHICLE) -> None:
+    def __init__(
+        self,
+        h: float | None = 0.01,
+        mass_range: tuple[float, float] = (30.0, 150.0),
+        sigma: float = 0.1,
+        vehicle: PhysicalConstants = REFERENCE_VEHICLE,
+    ) -> None:
         low, high = float(mass_range[0]), float(mass_range[1])
         if not 0 < low < high:
             raise ValueError(f"prior mass_range must satisfy 0 < low < high, got {mass_range}")
@@ -110,15 +116,29 @@ class PhysicalPrior(_RejectionPrior):
         v = self.vehicle
         names = ["C2", "K2", "K1", "m1", "m2"] + (["C3", "K3"] if self.perturb_seat else [])
         factors = 1.0 + self.sigma * torch.randn(n, len(names), generator=generator, dtype=torch.float64)
-        const = {k: torch.full((n,), getattr(v, k), dtype=torch.float64) for k in ("C3", "C2", "C1", "K3", "K2", "K1", "m1", "m2")}
+        const = {
+            k: torch.full((n,), getattr(v, k), dtype=torch.float64)
+            for k in ("C3", "C2", "C1", "K3", "K2", "K1", "m1", "m2")
+        }
         for i, k in enumerate(names):
             const[k] = const[k] * factors[:, i]
         m3 = self._occupant_mass(n, generator)
         c = const
-        return torch.stack([
-            c["C3"] / m3, c["K3"] / m3, c["C3"] / c["m2"], c["C2"] / c["m2"], c["K3"] / c["m2"], c["K2"] / c["m2"],
-            c["C2"] / c["m1"], (c["C2"] + c["C1"]) / c["m1"], c["K2"] / c["m1"], (c["K2"] + c["K1"]) / c["m1"],
-        ], -1)
+        return torch.stack(
+            [
+                c["C3"] / m3,
+                c["K3"] / m3,
+                c["C3"] / c["m2"],
+                c["C2"] / c["m2"],
+                c["K3"] / c["m2"],
+                c["K2"] / c["m2"],
+                c["C2"] / c["m1"],
+                (c["C2"] + c["C1"]) / c["m1"],
+                c["K2"] / c["m1"],
+                (c["K2"] + c["K1"]) / c["m1"],
+            ],
+            -1,
+        )
 
 
 PRIORS = {"thesis": ThesisPrior, "physical": PhysicalPrior}

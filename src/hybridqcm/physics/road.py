@@ -7,6 +7,7 @@ sin(Omega s - phi) = sin(Omega s) cos(phi) - cos(Omega s) sin(phi), so a batch o
 common time grid is two matrix products [batch, waves] @ [waves, time] instead of
 batch x waves x time sines.
 """
+
 from __future__ import annotations
 
 import math
@@ -38,8 +39,14 @@ def road_class_phi0(index: int | Tensor) -> Tensor:
 class RoadProfile:
     """Sampler of road profiles u [batch, n_steps] in metres on the grid t_k = k h."""
 
-    def __init__(self, n_waves: int = 1000, omega_min: float = 0.02 * math.pi, omega_max: float = 6 * math.pi,
-                 omega0: float = 1.0, waviness: float = 2.0) -> None:
+    def __init__(
+        self,
+        n_waves: int = 1000,
+        omega_min: float = 0.02 * math.pi,
+        omega_max: float = 6 * math.pi,
+        omega0: float = 1.0,
+        waviness: float = 2.0,
+    ) -> None:
         if n_waves < 2:
             raise ValueError(f"road n_waves must be >= 2, got {n_waves}")
         if not 0 < omega_min < omega_max:
@@ -69,8 +76,9 @@ class RoadProfile:
             raise ValueError(f"road grid needs n_steps >= 1, h > 0, speed > 0; got {n_steps}, {h}, {speed_mps}")
         return speed_mps * h * torch.arange(n_steps, dtype=torch.float64)
 
-    def sample(self, road_class: Tensor, n_steps: int, h: float, speed_mps: float,
-               generator: torch.Generator | None = None) -> Tensor:
+    def sample(
+        self, road_class: Tensor, n_steps: int, h: float, speed_mps: float, generator: torch.Generator | None = None
+    ) -> Tensor:
         """Profiles u [batch, n_steps] (float64) by two matrix products."""
         amplitude, phase = self.draw(road_class, generator)
         return self.evaluate(amplitude, phase, self._distance(n_steps, h, speed_mps))
@@ -88,8 +96,9 @@ class RoadProfile:
         weights = torch.cat([amplitude * torch.cos(phase), amplitude * torch.sin(phase)], -1)  # [batch, 2 waves]
         return weights @ self.basis(distance)
 
-    def sample_direct(self, road_class: Tensor, n_steps: int, h: float, speed_mps: float,
-                      generator: torch.Generator | None = None) -> Tensor:
+    def sample_direct(
+        self, road_class: Tensor, n_steps: int, h: float, speed_mps: float, generator: torch.Generator | None = None
+    ) -> Tensor:
         """Same profiles as `sample` (same generator state), by the direct sum of sines (reference, slow)."""
         amplitude, phase = self.draw(road_class, generator)
         s = self._distance(n_steps, h, speed_mps)
