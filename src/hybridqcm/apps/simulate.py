@@ -100,12 +100,6 @@ def run(cfg: DictConfig) -> dict:
     check_splits(OmegaConf.to_container(cfg.splits, resolve=True))
     summary_path = Path(cfg.paths.output_dir) / "summary.json"
     check_writable_dir(summary_path.parent)
-    stale = sorted(output.parent.glob(f".{output.name}.*.partial"))
-    if stale:  # removed by DatasetWriter once it holds the write lock
-        print(
-            f"note: removing {len(stale)} stale partial file(s) of killed runs: {', '.join(p.name for p in stale)}",
-            file=sys.stderr,
-        )
     options = OmegaConf.to_container(cfg.prior_options, resolve=True)
     # continuous physics: the prior checks the eigenvalues of A only (no Euler step map to keep stable)
     prior = build_prior(

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -308,6 +309,12 @@ class DatasetWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = acquire_write_lock(self.path)
         self.stale = remove_stale_partials(self.path)
+        if self.stale:  # reported only now: before the lock, a live writer's partial looks the same
+            print(
+                f"note: removed {len(self.stale)} stale partial file(s) of killed runs: "
+                f"{', '.join(p.name for p in self.stale)}",
+                file=sys.stderr,
+            )
         try:
             fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
         except BaseException:
