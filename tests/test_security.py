@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from hybridqcm.apps.train import load_module
 from hybridqcm.errors import CheckpointError, ConfigError, DatasetError, HybridQCMError
 from hybridqcm.models.checkpoint import load_checkpoint, read_checkpoint
 
@@ -101,7 +102,7 @@ def test_pickle_payload_is_refused_and_never_runs(tiny_cnn, tmp_path):
     with pytest.raises(CheckpointKindError, match="refused"):
         load_network(evil, "cnn", "cnn_ckpt")
     with pytest.raises(CheckpointMismatch, match="refused"):
-        PhysicsResidualEstimator.load_checked(str(evil))
+        load_module(str(evil), PhysicsResidualEstimator)
     assert not marker.exists()
 
 

@@ -136,31 +136,27 @@ def test_task_name_traversal_is_refused_by_the_app(tmp_path):
 
 
 def test_train_logger_none_with_lr_monitor_is_one_line(tmp_path):
+    """logger=none switches the LR monitor off with it (configs/logger/none.yaml); a monitor put back
+    by hand without a logger is one line before any work."""
+    from omegaconf import OmegaConf
+
     from hybridqcm.apps.train import check_logger_callbacks
 
+    overrides = [
+        "experiment=exp1_labelled",
+        "logger=none",
+        f"paths.output_dir={tmp_path}",
+        f"paths.root_dir={tmp_path}",
+    ]
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose(
-            "train",
-            overrides=[
-                "experiment=exp1_labelled",
-                "logger=none",
-                f"paths.output_dir={tmp_path}",
-                f"paths.root_dir={tmp_path}",
-            ],
-        )
-        fine = compose(
-            "train",
-            overrides=[
-                "experiment=exp1_labelled",
-                "logger=none",
-                "~callbacks.lr_monitor",
-                f"paths.output_dir={tmp_path}",
-                f"paths.root_dir={tmp_path}",
-            ],
-        )
-    with pytest.raises(ConfigError, match=r"callbacks.lr_monitor \(LearningRateMonitor\) needs a logger"):
-        check_logger_callbacks(cfg)
+        fine = compose("train", overrides=overrides)
     check_logger_callbacks(fine)
+    assert fine.callbacks.get("lr_monitor") is None
+    forced = OmegaConf.merge(
+        fine, {"callbacks": {"lr_monitor": {"_target_": "lightning.pytorch.callbacks.LearningRateMonitor"}}}
+    )
+    with pytest.raises(ConfigError, match=r"callbacks.lr_monitor \(LearningRateMonitor\) needs a logger"):
+        check_logger_callbacks(forced)
 
 
 def test_simulate_checks(tmp_path):

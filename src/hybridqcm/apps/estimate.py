@@ -38,9 +38,9 @@ def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
     simulations, files from other producers and real loggers — gets the exact model with the
     initial state estimated.
     """
-    model, initial = str(cfg.model), str(cfg.initial_state)
+    model, initial = str(cfg.dynamics), str(cfg.initial_state)
     if model not in MODELS:
-        raise ConfigError(f"model={model!r}: choose one of {list(MODELS)}")
+        raise ConfigError(f"dynamics={model!r}: choose one of {list(MODELS)}")
     if initial not in INITIAL_STATES:
         raise ConfigError(f"initial_state={initial!r}: choose one of {list(INITIAL_STATES)}")
     physics, file_initial = info["physics"], info["initial_state"]  # rest | mid-drive | unknown
@@ -200,9 +200,9 @@ def validate(cfg) -> dict:
             )
         if any(j >= n_params for j in known):
             raise ConfigError(f"known={list(cfg.known)}: the {base} model holds only p1..p{n_params}")
-        if str(cfg.model) == "euler":
+        if str(cfg.dynamics) == "euler":
             raise ConfigError(
-                f"base_excitation={base} uses the exact continuous-time model: model=euler is not available"
+                f"base_excitation={base} uses the exact continuous-time model: dynamics=euler is not available"
             )
         if str(cfg.initial_state) == "rest":
             raise ConfigError(

@@ -75,6 +75,24 @@ def build_datamodule(data_cfg: Mapping, requirements: Mapping, train: bool):
     return instantiate(cfg, _convert_="all")
 
 
+def load_module(path: str, cls: type):
+    """A checkpoint of class ``cls`` through the one safe loader (weights_only, allow-list, strict keys);
+    CheckpointMismatch (one line) for a missing, refused or foreign one."""
+    from hybridqcm.errors import CheckpointError
+    from hybridqcm.models.checkpoint import load_checkpoint
+    from hybridqcm.models.modules import CheckpointMismatch, stored_model_class
+
+    stored = stored_model_class(path)
+    if stored != cls.__name__:
+        raise CheckpointMismatch(
+            f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}"
+        )
+    try:
+        return load_checkpoint(path)
+    except CheckpointError as error:
+        raise CheckpointMismatch(str(error)) from None
+
+
 def load_model(cfg, train: bool):
     """The model: instantiated from cfg.model, or loaded (and class-checked) from cfg.ckpt_path for evaluation."""
     from hydra.utils import get_class, instantiate
@@ -88,7 +106,7 @@ def load_model(cfg, train: bool):
         )
     if cfg.get("ckpt_path"):
         # The one safe loader: weights_only, allow-listed classes/targets, strict state_dict.
-        checked = model_cls.load_checked(str(cfg.ckpt_path))
+        checked = load_module(str(cfg.ckpt_path), model_cls)
         if not train:
             return checked
     return instantiate(cfg.model)
@@ -194,7 +212,7 @@ def _prepare(cfg) -> dict:
             raise ConfigError(
                 f"denoiser_ckpt given, but {type(model).__name__} takes no denoiser (only the parameter CNNs do)"
             )
-        model.attach_denoiser(DenoisingAutoencoder.load_checked(str(cfg.denoiser_ckpt)))
+        model.attach_denoiser(load_module(str(cfg.denoiser_ckpt), DenoisingAutoencoder))
     datamodule = build_datamodule(cfg.data, model.data_requirements(), train)
     stages = (["fit"] if train else []) + (["test"] if test else [])
     datamodule.check(stages)  # file/split/key/window errors now, not after training

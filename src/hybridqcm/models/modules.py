@@ -20,9 +20,9 @@ Inference API (used by the hybrid estimator):
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -35,6 +35,7 @@ from torch import Tensor
 from hybridqcm.data.datamodules import apply_noise
 from hybridqcm.errors import CheckpointError
 from hybridqcm.models.networks import NETWORKS
+from hybridqcm.models.untrusted import check_config_tree, read_stored_class
 
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}
 
@@ -122,22 +123,15 @@ class CheckpointMismatch(CheckpointError):
 
 
 def stored_model_class(path: str) -> str | None:
-    """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint).
+    """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint); read as data.
 
-    Read with weights_only=True (no pickled code runs). Raises FileNotFoundError for a missing
-    file and CheckpointMismatch for an unreadable or refused one."""
-    import os
-
-    from hybridqcm.models import checkpoint  # deferred: checkpoint.py reaches MODULES of this module lazily
-
+    Raises FileNotFoundError for a missing file and CheckpointMismatch for an unreadable or refused one."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: checkpoint file does not exist")
     try:
-        raw = checkpoint.read_raw(Path(path), str(path))
+        return read_stored_class(path)
     except CheckpointError as error:
         raise CheckpointMismatch(str(error)) from None
-    stored = raw.get("hybridqcm_class")
-    return stored if isinstance(stored, str) else None
 
 
 def build_network(net_cfg: Mapping, overrides: Mapping | None = None) -> torch.nn.Module:
@@ -145,7 +139,6 @@ def build_network(net_cfg: Mapping, overrides: Mapping | None = None) -> torch.n
 
     Built without Hydra: the target must name one of our network classes and no value may hold
     another `_target_`, so hyper-parameters read from a checkpoint can never construct anything else."""
-    from hybridqcm.models.checkpoint import check_config_tree
 
     cfg = dict(net_cfg)
     target = cfg.pop("_target_", None)
@@ -221,7 +214,6 @@ class QCMModule(LightningModule):
 
     # -- optimisation -------------------------------------------------------------------------------
     def configure_optimizers(self) -> Any:
-        from hybridqcm.models.checkpoint import check_config_tree
 
         # hparams may come from a checkpoint: only torch optimizers / schedulers are instantiated.
         check_config_tree({k: self.hparams.get(k) for k in ("optimizer", "scheduler")}, type(self).__name__)
@@ -277,24 +269,6 @@ class QCMModule(LightningModule):
         # An attached (inference-only) denoiser is not part of this model.
         for key in [k for k in checkpoint.get("state_dict", {}) if k.startswith("denoiser.")]:
             del checkpoint["state_dict"][key]
-
-    @classmethod
-    def load_checked(cls, path: str, map_location: str = "cpu") -> QCMModule:
-        """This class's checkpoint via the one safe loader (models.checkpoint.load_checkpoint); eval mode.
-
-        CheckpointMismatch (a CheckpointError) for a missing, refused or foreign checkpoint."""
-        from hybridqcm.models.checkpoint import load_checkpoint  # deferred: checkpoint.py imports MODULES from here
-
-        stored = stored_model_class(path)
-        if stored != cls.__name__:
-            raise CheckpointMismatch(
-                f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}"
-            )
-        try:
-            module = load_checkpoint(path)
-        except CheckpointError as error:
-            raise CheckpointMismatch(str(error)) from None
-        return module.to(map_location)
 
     def check_physics(self) -> None:
         if self.hparams.get("physics", "euler") not in ("euler", "continuous"):
