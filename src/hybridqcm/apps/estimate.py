@@ -507,6 +507,7 @@ def run(cfg) -> dict:
         cnn_a2_from_data=bool(cfg.cnn_a2_from_file),
         base_excitation=plan["base_excitation"],
         input_margin=plan["input_margin"],
+        cnn_prior_rel_std=cfg.init.get("cnn_prior_rel_std"),
     )
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])

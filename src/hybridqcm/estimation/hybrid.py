@@ -172,6 +172,7 @@ class HybridEstimator(LightningModule):
         cnn_a2_from_data: bool = False,
         base_excitation: str | None = None,
         input_margin: Sequence[int] = (0, 0),
+        cnn_prior_rel_std: float | None = None,
     ):
         super().__init__()
         # (before, after): input samples around the GN window handed to the model with it — the
@@ -196,6 +197,10 @@ class HybridEstimator(LightningModule):
         self.pu_known = bool(pu_known)
         # a2 unobserved and not completed: may the CNN initialiser still read the batch's a2?
         self.cnn_a2_from_data = bool(cnn_a2_from_data)
+        # Fusion (MAP): the CNN's p1, p2 also enter the last GN stage as a Gaussian prior with this
+        # relative std (None: the CNN only starts GN). The residuals must be in noise units for
+        # the balance to mean anything: use it with residual re-weighting.
+        self.cnn_prior_rel_std = None if cnn_prior_rel_std is None else float(cnn_prior_rel_std)
         known_mask = torch.zeros(N_PARAMS, dtype=torch.bool)
         for name in known:
             known_mask[int(str(name).lstrip("p")) - 1] = True
@@ -256,6 +261,9 @@ class HybridEstimator(LightningModule):
             p12 = self.cnn.estimate(accel[:, :, 0].float(), accel[:, :, 1].float()).double()
             keep = self.known_mask[:2]
             init[:, :2] = torch.where(keep, init[:, :2], p12)
+            cnn_p12 = p12
+        if not self.cnn_init:
+            cnn_p12 = None
         before, after = self.input_margin
         stop = min(accel.shape[1], before + self.n_steps + after)
         signals, road_in = accel[:, :stop], road[:, :stop]  # the model's inputs, margins included
@@ -275,6 +283,9 @@ class HybridEstimator(LightningModule):
             "index": batch["index"],
             "input_offset": before,
         }
+        if cnn_p12 is not None and self.cnn_prior_rel_std:
+            prepared["prior_p12"] = cnn_p12
+            prepared["prior_p12_std"] = self.cnn_prior_rel_std * cnn_p12.abs()
         if batch.get("noise_sigma") is not None and float(batch["noise_sigma"].max()) > 0:
             # Noise-aware weighting for multiplicative noise a(1 + η): a channel's noise std is
             # σ·rms(a_c), so weights 1/(σ rms_c) standardise every channel (completed ones too,
@@ -444,6 +455,13 @@ class GaussNewtonRefinement(Callback):
                 if stage.n_steps is None
                 else min(int(stage.n_steps), outputs["targets"].shape[1])
             )
+            prior = {}
+            if "prior_p12" in outputs and number == len(stages) - 1:
+                mean = torch.zeros_like(params)
+                precision = torch.zeros_like(params)
+                mean[:, :2] = outputs["prior_p12"].double()
+                precision[:, :2] = outputs["prior_p12_std"].double().clamp_min(1e-12) ** -2
+                prior = {"prior_mean": mean, "prior_precision": torch.where(self.known, 0.0, precision)}
             problem = LeastSquaresProblem(
                 outputs["targets"][:, :window].double(),
                 road,
@@ -454,6 +472,7 @@ class GaussNewtonRefinement(Callback):
                 weights=weights,
                 model=self.response,
                 input_offset=offset,
+                **prior,
             )
             result = stage.solver.solve(problem, params)
             per_stage[stage.name] = result
