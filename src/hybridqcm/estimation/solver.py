@@ -548,32 +548,14 @@ class NonlinearLeastSquares:
             fisher = torch.where(ok[:, None, None], fisher, torch.zeros_like(fisher))
             final_loss = torch.where(ok, final_loss, loss[index])
             loss[index] = final_loss
-            scale = fisher.diagonal(dim1=1, dim2=2).sqrt()
-            safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-            fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
-            fisher_scaled = torch.where(
-                (scale > 0).unsqueeze(2) & (scale > 0).unsqueeze(1), fisher_scaled, torch.zeros_like(fisher_scaled)
-            )
-            eigval, eigvec = torch.linalg.eigh(fisher_scaled)  # ascending
-            eigval = eigval.clamp_min(0.0)
-            sv = eigval.sqrt().flip(1)
-            singular_values[index] = sv
-            keep = eigval > (cfg.rcond**2) * eigval[:, -1:].clamp_min(1e-300)
-            keep &= eigval > 0
-            inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
-            pinv_scaled = (eigvec * inv.unsqueeze(1)) @ eigvec.transpose(1, 2)
+            pinv, unidentified, singular_values[index], rank_deficient = _pseudo_inverse(fisher, cfg.rcond)
             dof = max(problem.n_residuals - n_free, 1)
             sigma2 = 2.0 * final_loss / dof
             residual_variance[index] = sigma2
             misfit, relative_residual[index], whiteness[index], inflation = self._residual_tests(
                 problem, params, targets, road, index
             )
-            cov_free = (
-                (inflation * sigma2)[:, None, None] * pinv_scaled / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
-            )
-            # A parameter with any weight on a zero-eigenvalue direction has unbounded variance.
-            null_weight = (eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2)  # [b, n_free]
-            unidentified = (null_weight > 1e-6) | (scale == 0)
+            cov_free = (inflation * sigma2)[:, None, None] * pinv
             if problem.prior_mean is not None:
                 # Laplace posterior: (data information + prior precision)⁻¹; the prior identifies
                 # what the data alone cannot.
@@ -581,19 +563,18 @@ class NonlinearLeastSquares:
                 information = fisher / (inflation * sigma2).clamp_min(1e-300)[:, None, None] + torch.diag_embed(
                     precision
                 )
-                cov_free, singular_posterior = _pseudo_inverse(information, cfg.rcond)
-                unidentified = singular_posterior
+                cov_free, unidentified, _, rank_deficient = _pseudo_inverse(information, cfg.rcond)
             std_free = torch.where(
-                unidentified, torch.full_like(scale, math.inf), cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+                unidentified,
+                torch.full_like(sigma2[:, None], math.inf),
+                cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt(),
             )
             rows = index.unsqueeze(1)
             std[rows, free.unsqueeze(0)] = std_free
             cov_full = torch.zeros(index.numel(), n_theta, n_theta, dtype=params.dtype)
             cov_full[:, free.unsqueeze(1), free.unsqueeze(0)] = cov_free
             covariance[index] = cov_full
-            rank_deficient = (~keep).any(1) | (scale == 0).any(1) | ~ok
-            if problem.prior_mean is not None:
-                rank_deficient = unidentified.any(1) | ~ok
+            rank_deficient = rank_deficient | ~ok
             status[index[rank_deficient]] = SolverStatus.SINGULAR
             status[index[misfit]] = SolverStatus.MISFIT  # a wrong answer is never `converged`
         return SolverResult(
@@ -652,18 +633,22 @@ class NonlinearLeastSquares:
         return torch.cat(misfits), torch.cat(rel), torch.cat(white), torch.cat(inflation)
 
 
-def _pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
-    """(M⁺ [b, n, n], unidentified [b, n] bool) of a symmetric PSD matrix, with column scaling and an
-    eigenvalue cutoff rcond² (an entry with weight on a dropped direction is unidentified)."""
+def _pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Pseudo-inverse of symmetric PSD matrices [b, n, n] with column scaling and an eigenvalue cutoff
+    rcond² (relative to the largest). Returns (M⁺ [b, n, n], unidentified [b, n] — an entry with
+    weight on a dropped direction, or a zero column —, singular values of the column-scaled factor
+    [b, n] descending, rank_deficient [b])."""
     scale = matrix.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
     safe = torch.where(scale > 0, scale, torch.ones_like(scale))
     scaled = matrix / (safe.unsqueeze(2) * safe.unsqueeze(1))
-    eigval, eigvec = torch.linalg.eigh(scaled)
+    eigval, eigvec = torch.linalg.eigh(scaled)  # ascending
+    eigval = eigval.clamp_min(0.0)
     keep = (eigval > (rcond**2) * eigval[:, -1:].clamp_min(1e-300)) & (eigval > 0)
     inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
     pinv = (eigvec * inv.unsqueeze(1)) @ eigvec.transpose(1, 2) / (safe.unsqueeze(2) * safe.unsqueeze(1))
     unidentified = ((eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2) > 1e-6) | (scale == 0)
-    return pinv, unidentified
+    rank_deficient = (~keep).any(1) | (scale == 0).any(1)
+    return pinv, unidentified, eigval.sqrt().flip(1), rank_deficient
 
 
 def _pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
