@@ -22,7 +22,7 @@ from pathlib import Path
 
 from hybridqcm.apps.common import print_table
 from hybridqcm.apps.stages import PIPELINES, load_manifest
-from hybridqcm.metrics import read_error_distribution
+from hybridqcm.metrics import COLUMNS, read_error_distribution
 
 DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json")
 
@@ -36,16 +36,7 @@ def load_thesis_tables(path: str | Path | None = None) -> list[dict]:
     rows = []
     for raw in csv.DictReader(text.splitlines()):
         row = dict(raw)
-        for key in (
-            "max_err",
-            "mean_err",
-            "std_err",
-            "within_1pct",
-            "within_5pct",
-            "within_10pct",
-            "within_25pct",
-            "over_25pct",
-        ):
+        for key in COLUMNS[2:]:  # the source rows carry our error-distribution columns
             row[key] = float(row[key])
         rows.append(row)
     return rows
