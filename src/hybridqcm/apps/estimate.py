@@ -528,7 +528,7 @@ def run(cfg) -> dict:
         threshold = math.inf
     reweight = cfg.residual_weighting
     if str(reweight) == "auto":
-        reweight = plan["model"] == "exact"
+        reweight = "spectral" if plan["model"] == "exact" else False
     refinement = GaussNewtonRefinement(
         stages,
         known=known_mask,

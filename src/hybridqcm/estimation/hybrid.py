@@ -13,6 +13,7 @@ results and writes per-iteration losses to TensorBoard. Used together::
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from torch import Tensor
 from hybridqcm.errors import CheckpointError
 from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
 
+from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus
@@ -371,7 +373,9 @@ class GaussNewtonRefinement(Callback):
         observed: Sequence[str] = CHANNELS,
         restart_mass_factors: Sequence[float] = (),
         response: ResponseModel | None = None,
-        reweight: bool = False,
+        reweight: bool | str = False,
+        noise_passes: int = 1,
+        ml_guard: float | None = 4.0,
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
     ):
@@ -391,9 +395,20 @@ class GaussNewtonRefinement(Callback):
         # The quarter car's outputs are (a3, a2, a1) and its input the road; a base-excitation
         # model (road-free) has its own outputs, all of them measured.
         self.quarter_car = tuple(self.response.output_names) == CHANNELS
-        # Noise-aware weighting when nobody knows the noise: before the last stage each channel's
-        # residual is weighted by 1/σ̂_c, σ̂_c its RMS residual at the previous stage's estimate.
-        self.reweight = bool(reweight)
+        # Noise-aware weighting when nobody knows the noise, before the last stage:
+        #   True / "channels": each channel's residual weighted by 1/σ̂_c, σ̂_c its RMS residual at
+        #                      the previous stage's estimate;
+        #   "spectral": the frequency-domain noise model of estimation/noise.py — output noise per
+        #               channel and, for base-excitation models, the measured driving channel's noise
+        #               through H(p) (errors in variables), variances fitted to the residual; the last
+        #               stage runs ``noise_passes`` times with the noise spectrum held at the previous
+        #               estimate (reweighted least squares), then once as the errors-in-variables maximum
+        #               likelihood (spectrum a function of p), guarded by ``ml_guard`` (below).
+        if reweight not in (False, True, "channels", "spectral"):
+            raise ValueError(f"reweight={reweight!r}: choose false, true/'channels' or 'spectral'")
+        self.reweight = "channels" if reweight is True else reweight
+        self.noise_passes = max(1, int(noise_passes))
+        self.ml_guard = None if ml_guard is None else float(ml_guard)
         self.peer_factor = None if peer_factor is None else float(peer_factor)
         self.peer_min_batch = int(peer_min_batch)
         self.log_dir = log_dir
@@ -448,7 +463,9 @@ class GaussNewtonRefinement(Callback):
         stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
         for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
-            if self.reweight and number == len(stages) - 1 and number > 0:
+            last = number == len(stages) - 1
+            noise = None
+            if self.reweight == "channels" and last and number > 0:
                 weights = self._residual_weights(outputs["targets"].double(), road, params, observed, offset)
             window = (
                 outputs["targets"].shape[1]
@@ -462,19 +479,43 @@ class GaussNewtonRefinement(Callback):
                 mean[:, :2] = outputs["prior_p12"].double()
                 precision[:, :2] = outputs["prior_p12_std"].double().clamp_min(1e-12) ** -2
                 prior = {"prior_mean": mean, "prior_precision": torch.where(self.known, 0.0, precision)}
-            problem = LeastSquaresProblem(
-                outputs["targets"][:, :window].double(),
-                road,
-                self.h,
-                scaled_road=self.pu_known,
-                observed=observed,
-                known=self.known,
-                weights=weights,
-                model=self.response,
-                input_offset=offset,
-                **prior,
-            )
-            result = stage.solver.solve(problem, params)
+            spectral = self.reweight == "spectral" and last and number > 0
+            passes = self.noise_passes + 1 if spectral else 1
+            previous = None
+            for number_pass in range(passes):
+                if spectral:
+                    ml = number_pass == passes - 1
+                    noise = self._noise_model(
+                        outputs["targets"][:, :window].double(), road, params, observed, offset, frozen=not ml
+                    )
+                    weights = None
+                problem = LeastSquaresProblem(
+                    outputs["targets"][:, :window].double(),
+                    road,
+                    self.h,
+                    scaled_road=self.pu_known,
+                    observed=observed,
+                    known=self.known,
+                    weights=weights,
+                    model=self.response,
+                    input_offset=offset,
+                    noise=noise,
+                    **prior,
+                )
+                result = stage.solver.solve(problem, params)
+                if spectral and previous is not None and self.ml_guard is not None:
+                    # Both passes estimate the same p; the ML one is the more efficient, but with
+                    # variances fitted to a poor residual it can run to a spurious optimum (a rigid or
+                    # very resonant seat that blames the fit on input noise). Keep the reweighted
+                    # estimate where the two disagree beyond ml_guard of its standard deviations.
+                    n_p = self.response.n_params
+                    moved = (result.params[:, :n_p] - previous.params[:, :n_p]).abs() > self.ml_guard * previous.std[
+                        :, :n_p
+                    ].clamp_min(1e-300)
+                    _take(result, previous, moved.any(1) | (result.status == SolverStatus.DIVERGED))
+                if spectral:  # the next pass re-fits the variances at this estimate
+                    previous = result
+                    params = torch.where((result.status == SolverStatus.DIVERGED)[:, None], params, result.params)
             per_stage[stage.name] = result
             # A stage that diverged keeps its input for the next stage rather than garbage.
             keep_input = result.status == SolverStatus.DIVERGED
@@ -487,11 +528,16 @@ class GaussNewtonRefinement(Callback):
                 keep_input |= ~(after <= before)
             params = torch.where(keep_input[:, None], params, result.params)
         channels = [i for i, o in enumerate(problem.observed) if o]
-        weighted = outputs["targets"].double()
-        if weights is not None:
-            weighted = weighted * weights.double()[:, None, :]
-        energy = 0.5 * weighted[:, :, channels].square().sum((1, 2))
-        relative = result.loss / energy.clamp_min(1e-300)
+        if noise is not None:  # whitened losses of different attempts have different variances
+            relative = self._measured_loss(
+                {**outputs, "weights": None}, road, result.params, problem.observed, demean=True
+            ) / (0.5 * outputs["targets"].double()[:, :, channels].square().sum((1, 2))).clamp_min(1e-300)
+        else:
+            weighted = outputs["targets"].double()
+            if weights is not None:
+                weighted = weighted * weights.double()[:, None, :]
+            energy = 0.5 * weighted[:, :, channels].square().sum((1, 2))
+            relative = result.loss / energy.clamp_min(1e-300)
         relative = torch.where(
             result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative
         )
@@ -518,14 +564,38 @@ class GaussNewtonRefinement(Callback):
         weights[:, channels] = 1.0 / sigma
         return weights
 
-    def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured) -> Tensor:
-        """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite)."""
+    def _noise_model(
+        self, targets: Tensor, road: Tensor, params: Tensor, observed, offset: int = 0, frozen: bool = False
+    ) -> SpectralNoise:
+        """The spectral noise model (estimation/noise.py) with variances fitted to the residual at ``params``:
+        output noise per observed channel, and for a base-excitation model its driving inputs' noise
+        (``frozen``: its spectrum held at ``params``)."""
+        channels = [i for i, o in enumerate(observed) if o]
+        predicted = self.response.outputs(params.double(), road, offset, targets.shape[1])
+        residual = predicted[:, :, channels] - targets[:, :, channels]
+        residual = torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
+        reference = targets[:, :, channels].square().mean(1)
+        linear = getattr(self.response, "model", None)
+        if self.quarter_car or linear is None or len(channels) != linear.n_output:
+            v_out, _ = estimate_variances(residual, None, 0, reference)
+            return SpectralNoise(v_out)
+        n_params = self.response.n_params
+        omega = 2 * math.pi * torch.fft.rfftfreq(targets.shape[1], d=self.h, dtype=torch.float64)
+        H, _ = frequency_response(linear, params[:, :n_params].double(), omega)
+        v_out, v_in = estimate_variances(residual, H, linear.n_input, reference)
+        return SpectralNoise(v_out, v_in, linear, self.h, frozen_at=params.double() if frozen else None)
+
+    def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured, demean: bool = False) -> Tensor:
+        """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite);
+        ``demean``: without each channel's mean (sensor offsets are outside the spectral noise model)."""
         channels = [i for i, m in enumerate(measured) if m]
         targets = outputs["targets"]
         accel = self.response.outputs(params.double(), road, int(outputs.get("input_offset", 0)), targets.shape[1])[
             :, :, channels
         ]
         residual = accel - outputs["targets"].double()[:, :, channels]
+        if demean:
+            residual = residual - residual.mean(1, keepdim=True)
         if outputs.get("weights") is not None:
             residual = residual * outputs["weights"].double()[:, None, channels]
         loss = 0.5 * residual.square().sum((1, 2))
@@ -557,19 +627,7 @@ class GaussNewtonRefinement(Callback):
             restarted[retry] += 1
             params[take] = sub_params[better]
             relative[take] = sub_relative[better]
-            for name in (
-                "status",
-                "iterations",
-                "loss",
-                "std",
-                "covariance",
-                "singular_values",
-                "residual_variance",
-                "relative_residual",
-                "whiteness",
-            ):
-                getattr(result, name)[take] = getattr(sub_result, name)[better]
-            result.params[take] = sub_result.params[better]
+            _take(result, sub_result, better, take)
             self._flag_outliers(result, typical)
         record = {
             "index": outputs["index"].cpu(),
@@ -698,3 +756,25 @@ class GaussNewtonRefinement(Callback):
                     writer.add_scalar(f"gn/{name}/mean_loss", value, iteration)
         finally:
             writer.close()
+
+
+_PER_SAMPLE = (
+    "params",
+    "status",
+    "iterations",
+    "loss",
+    "std",
+    "covariance",
+    "singular_values",
+    "residual_variance",
+    "relative_residual",
+    "whiteness",
+)
+
+
+def _take(into: SolverResult, other: SolverResult, mask: Tensor, rows: Tensor | None = None) -> None:
+    """In place: the samples ``rows`` of ``into`` (default: where ``mask``) take ``other``'s per-sample
+    results at ``mask`` (``other`` may hold a subset of ``into``'s samples)."""
+    rows = mask.nonzero().squeeze(1) if rows is None else rows
+    for name in _PER_SAMPLE:
+        getattr(into, name)[rows] = getattr(other, name)[mask]

@@ -35,6 +35,7 @@ import torch
 from scipy.stats import chi2
 from torch import Tensor
 
+from .noise import SpectralNoise
 from .response import EulerResponse, ResponseModel
 
 
@@ -129,6 +130,10 @@ class LeastSquaresProblem:
     prior_mean: Tensor | None = None
     prior_precision: Tensor | None = None
     input_offset: int = 0
+    # The residual's noise model in the frequency domain (estimation/noise.py): the loss becomes the
+    # errors-in-variables likelihood ½ Σ_k c_k R_kᴴ S_k(p)⁻¹ R_k / T without the DC term (sensor
+    # offsets drop out); supersedes ``weights``. None: the time-domain loss above.
+    noise: SpectralNoise | None = None
 
     def __post_init__(self):
         if self.model is None:
@@ -185,6 +190,14 @@ class LeastSquaresProblem:
                 and (self.prior_precision >= 0).all()
             ):
                 raise ValueError("prior_mean must be finite and prior_precision finite and >= 0")
+        if self.noise is not None:
+            if self.weights is not None:
+                raise ValueError("give either weights or a noise model, not both")
+            if self.noise.v_out.shape != (self.targets.shape[0], len(self.observed_index)):
+                raise ValueError(
+                    f"noise model variances must be [batch, n_observed] = "
+                    f"[{self.targets.shape[0]}, {len(self.observed_index)}], got {list(self.noise.v_out.shape)}"
+                )
         if self.weights is not None:
             self.weights = torch.as_tensor(self.weights, dtype=torch.float64)
             if tuple(self.weights.shape) != (self.targets.shape[0], n_out):
@@ -217,7 +230,8 @@ class LeastSquaresProblem:
 
     @property
     def n_residuals(self) -> int:
-        return self.targets.shape[1] * len(self.observed_index)
+        # The spectral noise model leaves out the DC term of every channel.
+        return (self.targets.shape[1] - (self.noise is not None)) * len(self.observed_index)
 
 
 @dataclass
@@ -309,17 +323,20 @@ class NonlinearLeastSquares:
             raise ValueError("initial params contain NaN/inf")
         batch = params.shape[0]
         free = torch.tensor(problem.free_index)
+        obs = problem.observed_index
+        targets = problem.targets.to(dtype)[:, :, obs].contiguous()
         # Which free entries are physical parameters (> 0, steps judged relative to them); the
         # others (initial states) have any sign.
         self._positive = problem.model.positive[free]
-        obs = problem.observed_index
-        # [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
-        targets = problem.targets.to(dtype)[:, :, obs].contiguous()
+        # targets [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
         road = problem.inputs.to(dtype)
         self._weights = (
             None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
         )  # [batch, n_obs]
-        weighted_targets = targets if self._weights is None else targets * self._weights[:, None, :]
+        if problem.noise is not None:  # the targets as the loss sees them (at the start's p)
+            weighted_targets = problem.noise.whiten_residual(targets, params, torch.arange(batch))
+        else:
+            weighted_targets = targets if self._weights is None else targets * self._weights[:, None, :]
         data_energy = 0.5 * weighted_targets.square().sum(dim=(1, 2))  # [batch]
 
         self.init_state(batch, dtype)
@@ -450,7 +467,9 @@ class NonlinearLeastSquares:
             if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0] : obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
             out[..., 0] -= targets[chunk]  # residual R in column 0
-            if self._weights is not None:
+            if problem.noise is not None:
+                out = problem.noise.whiten(out, params[chunk], chunk)
+            elif self._weights is not None:
                 out *= self._weights[chunk][:, None, :, None]
             b = chunk.numel()
             augmented = out.view(b, -1, width) if out.is_contiguous() else out.reshape(b, -1, width)
@@ -519,7 +538,9 @@ class NonlinearLeastSquares:
             chunk = index[sl]
             accel = problem.model.outputs(trial_params[sl], road[chunk], *problem.window)
             residual = accel[:, :, obs] - targets[chunk]
-            if self._weights is not None:
+            if problem.noise is not None:
+                residual = problem.noise.whiten_residual(residual, trial_params[sl], chunk)
+            elif self._weights is not None:
                 residual = residual * self._weights[chunk][:, None, :]
             loss = 0.5 * residual.square().sum((1, 2))
             losses.append(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf)))
@@ -611,8 +632,15 @@ class NonlinearLeastSquares:
                 problem.model.outputs(params[chunk], inputs[chunk], *problem.window)[:, :, problem.observed_index]
                 - targets[chunk]
             )
+            if problem.noise is not None:
+                # Sensor offsets are outside the model (DC dropped): judge the size without them,
+                # and test whiteness on the residual whitened by the noise model.
+                residual = residual - residual.mean(1, keepdim=True)
+                relative = (residual.square().sum(1) / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
+                residual = problem.noise.white_time_residual(residual, params[chunk], chunk)
             energy = residual.square().sum(1)  # [b, n_obs]
-            relative = (energy / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
+            if problem.noise is None:
+                relative = (energy / targets[chunk].square().sum(1).clamp_min(1e-300)).sqrt()
             q = torch.zeros_like(energy)
             rho1 = torch.zeros_like(energy)
             for k in range(1, lags + 1):

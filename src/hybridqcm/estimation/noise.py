@@ -1,0 +1,281 @@
+"""The residual's noise model in the frequency domain: weighting, whitening and errors in variables.
+
+A fit's residual at the true parameters is the measurement noise *as the model sees it*. With
+white noise n_o on the outputs and a noise-free input that is n_o itself; when the driving input
+is measured too (the road-free base-excitation models: the seat driven by the measured a2), the
+input noise n_i passes through the model, and at a candidate p the residual is
+
+    r = y~ - H(p) * w~   =   (y - H(p) * w)   +   n_o - H(p) * n_i,
+
+whose noise part is coloured with spectral density matrix (per frequency, [o, o])
+
+    S_k(p) = diag(v_out) + H_k(p) diag(v_in) H_k(p)^H,     H_k(p) = C (j w_k I - A)^-1 B + E
+
+(v_out, v_in: per-sample noise variances of each output and input channel, w_k = 2 pi k / (T h)).
+An output-error fit that ignores this weights every frequency alike: its standard deviations are
+wrong and its residual fails any whiteness test. The errors-in-variables maximum-likelihood cost in
+the frequency domain (Pintelon & Schoukens, *System Identification*, ch. 10, "sample maximum
+likelihood")
+
+    L(p) = 1/2 sum_{k >= 1} c_k R_k^H S_k(p)^-1 R_k / T,       R_k = DFT(r)_k
+
+is consistent: E[R_k R_k^H] = T (S_k(p) + signal misfit), so the noise part of E[L] does not depend
+on p and the minimum sits at the truth — provided S keeps its p-dependence. (Freezing S at the
+previous iterate brings back a bias towards smaller |H|, as in the output-error fit.) c_k are the
+Parseval weights of the one-sided spectrum (2, and 1 at Nyquist). The DC term is left out (c_0 = 0):
+a constant accelerometer bias on any channel reaches the residual only there — an output bias
+directly, an input bias as H(0) b after the transient that the estimated initial state absorbs —
+so the fit is exactly invariant to sensor offsets.
+
+Least-squares form. With the Cholesky factor S_k = L_k L_k^H the cost is 1/2 ||e||^2 for the
+whitened residual e_k = L_k^-1 R_k, whose derivative (dL from the Cholesky derivative
+dL = L Phi(L^-1 dS L^-H), Phi = lower triangle with half the diagonal) is
+
+    de_k = L_k^-1 dR_k - Phi(M_k) e_k,       M_k = L_k^-1 dS_k L_k^-H,
+    dS_k = dH_k V_in H_k^H + H_k V_in dH_k^H,   dH = Y dA X + Y dB + dC X + dE,
+    X = (j w I - A)^-1 B,  Y = C (j w I - A)^-1,
+
+so Gauss-Newton, Armijo, the status tests and the Laplace covariance of the solver all work
+unchanged on the real stack of (Re e_k, Im e_k) sqrt(c_k / T). Back in the time domain (inverse
+DFT of e with its DC set to zero) the whitened residual of a model that fits is white with the
+same variance in every channel, which is what the solver's Ljung-Box misfit test assumes.
+
+The variances are not known to a user; :func:`estimate_variances` fits them to the residual's
+periodogram P_k = R_k R_k^H / T at a preliminary estimate by Whittle's likelihood
+(sum_k tr(S_k^-1 P_k) + log det S_k; Fisher scoring, S linear in v). They are identifiable because
+|H_k| varies over frequency: the seat passes a2 below its resonance and blocks it above, so the
+high band measures v_out and the low band v_out + v_in. Circularity: the DFT treats the window as
+periodic; the linear-convolution edge effect is O(impulse-response length / T) and shrinks with T.
+
+Shapes: b batch, T samples in the window, K = T // 2 + 1 frequencies, o outputs, m inputs,
+P physical parameters, Q = n_theta >= P (the rest are initial states, on which S does not depend).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from hybridqcm.physics.linear_models import LinearModel
+
+_COMPLEX = torch.complex128
+
+
+def parseval_weights(n_steps: int, dtype=torch.float64) -> Tensor:
+    """c_k [K]: weight of frequency k in sum_t r_t^2 = (1/T) sum_k c_k |R_k|^2, with c_0 = 0 (DC dropped)."""
+    K = n_steps // 2 + 1
+    c = torch.full((K,), 2.0, dtype=dtype)
+    c[0] = 0.0
+    if n_steps % 2 == 0:
+        c[-1] = 1.0
+    return c
+
+
+def frequency_response(
+    model: LinearModel, params: Tensor, omega: Tensor, derivatives: bool = False
+) -> tuple[Tensor, Tensor | None]:
+    """H [b, K, o, m] = C (j w I - A)^-1 B + E at the angular frequencies ``omega`` [K] (rad/s),
+    and with ``derivatives`` dH [b, P, K, o, m] = dH/dp_j (else None)."""
+    A, B, C, E = (m.to(_COMPLEX) for m in model.matrices(params.double()))
+    n = A.shape[-1]
+    jw = (1j * omega.to(torch.float64)).to(_COMPLEX)
+    pencil = jw[None, :, None, None] * torch.eye(n, dtype=_COMPLEX) - A[:, None]  # [b, K, n, n]
+    X = torch.linalg.solve(pencil, B[:, None].expand(-1, omega.numel(), -1, -1))  # [b, K, n, m]
+    H = C[:, None] @ X + E[:, None]
+    if not derivatives:
+        return H, None
+    Y = torch.linalg.solve(pencil.transpose(-1, -2), C[:, None].transpose(-1, -2).expand(-1, omega.numel(), -1, -1))
+    Y = Y.transpose(-1, -2)  # C (j w I - A)^-1, [b, K, o, n]
+    dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
+    Yp, Xp = Y[:, None], X[:, None]  # [b, 1, K, ...]
+    dH = Yp @ dA[:, :, None] @ Xp + Yp @ dB[:, :, None] + dC[:, :, None] @ Xp + dE[:, :, None]
+    return H, dH
+
+
+def spectral_matrix(H: Tensor | None, v_out: Tensor, v_in: Tensor | None) -> Tensor:
+    """S [b, K, o, o] = diag(v_out) + H diag(v_in) H^H; v_out [b, o], v_in [b, m] or None (no input noise)."""
+    o = v_out.shape[1]
+    K = 1 if H is None else H.shape[1]
+    S = torch.diag_embed(v_out.to(_COMPLEX))[:, None].expand(-1, K, o, o)
+    if H is not None and v_in is not None:
+        S = S + (H * v_in.to(_COMPLEX)[:, None, None, :]) @ H.conj().transpose(-1, -2)
+    return S
+
+
+def estimate_variances(
+    residual: Tensor,
+    H: Tensor | None,
+    n_inputs: int = 0,
+    reference: Tensor | None = None,
+    iterations: int = 30,
+    floor: float = 1e-12,
+) -> tuple[Tensor, Tensor | None]:
+    """Whittle fit of (v_out [b, o], v_in [b, m] or None) to the periodogram of ``residual`` [b, T, o].
+
+    ``H`` [b, K, o, m] (K = T // 2 + 1) is the model's frequency response at the same p; with
+    ``n_inputs`` = 0 or H None only the output variances are fitted (then v_out is each channel's
+    mean square without its DC, the white-noise maximum likelihood). Variances are floored at
+    ``floor`` x ``reference`` [b, o] (e.g. the measured channels' mean squares; default the
+    residual's) so that an exact fit cannot give infinite weight.
+    """
+    r = residual.to(torch.float64)
+    b, T, o = r.shape
+    c = parseval_weights(T)
+    R = torch.fft.rfft(r, dim=1)  # [b, K, o]
+    P = R[..., :, None] * R[..., None, :].conj() / T  # [b, K, o, o]
+    power = (c[None, :, None] * P.diagonal(dim1=-2, dim2=-1).real).sum(1) / c.sum()  # [b, o] mean square, no DC
+    scale = (power if reference is None else reference.to(torch.float64)).clamp_min(1e-300)
+    lower_out = floor * scale
+    if H is None or n_inputs == 0:
+        return power.maximum(lower_out), None
+    m = n_inputs
+    gain = (c[None, :, None, None] * H.abs().square()).sum(1) / c.sum()  # [b, o, m] mean |H|^2
+    # Basis of S: one unit diagonal per output, H_i H_i^H per input; S = sum_j v_j B_j.
+    basis = [
+        torch.diag_embed(torch.nn.functional.one_hot(torch.tensor(i), o).to(_COMPLEX))[None, None] for i in range(o)
+    ]
+    basis = [bj.expand(b, H.shape[1], o, o) for bj in basis]
+    basis += [H[..., i, None] @ H[..., i, None].conj().transpose(-1, -2) for i in range(m)]
+    Bstack = torch.stack(basis, 1)  # [b, o + m, K, o, o]
+    # Start: half of each output's power to its own noise, the rest to the inputs through |H|^2.
+    v = torch.cat([0.5 * power, 0.5 * power.mean(1, keepdim=True) / gain.mean(1).clamp_min(1e-300)], 1)
+    lower = torch.cat([lower_out, floor * (scale.mean(1, keepdim=True) / gain.mean(1).clamp_min(1e-300))], 1)
+    v = v.maximum(lower)
+    weight = c[None, None, :].to(torch.float64)
+    if o == 1:  # S_k = v_1 + sum_i v_i |H_ki|^2 is real: the same scoring without complex matrices
+        G = torch.cat([torch.ones_like(H[..., 0, :1].real), H[..., 0, :].abs().square()], -1)  # [b, K, J]
+        Pk = P[..., 0, 0].real  # [b, K]
+        for _ in range(iterations):
+            S = (G * v[:, None, :]).sum(-1)  # [b, K]
+            w = weight[:, 0] / S.square()
+            score = (G * (w * (Pk - S))[..., None]).sum(1)  # [b, J]
+            info = torch.einsum("bkj,bkl->bjl", G * w[..., None], G)
+            new = (v + torch.linalg.lstsq(info, score[..., None]).solution[..., 0]).maximum(lower)
+            done = bool(((new - v).abs() <= 1e-8 * v).all())
+            v = new
+            if done:
+                break
+        return v[:, :o], v[:, o:]
+    for _ in range(iterations):
+        S = (v.to(_COMPLEX)[:, :, None, None, None] * Bstack).sum(1)  # [b, K, o, o]
+        Sinv = torch.linalg.inv(S)
+        W = Sinv[:, None] @ Bstack  # S^-1 B_j, [b, J, K, o, o]
+        score = (W @ (Sinv @ P - torch.eye(o, dtype=_COMPLEX))[:, None]).diagonal(dim1=-2, dim2=-1).sum(-1).real
+        score = (weight * score).sum(-1)  # [b, J]
+        info = torch.einsum("bjkxy,blkyx->bjlk", W, W).real
+        info = (weight[:, None] * info).sum(-1)  # [b, J, J]
+        step = torch.linalg.lstsq(info, score[..., None]).solution[..., 0]
+        new = (v + step).maximum(lower)
+        if bool(((new - v).abs() <= 1e-8 * v).all()):
+            v = new
+            break
+        v = new
+    return v[:, :o], v[:, o:]
+
+
+class SpectralNoise:
+    """Per-solve noise model of a fit: variances of each sample's output (and input) noise.
+
+    ``whiten_residual`` / ``whiten`` map the time-domain residual [b, T, o] (and its Jacobian columns
+    [b, T, o, Q]) to the real least-squares stack [b, T', o] / [b, T', o, 1 + Q] of the module
+    docstring (T' = 2 K, zero rows for DC and the imaginary parts of DC and Nyquist);
+    ``white_time_residual`` gives the whitened residual back in the time domain, for the tests of
+    whiteness. ``linear_model`` and ``h`` are needed only when ``v_in`` is given (input noise).
+    """
+
+    def __init__(
+        self,
+        v_out: Tensor,
+        v_in: Tensor | None = None,
+        linear_model: LinearModel | None = None,
+        h: float | None = None,
+        n_params: int | None = None,
+        frozen_at: Tensor | None = None,
+    ) -> None:
+        self.v_out = v_out.to(torch.float64)
+        self.v_in = None if v_in is None else v_in.to(torch.float64)
+        if self.v_in is not None and (linear_model is None or h is None):
+            raise ValueError("input noise (v_in) needs the linear model and the sampling interval h")
+        if not (torch.isfinite(self.v_out).all() and (self.v_out > 0).all()):
+            raise ValueError("output noise variances must be finite and > 0")
+        if self.v_in is not None and not (torch.isfinite(self.v_in).all() and (self.v_in >= 0).all()):
+            raise ValueError("input noise variances must be finite and >= 0")
+        self.model = linear_model
+        self.h = None if h is None else float(h)
+        self.n_params = n_params if n_params is not None else (linear_model.n_params if linear_model else 0)
+        # S evaluated at these θ [batch, Q] and held fixed (iteratively reweighted, no dS term).
+        self.frozen_at = None if frozen_at is None else frozen_at.to(torch.float64)
+
+    @property
+    def has_input_noise(self) -> bool:
+        return self.v_in is not None
+
+    def omega(self, n_steps: int) -> Tensor:
+        return 2 * math.pi * torch.fft.rfftfreq(n_steps, d=self.h, dtype=torch.float64)
+
+    def _factor(self, index: Tensor, params: Tensor | None, n_steps: int, derivatives: bool):
+        """Cholesky factor L [b, K, o, o] of S and, with derivatives, dS [b, P, K, o, o]."""
+        v_out = self.v_out[index]
+        if not self.has_input_noise:
+            L = torch.diag_embed(v_out.sqrt().to(_COMPLEX))[:, None]
+            return L, None
+        if self.frozen_at is not None:
+            params, derivatives = self.frozen_at[index], False
+        H, dH = frequency_response(self.model, params[:, : self.model.n_params], self.omega(n_steps), derivatives)
+        v_in = self.v_in[index]
+        S = spectral_matrix(H, v_out, v_in)
+        L = torch.linalg.cholesky(S)
+        if not derivatives:
+            return L, None
+        HV = H * v_in.to(_COMPLEX)[:, None, None, :]  # [b, K, o, m]
+        dHV = dH @ HV.conj().transpose(-1, -2)[:, None]  # dH V H^H, [b, P, K, o, o]
+        return L, dHV + dHV.conj().transpose(-1, -2)
+
+    def _spectrum(self, x: Tensor) -> Tensor:
+        """rfft over time with the sqrt(c_k / T) weights: [b, T, ...] -> [b, K, ...] complex."""
+        T = x.shape[1]
+        w = (parseval_weights(T) / T).sqrt().to(_COMPLEX)
+        X = torch.fft.rfft(x.to(torch.float64), dim=1)
+        return X * w.view(1, -1, *([1] * (x.ndim - 2)))
+
+    @staticmethod
+    def _real_stack(E: Tensor) -> Tensor:
+        """[b, K, ...] complex -> [b, 2K, ...] real (real parts, then imaginary parts)."""
+        return torch.cat([E.real, E.imag], 1).contiguous()
+
+    def whiten_residual(self, residual: Tensor, params: Tensor | None, index: Tensor) -> Tensor:
+        """residual [b, T, o] at θ ``params`` [b, Q] of the samples ``index`` -> [b, 2K, o]."""
+        L, _ = self._factor(index, params, residual.shape[1], False)
+        Rk = self._spectrum(residual)  # [b, K, o]
+        e = torch.linalg.solve_triangular(L.expand(-1, Rk.shape[1], -1, -1), Rk[..., None], upper=False)[..., 0]
+        return self._real_stack(e)
+
+    def whiten(self, augmented: Tensor, params: Tensor, index: Tensor) -> Tensor:
+        """(R | J) [b, T, o, 1 + Q] -> the whitened (e | de/dθ) [b, 2K, o, 1 + Q]; S depends on the
+        first ``n_params`` entries of θ (input noise), which adds -Phi(M) e to their columns."""
+        n_steps = augmented.shape[1]
+        L, dS = self._factor(index, params, n_steps, self.has_input_noise)
+        X = self._spectrum(augmented)  # [b, K, o, 1 + Q]
+        Lk = L.expand(-1, X.shape[1], -1, -1)
+        E = torch.linalg.solve_triangular(Lk, X, upper=False)  # L^-1 (R | J)
+        if dS is not None:
+            e = E[..., 0]  # [b, K, o]
+            P = dS.shape[1]
+            Linv = torch.linalg.solve_triangular(Lk, torch.eye(L.shape[-1], dtype=_COMPLEX).expand_as(Lk), upper=False)
+            M = Linv[:, None] @ dS @ Linv.conj().transpose(-1, -2)[:, None]  # [b, P, K, o, o]
+            phi = M.tril()
+            phi = phi - 0.5 * torch.diag_embed(M.diagonal(dim1=-2, dim2=-1))
+            correction = (phi @ e[:, None, :, :, None])[..., 0]  # [b, P, K, o]
+            E[..., 1 : 1 + P] = E[..., 1 : 1 + P] - correction.permute(0, 2, 3, 1)
+        return self._real_stack(E)
+
+    def white_time_residual(self, residual: Tensor, params: Tensor | None, index: Tensor) -> Tensor:
+        """The whitened residual back in the time domain [b, T, o] (DC removed), for the whiteness tests."""
+        T = residual.shape[1]
+        L, _ = self._factor(index, params, T, False)
+        Rk = torch.fft.rfft(residual.to(torch.float64), dim=1)
+        Rk[:, 0] = 0
+        e = torch.linalg.solve_triangular(L.expand(-1, Rk.shape[1], -1, -1), Rk[..., None], upper=False)[..., 0]
+        return torch.fft.irfft(e, n=T, dim=1)
