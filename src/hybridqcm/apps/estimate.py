@@ -167,7 +167,11 @@ def validate(cfg) -> dict:
     common.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
-    n_steps = int(cfg.n_steps)
+    longest = str(cfg.n_steps) == "max"  # the longest window the file holds, resolved below
+    try:
+        n_steps = 2 if longest else int(cfg.n_steps)
+    except (TypeError, ValueError):
+        raise ConfigError(f"n_steps={cfg.n_steps!r}: give a number of samples >= 2 or max") from None
     if n_steps < 2:
         raise ConfigError(f"n_steps must be >= 2, got {cfg.n_steps}")
     sigma = float(cfg.noise_sigma)
@@ -348,6 +352,13 @@ def validate(cfg) -> dict:
             f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one"
         )
     margin = cfg.get("input_margin", "auto")
+    if longest:  # every stored step, less the exact model's input margins
+        exact = base is not None or model == "exact"
+        n_steps = stored - (12 if exact and str(margin) == "auto" and stored >= 14 else 0)
+        if str(margin) != "auto":
+            n_steps = stored - sum(int(m) for m in margin)
+        if n_steps < 2:
+            raise DatasetError(f"{path}: n_steps=max leaves {n_steps} steps of the {stored} stored")
     if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
         margin = (0, 0) if model == "euler" else (min(4, stored - n_steps), max(0, min(8, stored - n_steps - 4)))
     try:
@@ -388,6 +399,7 @@ def validate(cfg) -> dict:
         "n_params": n_params,
         "sensor": sensor,
         "input_margin": margin,
+        "n_steps": n_steps,
     }
 
 
@@ -498,7 +510,7 @@ def run(cfg) -> dict:
         unet_ckpt=cfg.unet_ckpt,
         cae_ckpt=cfg.cae_ckpt,
         observed=plan["observed"],
-        n_steps=int(cfg.n_steps),
+        n_steps=plan["n_steps"],
         h=plan["h"],
         cnn_init=bool(cfg.init.cnn),
         equation_error_init=bool(cfg.init.equation_error),
@@ -649,7 +661,7 @@ def run(cfg) -> dict:
         "data": str(plan["path"]),
         "split": plan["split"],
         "n_samples": int(params.shape[0]),
-        "n_steps": int(cfg.n_steps),
+        "n_steps": plan["n_steps"],
         "noise_sigma": float(cfg.noise_sigma),
         "seed": int(cfg.seed),
         "observed": plan["observed"],
@@ -670,7 +682,7 @@ def run(cfg) -> dict:
     if inputs["true"] is not None:
         true = inputs["true"][:, :n_params]
         table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
-        title = f"{cfg.experiment_name}: {params.shape[0]} samples, N = {cfg.n_steps}, noise σ = {cfg.noise_sigma}"
+        title = f"{cfg.experiment_name}: {params.shape[0]} samples, N = {plan['n_steps']}, noise σ = {cfg.noise_sigma}"
         write_error_distribution(table_rows, run_dir, title=title)
         # A diverged or non-finite sample counts as failed / not covered, never as a success.
         failed = ~torch.isfinite(params).all(1) | (result.status == int(SolverStatus.DIVERGED))
