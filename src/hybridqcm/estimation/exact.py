@@ -199,6 +199,20 @@ def _window_spline(n_local: int, substeps: int, degree: int, start: int, n_steps
     return rows.contiguous()
 
 
+def _bands(n_fine: int, n_local: int, m_sub: int, start: int, steps: int = 64):
+    """Blocks (r0, r1, c0, c1) of a window's spline matrix [n_fine, n_local] that hold all its
+    weights above round-off: fine rows of `steps` samples at a time, against the input samples
+    within _SPLINE_REACH of them (the rest weigh < 1e-23, see _SPLINE_REACH). A long window then
+    costs O(T) instead of the O(T^2) of the dense product."""
+    blocks = []
+    for r0 in range(0, n_fine, steps * m_sub):
+        r1 = min(n_fine, r0 + steps * m_sub)
+        c0 = max(0, start + r0 // m_sub - _SPLINE_REACH)
+        c1 = min(n_local, start + (r1 - 1) // m_sub + 2 + _SPLINE_REACH)
+        blocks.append((r0, r1, c0, c1))
+    return blocks
+
+
 def _sub_samples(
     inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None, degree: int = 5
 ) -> Tensor:
@@ -208,11 +222,13 @@ def _sub_samples(
     batch, n_in, n_ch = inputs.shape
     n_steps = n_in - start if n_steps is None else n_steps
     m_sub = substeps if hold == "spline" else 1
-    if m_sub > 1:  # one GEMM for the whole batch
+    if m_sub > 1:
         lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
-        weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps)
+        weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps).to(inputs.device)
         columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
-        fine = torch.mm(weights.to(inputs.device), columns)  # [(n_steps-1) m_sub + 1, (c, b)]
+        fine = torch.empty(weights.shape[0], n_ch * batch, dtype=inputs.dtype, device=inputs.device)
+        for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, m_sub, start - lo):
+            torch.mm(weights[r0:r1, c0:c1], columns[c0:c1], out=fine[r0:r1])  # [(n_steps-1) m_sub + 1, (c, b)]
     else:
         fine = inputs[:, start : start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
     return fine.as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (n_ch * batch, batch, m_sub * n_ch * batch, 1))
@@ -227,9 +243,11 @@ def _fine_samples(inputs: Tensor, hold: str, substeps: int, start: int, n_steps:
     if hold == "spline" and substeps > 1:
         lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
         weights = _window_spline(hi - lo, substeps, degree, start - lo, n_steps).to(inputs.device)
-        padded = torch.cat([weights.new_zeros(substeps, hi - lo), weights])
         local = inputs[:, lo:hi].transpose(1, 2).reshape(batch * n_ch, hi - lo)
-        return torch.mm(local, padded.t()).view(batch, n_ch, -1)  # one GEMM for the whole batch
+        out = inputs.new_zeros(batch * n_ch, substeps + weights.shape[0])
+        for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, substeps, start - lo):
+            out[:, substeps + r0 : substeps + r1] = torch.mm(local[:, c0:c1], weights[r0:r1, c0:c1].t())
+        return out.view(batch, n_ch, -1)
     out = inputs.new_zeros(batch, n_ch, n_steps + 1)
     out[:, :, 1:] = inputs[:, start : start + n_steps].transpose(1, 2)
     return out
