@@ -90,23 +90,16 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
         g0, g1 = tau * (p1 - p2), tau * p2
         dg0, dg1 = tau * tau * (p1 - 2 * p2 + 2 * p3), tau * tau * (p2 - 2 * p3)
     phi = torch.exp(z)
-    powers = [torch.ones_like(phi)]  # phi^0 .. phi^m_sub
-    for _ in range(m_sub):
-        powers.append(powers[-1] * phi)
-    ell, dell = [], []
-    for j in range(m_sub + 1):
-        a, b = m_sub - 1 - j, m_sub - j  # powers of phi multiplying g0 (j < m_sub) and g1 (j >= 1)
-        w = torch.zeros_like(phi)
-        dw = torch.zeros_like(phi)
-        if j < m_sub:
-            w = w + powers[a] * g0
-            dw = dw + powers[a] * (a * tau * g0 + dg0)
-        if j >= 1:
-            w = w + powers[b] * g1
-            dw = dw + powers[b] * (b * tau * g1 + dg1)
-        ell.append(w)
-        dell.append(dw)
-    return torch.stack(ell), torch.stack(dell)
+    powers = torch.cat([torch.ones_like(phi)[None], phi[None].expand(m_sub, *phi.shape)]).cumprod(0)  # phi^0..M
+    j = torch.arange(m_sub + 1, device=lam.device)
+    a, b = (m_sub - 1 - j).clamp_min(0), m_sub - j  # powers of phi multiplying g0 (j < M) and g1 (j >= 1)
+    shape = (-1,) + (1,) * lam.ndim
+    use0, use1 = (j < m_sub).view(shape), (j >= 1).view(shape)
+    pa, pb = powers[a], powers[b]
+    a, b = (a * tau).view(shape).to(torch.float64), (b * tau).view(shape).to(torch.float64)
+    ell = torch.where(use0, pa * g0, 0) + torch.where(use1, pb * g1, 0)
+    dell = torch.where(use0, pa * (a * g0 + dg0), 0) + torch.where(use1, pb * (b * g1 + dg1), 0)
+    return ell, dell
 
 
 def modal_sensitivities(
