@@ -96,7 +96,7 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
     shape = (-1,) + (1,) * lam.ndim
     use0, use1 = (j < m_sub).view(shape), (j >= 1).view(shape)
     pa, pb = powers[a], powers[b]
-    a, b = (a * tau).view(shape).to(torch.float64), (b * tau).view(shape).to(torch.float64)
+    a, b = (a.to(torch.float64) * tau).view(shape), (b.to(torch.float64) * tau).view(shape)
     ell = torch.where(use0, pa * g0, 0) + torch.where(use1, pb * g1, 0)
     dell = torch.where(use0, pa * (a * g0 + dg0), 0) + torch.where(use1, pb * (b * g1 + dg1), 0)
     return ell, dell
