@@ -42,6 +42,10 @@ product rule.
 
 Sensitivities. Outputs are linear in x0, so dy_k/dx0 = H_k = C Phi^k (H_{k+1} = H_k Phi). For p:
 dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLambda_j s_{k,j} and dy_k = C dx_k + dC x_k + dE w_k.
+exact_sensitivities evaluates these by default in modal coordinates (estimation._modal: per
+sample A = V diag(lambda) V^-1, every column a combination of a few scalar sequences per mode, one
+bmm per chunk); the step recursion below (method="recursion") is the reference and the fallback
+for samples with nearly repeated eigenvalues.
 
 Layout. Every per-sample quantity is held batch innermost (matrices [r, c, b], tangents
 [r, P, c, b]) and every per-sample product is written as broadcast multiply-adds over contiguous
