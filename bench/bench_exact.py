@@ -2,12 +2,22 @@
 
     PYTHONPATH=src .venv/bin/python bench/bench_exact.py [--samples 17000] [--steps 100] [--chunk 512]
         [--threads 1] [--hold spline] [--substeps 4] [--degree 5] [--margin 0] [--repeats 3]
+        [--model quarter|seat|sprung]
 
-Synthetic quarter-car samples (thesis prior, ISO 8608 roads); every layer runs over the whole
+Synthetic samples (thesis prior, ISO 8608 roads; the seat and sprung models take p1, p2 / p1..p6
+of the same draws and the road as their driving acceleration); every layer runs over the whole
 batch in chunks of --chunk samples with torch.set_num_threads(--threads), as the solver does.
-Printed: seconds per full pass (best of --repeats) for exact_sensitivities (p and x0 columns,
-[b, T, 3, 17]) / exact_outputs and euler_sensitivities ([b, T, 3, 11]) / euler_accelerations,
-and the exact/Euler ratios.
+Printed side by side (best of --repeats, the methods alternating within each repeat): seconds
+per full pass of exact_sensitivities with x0 columns by the step recursion (method="recursion",
+the old path) and in modal coordinates (method="modal", the default), their largest difference
+relative to each column's largest value, exact_outputs and, for the quarter car,
+euler_sensitivities ([b, T, 3, 11]) / euler_accelerations and the ratios.
+
+    ... bench/bench_exact.py --gn [--substeps 16] [--margin 8]
+
+times instead one Gauss-Newton iteration of the solver (all samples active, x0 unknown, inputs
+with --margin samples on each side of the window) with the Euler model and the exact model by
+each method.
 
     ... bench/bench_exact.py --accuracy
 
@@ -19,6 +29,7 @@ road of three low-frequency sines, T = 100, h = 0.01, from rest.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import torch
@@ -82,6 +93,56 @@ def accuracy() -> None:
         )
 
 
+def _model(name: str):
+    from hybridqcm.physics.linear_models import QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
+
+    return {"quarter": QuarterCarRoad, "seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}[name]()
+
+
+def gauss_newton(args) -> None:
+    """One GN iteration over all samples: Euler vs exact (recursion) vs exact (modal)."""
+    import functools
+
+    import hybridqcm.estimation.response as response
+    from hybridqcm.estimation.exact import exact_sensitivities
+    from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+    from hybridqcm.physics import reference_params
+    from hybridqcm.physics.linear_models import QuarterCarRoad
+    from hybridqcm.testing import synthetic_samples
+
+    n, N, margin = args.samples, args.steps, args.margin
+    data = synthetic_samples(n, n_steps=N + 2 * margin, seed=0)
+    g = torch.Generator().manual_seed(1)
+    init = reference_params().expand(n, 10) * (1 + 0.1 * torch.randn(n, 10, generator=g, dtype=torch.float64))
+    accel, road = data["accel"][:, margin : margin + N].to(torch.float64), data["road"].to(torch.float64)
+    exact = response.ExactResponse(QuarterCarRoad(), 0.01, args.hold, args.substeps, initial_state="unknown")
+    theta0 = torch.cat([init, torch.zeros(n, 6, dtype=torch.float64)], 1)
+    solver = GaussNewton(SolverConfig(max_iterations=1, num_threads=args.threads, chunk_size=args.chunk))
+    cases = {
+        "euler": (LeastSquaresProblem(accel, road[:, margin : margin + N], 0.01), init),
+        "exact recursion": (LeastSquaresProblem(accel, road, 0.01, model=exact, input_offset=margin), theta0),
+        "exact modal": (LeastSquaresProblem(accel, road, 0.01, model=exact, input_offset=margin), theta0),
+    }
+    original = response.exact_sensitivities
+    best: dict[str, float] = {}
+    try:
+        for _ in range(args.repeats):
+            for name, (problem, start) in cases.items():
+                method = "recursion" if "recursion" in name else "modal"
+                response.exact_sensitivities = functools.partial(exact_sensitivities, method=method)
+                result = solver.solve(problem, start)
+                best[name] = min(best.get(name, math.inf), result.seconds[0])
+    finally:
+        response.exact_sensitivities = original
+    print(
+        f"one GN iteration, {n} samples x N = {N} (margin {margin}), chunk {args.chunk}, {args.threads} thread(s), "
+        f"hold={args.hold} substeps={args.substeps}, x0 unknown (best of {args.repeats})"
+    )
+    for name, seconds in best.items():
+        print(f"  {name:16s} {seconds:7.3f} s   x Euler {seconds / best['euler']:5.2f}")
+    print(f"  modal / recursion {best['exact modal'] / best['exact recursion']:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=17000)
@@ -95,34 +156,42 @@ def main() -> None:
     parser.add_argument(
         "--margin", type=int, default=0, help="input samples on each side of the --steps window (start=margin)"
     )
+    parser.add_argument("--model", choices=["quarter", "seat", "sprung"], default="quarter")
     parser.add_argument("--accuracy", action="store_true", help="print hold errors vs continuous time instead")
+    parser.add_argument("--gn", action="store_true", help="time one Gauss-Newton iteration instead")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.accuracy:
         accuracy()
         return
+    if args.gn:
+        gauss_newton(args)
+        return
 
     from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
     from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
-    from hybridqcm.physics.linear_models import QuarterCarRoad
     from hybridqcm.testing import synthetic_samples
 
     data = synthetic_samples(args.samples, n_steps=args.steps + 2 * args.margin, seed=0)
-    params, road = data["params"].to(torch.float64), data["road"].to(torch.float64)
-    x0 = torch.zeros(args.samples, 6, dtype=torch.float64)
-    model = QuarterCarRoad()
+    model = _model(args.model)
+    params = data["params"].to(torch.float64)[:, : model.n_params]
+    road = data["road"].to(torch.float64)
+    x0 = 1e-3 * torch.randn(
+        args.samples, model.n_state, generator=torch.Generator().manual_seed(2), dtype=torch.float64
+    )
     chunks = [
         (params[i : i + args.chunk], road[i : i + args.chunk], x0[i : i + args.chunk])
         for i in range(0, args.samples, args.chunk)
     ]
     h = 0.01
     window = dict(start=args.margin, n_steps=args.steps, spline_degree=args.degree)
+    worst = [0.0]
 
     def run(kind: str):
         def go():
             for p, u, x in chunks:
-                if kind == "exact_sens":
-                    exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps, **window)
+                if kind == "recursion" or kind == "modal":
+                    exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps, method=kind, **window)
                 elif kind == "exact_out":
                     exact_outputs(model, p, x, u[..., None], h, args.hold, args.substeps, **window)
                 elif kind == "euler_sens":
@@ -132,20 +201,38 @@ def main() -> None:
 
         return go
 
-    run("exact_sens")()  # warm-up (spline matrix cache, allocator)
-    t = {kind: _best(run(kind), args.repeats) for kind in ("exact_sens", "exact_out", "euler_sens", "euler_acc")}
+    for p, u, x in chunks:  # warm-up (spline matrix cache, allocator) and agreement of the two methods
+        old, new = (
+            exact_sensitivities(model, p, x, u[..., None], h, args.hold, args.substeps, method=m, **window)
+            for m in ("recursion", "modal")
+        )
+        scale = old.abs().amax((0, 1)).clamp_min(1e-300)
+        worst[0] = max(worst[0], float(((old - new).abs().amax((0, 1)) / scale).max()))
+    kinds = ["recursion", "modal", "exact_out"] + (["euler_sens", "euler_acc"] if args.model == "quarter" else [])
+    t = {kind: math.inf for kind in kinds}
+    for _ in range(args.repeats):  # alternate, so that a change of machine load hits all alike
+        for kind in kinds:
+            t[kind] = min(t[kind], _best(run(kind), 1))
+    cols = model.n_output * (1 + model.n_params + model.n_state)
     print(
-        f"{args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
+        f"{args.model}: {args.samples} samples x {args.steps} steps, chunk {args.chunk}, {args.threads} thread(s), "
         f"hold={args.hold} substeps={args.substeps} degree={args.degree} margin={args.margin}"
     )
     print(
-        f"  exact_sensitivities [b,T,3,17] {t['exact_sens']:.3f} s   "
-        f"euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   ratio {t['exact_sens'] / t['euler_sens']:.2f}"
+        f"  exact_sensitivities [b,T,{cols}]  recursion {t['recursion']:.3f} s   modal {t['modal']:.3f} s   "
+        f"modal/recursion {t['modal'] / t['recursion']:.2f}   max rel. difference {worst[0]:.1e}"
     )
-    print(
-        f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "
-        f"euler_accelerations [b,T,3]    {t['euler_acc']:.3f} s   ratio {t['exact_out'] / t['euler_acc']:.2f}"
-    )
+    if args.model == "quarter":
+        print(
+            f"  euler_sensitivities [b,T,3,11] {t['euler_sens']:.3f} s   recursion/Euler "
+            f"{t['recursion'] / t['euler_sens']:.2f}   modal/Euler {t['modal'] / t['euler_sens']:.2f}"
+        )
+        print(
+            f"  exact_outputs       [b,T,3]    {t['exact_out']:.3f} s   "
+            f"euler_accelerations [b,T,3]    {t['euler_acc']:.3f} s   ratio {t['exact_out'] / t['euler_acc']:.2f}"
+        )
+    else:
+        print(f"  exact_outputs {t['exact_out']:.3f} s")
 
 
 if __name__ == "__main__":

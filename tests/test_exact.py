@@ -504,3 +504,66 @@ def test_per_sample_output_derivatives_take_the_general_path(samples):
     shortcut = exact_sensitivities(model, p, x0, w, H)
     general = exact_sensitivities(GenericQuarterCar(), p, x0, w, H)
     torch.testing.assert_close(general, shortcut, rtol=1e-12, atol=1e-12 * shortcut.abs().amax())
+
+
+# ----------------------------------------------------------------------------- modal evaluation
+def _random_case(name: str, batch: int, n_in: int, seed: int):
+    """Thesis-prior parameters (scattered by 30 %) and a white-noise input of n_in samples."""
+    g = torch.Generator().manual_seed(seed)
+    p = synthetic_samples(batch, n_steps=2, seed=seed)["params"].to(F64)
+    p = p * (1 + 0.3 * torch.rand(p.shape, generator=g, dtype=F64) - 0.15)
+    model = {"quarter": QuarterCarRoad(), "seat": SeatBaseExcitation(), "sprung": SprungBaseExcitation()}[name]
+    w = torch.randn(batch, n_in, 1, generator=g, dtype=F64) * (0.01 if name == "quarter" else 1.0)
+    return model, p[:, : model.n_params], w
+
+
+def _column_error(new: torch.Tensor, old: torch.Tensor) -> float:
+    """Largest difference relative to each output column's largest value."""
+    scale = old.abs().amax((0, 1)).clamp_min(1e-300)
+    return float(((new - old).abs().amax((0, 1)) / scale).max())
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
+def test_modal_evaluation_matches_the_step_recursion(case, hold):
+    model, p, w = _random_case(case, 48, 130, seed=11)
+    x0 = _x0(48, model.n_state, seed=3)
+    for x, with_x0, start, n_steps in [
+        (x0, True, 9, 100),
+        (x0, False, 0, 130),
+        (None, True, 20, 7),
+        (None, False, 0, 2),
+    ]:
+        kwargs = dict(hold=hold, substeps=5, with_x0=with_x0, start=start, n_steps=n_steps)
+        old = exact_sensitivities(model, p, x, w, H, method="recursion", **kwargs)
+        new = exact_sensitivities(model, p, x, w, H, **kwargs)
+        assert new.shape == old.shape
+        assert _column_error(new, old) <= 1e-10, (with_x0, start, n_steps)
+
+
+@pytest.mark.parametrize("delta", [0.0, 1e-7, -1e-7, 1e-4, 1e-2])
+def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
+    """Seat damped near critically, p1^2 = 4 p2 (1 + delta)^2: a double eigenvalue at delta = 0."""
+    from hybridqcm.estimation._modal import modal_sensitivities
+    from hybridqcm.estimation.exact import _balance, _fine_samples
+
+    model = SeatBaseExcitation()
+    p2 = torch.tensor([400.0, 150.0], dtype=F64)
+    p = torch.stack([2 * p2.sqrt() * (1 + delta), p2], 1)
+    w = torch.randn(2, 120, 1, generator=torch.Generator().manual_seed(1), dtype=F64)
+    x0 = _x0(2, 2, seed=4)
+    old = exact_sensitivities(model, p, x0, w, H, method="recursion", start=8, n_steps=100)
+    new = exact_sensitivities(model, p, x0, w, H, start=8, n_steps=100)
+    assert torch.isfinite(new).all() and _column_error(new, old) <= 1e-10
+    A, B, C, E = model.matrices(p)
+    fine = _fine_samples(w, "spline", 4, 8, 100)
+    _, ok = modal_sensitivities(
+        (A, B, C, E), model.matrix_derivatives(p), _balance(A), x0, fine, w[:, 8:108], H, "spline", True
+    )
+    assert bool(ok.all()) == (abs(delta) > 1e-3)
+
+
+def test_unknown_method_raises(samples):
+    model, p, w = _model_case("quarter", samples)
+    with pytest.raises(ValueError, match="unknown method 'fast'"):
+        exact_sensitivities(model, p, None, w, H, method="fast")

@@ -42,6 +42,10 @@ product rule.
 
 Sensitivities. Outputs are linear in x0, so dy_k/dx0 = H_k = C Phi^k (H_{k+1} = H_k Phi). For p:
 dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLambda_j s_{k,j} and dy_k = C dx_k + dC x_k + dE w_k.
+exact_sensitivities evaluates these by default in modal coordinates (estimation._modal: per
+sample A = V diag(lambda) V^-1, every column a combination of a few scalar sequences per mode, one
+bmm per chunk); the step recursion below (method="recursion") is the reference and the fallback
+for samples with nearly repeated eigenvalues.
 
 Layout. Every per-sample quantity is held batch innermost (matrices [r, c, b], tangents
 [r, P, c, b]) and every per-sample product is written as broadcast multiply-adds over contiguous
@@ -62,7 +66,10 @@ from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel
 
+from ._modal import modal_sensitivities
+
 HOLDS = ("spline", "foh", "zoh")
+METHODS = ("modal", "recursion")
 SPLINE_DEGREES = (3, 5)
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
@@ -196,6 +203,20 @@ def _window_spline(n_local: int, substeps: int, degree: int, start: int, n_steps
     return rows.contiguous()
 
 
+def _bands(n_fine: int, n_local: int, m_sub: int, start: int, steps: int = 64):
+    """Blocks (r0, r1, c0, c1) of a window's spline matrix [n_fine, n_local] that hold all its
+    weights above round-off: fine rows of `steps` samples at a time, against the input samples
+    within _SPLINE_REACH of them (the rest weigh < 1e-23, see _SPLINE_REACH). A long window then
+    costs O(T) instead of the O(T^2) of the dense product."""
+    blocks = []
+    for r0 in range(0, n_fine, steps * m_sub):
+        r1 = min(n_fine, r0 + steps * m_sub)
+        c0 = max(0, start + r0 // m_sub - _SPLINE_REACH)
+        c1 = min(n_local, start + (r1 - 1) // m_sub + 2 + _SPLINE_REACH)
+        blocks.append((r0, r1, c0, c1))
+    return blocks
+
+
 def _sub_samples(
     inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None, degree: int = 5
 ) -> Tensor:
@@ -205,14 +226,35 @@ def _sub_samples(
     batch, n_in, n_ch = inputs.shape
     n_steps = n_in - start if n_steps is None else n_steps
     m_sub = substeps if hold == "spline" else 1
-    if m_sub > 1:  # one GEMM for the whole batch
+    if m_sub > 1:
         lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
-        weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps)
+        weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps).to(inputs.device)
         columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
-        fine = torch.mm(weights.to(inputs.device), columns)  # [(n_steps-1) m_sub + 1, (c, b)]
+        fine = torch.empty(weights.shape[0], n_ch * batch, dtype=inputs.dtype, device=inputs.device)
+        for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, m_sub, start - lo):
+            torch.mm(weights[r0:r1, c0:c1], columns[c0:c1], out=fine[r0:r1])  # [(n_steps-1) m_sub + 1, (c, b)]
     else:
         fine = inputs[:, start : start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
     return fine.as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (n_ch * batch, batch, m_sub * n_ch * batch, 1))
+
+
+def _fine_samples(inputs: Tensor, hold: str, substeps: int, start: int, n_steps: int, degree: int = 5) -> Tensor:
+    """inputs [b, T_in, m] -> [b, m, m_sub + (n_steps - 1) m_sub + 1]: m_sub zeros, then the held
+    input at the sub-steps of the window (the samples of _sub_samples, batch first, one row per
+    sample and channel; m_sub = substeps for "spline", 1 otherwise). The leading zeros let
+    estimation._modal read step k - 1's sub-samples as row k of one strided view."""
+    batch, n_in, n_ch = inputs.shape
+    if hold == "spline" and substeps > 1:
+        lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
+        weights = _window_spline(hi - lo, substeps, degree, start - lo, n_steps).to(inputs.device)
+        local = inputs[:, lo:hi].transpose(1, 2).reshape(batch * n_ch, hi - lo)
+        out = inputs.new_zeros(batch * n_ch, substeps + weights.shape[0])
+        for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, substeps, start - lo):
+            out[:, substeps + r0 : substeps + r1] = torch.mm(local[:, c0:c1], weights[r0:r1, c0:c1].t())
+        return out.view(batch, n_ch, -1)
+    out = inputs.new_zeros(batch, n_ch, n_steps + 1)
+    out[:, :, 1:] = inputs[:, start : start + n_steps].transpose(1, 2)
+    return out
 
 
 def _forcing(lam: Tensor, s: Tensor) -> Tensor:
@@ -494,14 +536,56 @@ def exact_sensitivities(
     start: int = 0,
     n_steps: int | None = None,
     spline_degree: int = 5,
+    method: str = "modal",
 ) -> Tensor:
     """Prediction and Jacobian in one forward pass.
 
     -> [b, n_steps, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
     [..., 1 + P + i] = dy/dx0_i (x0 = the state at sample ``start``). Window and margins as in
     exact_outputs. Same layout convention as euler_sensitivities ([b, T, 3, 11]).
+
+    ``method``: "modal" (default) evaluates the same quantities in eigen-coordinates of A, one
+    small matrix product per sample (estimation._modal; samples with nearly repeated eigenvalues
+    or ill-conditioned eigenvectors go to the recursion); "recursion" runs the step recursion
+    below for every sample. They agree to round-off (tests/test_exact.py).
     """
+    if method not in METHODS:
+        raise ValueError(f"exact: unknown method {method!r}; choose one of {METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    if method == "recursion" or T == 1:
+        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, spline_degree)
+    A, B, C, E = model.matrices(params)
+    out, ok = modal_sensitivities(
+        (A, B, C, E),
+        model.matrix_derivatives(params),
+        _balance(A),
+        x0,
+        _fine_samples(inputs, hold, substeps, start, T, spline_degree),
+        inputs[:, start : start + T],
+        h,
+        hold,
+        with_x0,
+    )
+    if not bool(ok.all()):
+        bad = (~ok).nonzero()[:, 0]
+        out[bad] = _recursion_sensitivities(
+            model,
+            params[bad],
+            None if x0 is None else x0[bad],
+            inputs[bad],
+            h,
+            hold,
+            substeps,
+            with_x0,
+            start,
+            T,
+            spline_degree,
+        )
+    return out
+
+
+def _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, spline_degree) -> Tensor:
+    """exact_sensitivities by the step recursion (validated float64 arguments)."""
     batch = inputs.shape[0]
     n, o, n_params, n_in = model.n_state, model.n_output, model.n_params, model.n_input
     _, _, C, E = model.matrices(params)

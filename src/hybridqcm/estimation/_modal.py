@@ -1,0 +1,225 @@
+"""Modal evaluation of the exact sensitivities: the same numbers as the step recursion of
+``exact.exact_sensitivities``, written as one small matrix product per sample.
+
+Notation as in ``exact`` (b samples, P params, n states, m inputs, o outputs, T window samples,
+M sub-steps of length tau = h/M, s_{k,j} the held input at t_k + j tau). Per sample
+A = V diag(lambda) V^-1 (distinct eigenvalues), modal state xi = V^-1 x:
+
+    xi_i' = lambda_i xi_i + beta_i w,   beta = V^-1 B,   y = gamma xi + E w,   gamma = C V.
+
+Everything is then a sum of four kinds of scalar sequences per mode i (and input channel c):
+
+    e_{k,i} = mu_i^k, mu_i = exp(lambda_i h)       (free response, closed form)
+    f_{k,i} = k h mu_i^k = d e_{k,i}/d lambda_i     (closed form)
+    psi_{k,i,c}: psi' = lambda_i psi + w_c, psi_0 = 0, under the same hold as ``exact``
+    chi_{k,i,c} = d psi_{k,i,c} / d lambda_i
+
+psi is a scalar recursion psi_{k+1} = mu psi_k + sum_j l_j s_{k,j}, with the folded FOH weights
+l_j = [j < M] phi^(M-1-j) g0 + [j >= 1] phi^(M-j) g1, phi = exp(z), z = lambda tau,
+g0 = tau (phi_1(z) - phi_2(z)), g1 = tau phi_2(z) (ZOH: g0 = tau phi_1(z), g1 = 0), where
+phi_k(z) = sum_r z^r / (r + k)! (so phi_k' = phi_k - k phi_{k+1}); chi_{k+1} = mu chi_k +
+h mu psi_k + sum_j (d l_j / d lambda) s_{k,j}.
+
+Derivatives in p_j. With K_j = V^-1 dA_j V, its diagonal d_j (= d lambda / d p_j) and
+S_j,il = -K_j,il / (lambda_i - lambda_l) (i != l, 0 on the diagonal), the variable
+eta_j = V^-1 dx/dp_j - S_j xi obeys eta_j' = diag(lambda) eta_j + diag(d_j) xi + beta''_j w with
+beta''_j = V^-1 dB_j - S_j beta (the Sylvester part of K_j is absorbed by the change of
+variables), so per mode eta_{j,i} = mu_i^k eta_{j,i}(0) + d_{j,i} zeta_i + beta''_{j,i} psi_i,
+zeta_i = d xi_i / d lambda_i = xi0_i f_i + beta_i chi_i, eta_j(0) = -S_j xi0, and
+
+    dy_k/dp_j = gamma (eta_j + S_j xi_k) + dC_j V xi_k + dE_j w_k,   dy_k/dx0 = gamma diag(e_k) V^-1.
+
+Every column of the result [o, 1 + P (+ n)] is a fixed (per sample) combination of the basis
+(e, f, psi, chi, w): result[b] = basis[b] [T, R] @ coef[b] [R, o (1 + P + n)], one bmm straight
+into the batch-first layout. The result is real: with modes in conjugate pairs, sum_i c_i z_i =
+sum_i omega_i Re(c_i z_i), omega = 2 for the member with Im lambda > 0, 0 for its partner, 1 for
+a real eigenvalue (whose z is real), so each complex basis kind contributes exactly n real
+columns (Re and Im of the upper members, Re of the real ones): R = 2 n (m + 1) + m.
+
+Conditioning. Rounding errors grow like cond(V) max|lambda| / |lambda_i - lambda_l| (most for two
+nearly equal real eigenvalues, whose terms cancel); samples with this ratio above _LIMIT
+(_LIMIT_REAL for a real pair), or with non-finite values, are reported in ``ok`` and left to
+the step recursion.
+The eigenproblem is solved on the balanced D^-1 A D (D from exact._balance, powers of two).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+_CDTYPE = torch.complex128
+# cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
+# Measured differences from the recursion (docs/notes/estimation.md): two nearly equal real
+# eigenvalues (an almost critically damped mode) cost ~6e-18 times the square of this ratio
+# (2e-10 at 5.7e3), other pairs far less (< 1e-12 up to 1.4e6 for the quarter car).
+_LIMIT = 1e5
+_LIMIT_REAL = 1e3
+_SERIES_TERMS = 18  # phi_3(z) by its series for |z| <= 1: remainder < 1/21! < 2e-19 relative
+
+
+def _phi123(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """phi_1, phi_2, phi_3 of complex z (any shape). |z| <= 1: phi_3 by its series, then upwards
+    phi_k = 1/k! + z phi_{k+1} (no cancellation); |z| > 1: phi_1 = (e^z - 1)/z and downwards
+    phi_{k+1} = (phi_k - 1/k!)/z, which loses at most a few bits there."""
+    small = z.abs() <= 1
+    zs = torch.where(small, z, torch.zeros_like(z))
+    p3 = torch.full_like(zs, 1.0 / math.factorial(_SERIES_TERMS + 3))
+    for r in range(_SERIES_TERMS - 1, -1, -1):  # Horner
+        p3 = p3 * zs + 1.0 / math.factorial(r + 3)
+    p2 = p3 * zs + 0.5
+    p1 = p2 * zs + 1.0
+    zl = torch.where(small, torch.ones_like(z), z)
+    q1 = (torch.exp(zl) - 1.0) / zl
+    q2 = (q1 - 1.0) / zl
+    q3 = (q2 - 0.5) / zl
+    return torch.where(small, p1, q1), torch.where(small, p2, q2), torch.where(small, p3, q3)
+
+
+def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor, Tensor]:
+    """l_j and d l_j / d lambda for the unit-gain mode lambda [...]: each [m_sub + 1, ...]."""
+    tau = h / m_sub
+    z = lam * tau
+    p1, p2, p3 = _phi123(z)
+    if hold == "zoh":
+        g0, g1 = tau * p1, torch.zeros_like(p1)
+        dg0, dg1 = tau * tau * (p1 - p2), torch.zeros_like(p1)
+    else:
+        g0, g1 = tau * (p1 - p2), tau * p2
+        dg0, dg1 = tau * tau * (p1 - 2 * p2 + 2 * p3), tau * tau * (p2 - 2 * p3)
+    phi = torch.exp(z)
+    powers = torch.cat([torch.ones_like(phi)[None], phi[None].expand(m_sub, *phi.shape)]).cumprod(0)  # phi^0..M
+    j = torch.arange(m_sub + 1, device=lam.device)
+    a, b = (m_sub - 1 - j).clamp_min(0), m_sub - j  # powers of phi multiplying g0 (j < M) and g1 (j >= 1)
+    shape = (-1,) + (1,) * lam.ndim
+    use0, use1 = (j < m_sub).view(shape), (j >= 1).view(shape)
+    pa, pb = powers[a], powers[b]
+    a, b = (a.to(torch.float64) * tau).view(shape), (b.to(torch.float64) * tau).view(shape)
+    ell = torch.where(use0, pa * g0, 0) + torch.where(use1, pb * g1, 0)
+    dell = torch.where(use0, pa * (a * g0 + dg0), 0) + torch.where(use1, pb * (b * g1 + dg1), 0)
+    return ell, dell
+
+
+def modal_sensitivities(
+    matrices: tuple[Tensor, Tensor, Tensor, Tensor],
+    derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
+    scale: Tensor,
+    x0: Tensor | None,
+    fine: Tensor,
+    window: Tensor,
+    h: float,
+    hold: str,
+    with_x0: bool,
+) -> tuple[Tensor, Tensor]:
+    """-> (result [b, T, o, 1 + P (+ n)] as exact_sensitivities, ok [b] bool).
+
+    matrices A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]; derivatives dA [b, P, n, n],
+    dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m] (float64); scale [b, n] the balancing
+    D; x0 [b, n] or None; fine [b, m, M + (T - 1) M + 1]: M zeros, then the held input at the
+    sub-steps (exact._fine_samples), window [b, T, m] the input samples of the window. Rows of samples
+    with ok False are not valid.
+    """
+    A, B, C, E = matrices
+    dA, dB, dC, dE = derivatives
+    batch, n, m = B.shape
+    o, n_params, T = C.shape[1], dA.shape[1], window.shape[1]
+    m_sub = (fine.shape[2] - 1) // T  # fine holds M leading zeros and (T - 1) M + 1 samples
+    n_col = 1 + n_params + (n if with_x0 else 0)
+    dev = A.device
+
+    # eigen-decomposition of the balanced matrix; V = D Vb, V^-1 = Vb^-1 D^-1
+    ratio = scale[:, None, :] / scale[:, :, None]
+    lam, Vb = torch.linalg.eig(A * ratio)
+    Vb_inv = torch.linalg.inv(Vb)
+    V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
+    diff = lam[:, :, None] - lam[:, None, :]  # [b, i, l] lambda_i - lambda_l
+    eye = torch.eye(n, dtype=torch.bool, device=dev)
+    both_real = (lam.imag == 0)[:, :, None] & (lam.imag == 0)[:, None, :]
+    cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)  # 1-norm condition number
+    spread = (cond * lam.abs().amax(-1))[:, None, None] / diff.abs().masked_fill(eye, math.inf)  # [b, i, l]
+    limit = torch.where(both_real, _LIMIT_REAL, _LIMIT)
+    ok = torch.isfinite(cond) & (spread <= limit).all(-1).all(-1)
+    ok &= (lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1)
+
+    # complex coefficients [b, kind, mode, o, col]; kinds in the order of the recursion's channels:
+    # (e, f) then (psi_c, chi_c) for every input channel c
+    beta = V_inv @ B.to(_CDTYPE)  # [b, n, m]
+    gamma = C.to(_CDTYPE) @ V  # [b, o, n]
+    if dA.stride(0) == 0:  # the same dA for every sample: dA V as one product for the batch
+        dAV = torch.einsum("pil,bls->bpis", dA[0].to(_CDTYPE), V)
+    else:
+        dAV = dA.to(_CDTYPE) @ V[:, None]
+    K = V_inv[:, None] @ dAV  # [b, P, n, n] = V^-1 dA_j V
+    dlam = torch.diagonal(K, dim1=-2, dim2=-1)  # [b, P, n] d lambda / d p
+    S = -(K / diff[:, None].masked_fill(eye, 1.0)).masked_fill(eye, 0.0)
+    beta2 = V_inv[:, None] @ dB.to(_CDTYPE) - S @ beta[:, None]  # [b, P, n, m]
+    Gam = gamma[:, None] @ S + dC.to(_CDTYPE) @ V[:, None]  # [b, P, o, n]
+    coef = torch.zeros(batch, m + 1, 2, n, o, n_col, dtype=_CDTYPE, device=dev)
+    g_t = gamma.transpose(1, 2)  # [b, l, o]
+    if x0 is not None:
+        xi0 = (V_inv @ x0.to(_CDTYPE)[..., None])[..., 0]  # [b, n]
+        eta0 = -(S @ xi0[:, None, :, None])[..., 0]  # [b, P, n]
+        coef[:, 0, 0, ..., 0] = g_t * xi0[:, :, None]
+        coef[:, 0, 0, ..., 1 : 1 + n_params] = (
+            g_t[..., None] * eta0.permute(0, 2, 1)[:, :, None] + Gam.permute(0, 3, 2, 1) * xi0[:, :, None, None]
+        )
+        coef[:, 0, 1, ..., 1 : 1 + n_params] = g_t[..., None] * (dlam * xi0[:, None]).permute(0, 2, 1)[:, :, None]
+    if with_x0:
+        coef[:, 0, 0, ..., 1 + n_params :] = g_t[..., None] * V_inv[:, :, None, :]
+    cpsi = coef[:, 1:, 0]  # [b, c, l, o, col]
+    cpsi[..., 0] = beta.transpose(1, 2)[..., None] * g_t[:, None]
+    cpsi[..., 1 : 1 + n_params] = g_t[:, None, :, :, None] * beta2.permute(0, 3, 2, 1)[:, :, :, None] + (
+        Gam.permute(0, 3, 2, 1)[:, None] * beta.transpose(1, 2)[..., None, None]
+    )
+    coef[:, 1:, 1, ..., 1 : 1 + n_params] = (
+        g_t[:, None, :, :, None] * (dlam[:, :, :, None] * beta[:, None]).permute(0, 3, 2, 1)[:, :, :, None]
+    )
+
+    # Real form. sum_i c_i z_i = sum_i omega_i Re(c_i z_i) (omega = 2 for the member of a pair with
+    # Im lambda > 0, 0 for its partner, 1 for a real eigenvalue, whose z is real), and
+    # Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
+    # n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
+    # Slots: the kept modes first, padded to the chunk's largest n_first with zero weight.
+    upper, real = lam.imag > 0, lam.imag == 0
+    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
+    n_first = n - upper.sum(1)
+    n_slot = int(n_first.max())
+    slot = order[:, :n_slot]  # [b, K] mode of each slot
+    lam_s = torch.gather(lam, 1, slot)
+    omega = torch.where(lam_s.imag > 0, 2.0, 1.0).to(torch.float64)
+    omega = omega * (torch.arange(n_slot, device=dev) < n_first[:, None])
+    index = slot.view(batch, 1, 1, n_slot, 1, 1).expand(-1, m + 1, 2, -1, o, n_col)
+    picked = torch.gather(coef, 3, index).conj().mul_(omega.view(batch, 1, 1, n_slot, 1, 1))
+    n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
+    coef_z = torch.view_as_real(picked.resolve_conj()).permute(0, 1, 2, 3, 6, 4, 5).reshape(batch, n_real, o * n_col)
+    coef_w = torch.zeros(batch, m, o, n_col, dtype=torch.float64, device=dev)
+    coef_w[..., : 1 + n_params] = torch.cat([E[:, None], dE], 1).permute(0, 3, 2, 1)  # y and dy/dp: E w, dE w
+    ok &= torch.isfinite(coef_z.sum((1, 2)))
+
+    # The basis by one scalar recursion per slot: Z [T, b, 1 + m, 2, K] complex (time first: 5x
+    # faster steps than batch first), channel 0 = (e, f) (start (1, 0), no
+    # forcing), 1 + c = (psi_c, chi_c); in each, (z, dz/dlambda) obey z_{k+1} = mu z_k + F_k,
+    # dz_{k+1} = mu dz_k + h z_{k+1} + (F'_k - h F_k). F_k for all k is one bmm (batch first, row
+    # k + 1; row 0, from the padding, is overwritten by the start), moved in and out of the loop's
+    # layout by permuted copies.
+    ell, dell = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
+    weights = torch.zeros(batch, m, m_sub + 1, 1 + m, 2, n_slot, 2, dtype=torch.float64, device=dev)
+    for c in range(m):  # [b, (c, j), (channel, kind, slot, re/im)]
+        weights[:, c, :, 1 + c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
+    # fine [b, m, M + L] starts with M zeros: row k of `held` is s_{k-1, 0..M} (row 0: padding)
+    held = fine.as_strided((batch, T, m, m_sub + 1), (fine.stride(0), m_sub, fine.stride(1), 1))
+    forcing = torch.bmm(held.reshape(batch, T, m * (m_sub + 1)), weights.view(batch, m * (m_sub + 1), n_real))
+    Z = torch.view_as_complex(forcing.view(batch, T, 1 + m, 2, n_slot, 2)).transpose(0, 1).contiguous()
+    Z[0] = 0
+    Z[0, :, 0, 0] = 1
+    mu = torch.exp(lam_s * h)[:, None, None, :]  # [b, 1, 1, K]
+    for k in range(T - 1):
+        nxt = Z[k + 1]
+        nxt.addcmul_(Z[k], mu)
+        nxt[:, :, 1].add_(nxt[:, :, 0], alpha=h)
+    basis = torch.view_as_real(Z.transpose(0, 1).contiguous()).view(batch, T, n_real)
+    out = torch.bmm(basis, coef_z)
+    out.baddbmm_(window, coef_w.view(batch, m, o * n_col))
+    return out.view(batch, T, o, n_col), ok
