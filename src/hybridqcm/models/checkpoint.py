@@ -33,7 +33,7 @@ from hybridqcm.models.modules import MODULES
 from hybridqcm.models.untrusted import NETWORK_TARGETS, check_config_tree, read_raw  # noqa: F401
 
 KINDS: dict[str, tuple[str, ...]] = {
-    "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
+    "cnn": ("LabelledEstimator", "GaussianEstimator", "PhysicsResidualEstimator"),
     "unet": ("CompletionUNet",),
     "cae": ("DenoisingAutoencoder",),
 }
