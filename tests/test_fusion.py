@@ -249,3 +249,22 @@ def test_exp13_fast_dev_run_on_cpu(tmp_path):
     assert metrics["test/m3/coverage_95"] == metrics["test/p2/coverage_95"]
     written = json.loads((tmp_path / "test_metrics.json").read_text())
     assert written["model"] == "GaussianEstimator" and written["sensor"]["sigma_range"] == [0.002, 0.1]
+
+
+def test_variance_only_training_keeps_the_means():
+    torch.manual_seed(0)
+    module = GaussianEstimator(net=TINY_NET, window=64)
+    module.freeze_all_but_variance()
+    x = torch.randn(8, 2, 64)
+    before_mu, before_var = (t.detach().clone() for t in module.split_outputs(module(x)))
+    optimizer = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=0.1)
+    loss = module._loss(module(x), torch.randn(8, 2))
+    loss.backward()
+    optimizer.step()
+    after_mu, after_var = module.split_outputs(module(x))
+    assert torch.equal(after_mu, before_mu) and not torch.allclose(after_var, before_var)
+    batch = {"x": x, "y": torch.rand(8, 2).double() + 1}
+    module.init_variance(batch)
+    errors = module.split_outputs(module(x))[0] - module.encode_targets(batch["y"])
+    final = [m for m in module.net.head if isinstance(m, torch.nn.Linear)][-1]
+    assert torch.allclose(final.bias[2:], errors.square().mean(0).log(), rtol=1e-5)

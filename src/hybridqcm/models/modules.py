@@ -543,6 +543,7 @@ class GaussianEstimator(ParameterEstimator):
         h: float = 0.01,
         physics: str = "euler",
         init_from: str | None = None,
+        train_only_variance: bool = False,
     ) -> None:
         net, optimizer, scheduler, lr_schedule = _plain(net), _plain(optimizer), _plain(scheduler), _plain(lr_schedule)
         input_channels, target_channels = list(input_channels), list(target_channels)
@@ -587,7 +588,39 @@ class GaussianEstimator(ParameterEstimator):
     def on_fit_start(self) -> None:
         if self.hparams.get("init_from") and not bool(self.norm_fitted):
             self.warm_start(str(self.hparams.init_from))
+            datamodule = getattr(self.trainer, "datamodule", None)
+            if datamodule is not None and hasattr(datamodule, "stats_batch"):
+                self.init_variance(datamodule.stats_batch())
         super().on_fit_start()
+        if self.hparams.get("train_only_variance"):
+            self.freeze_all_but_variance()
+
+    @torch.no_grad()
+    def init_variance(self, batch: Mapping[str, Tensor], chunk: int = 256) -> None:
+        """Log-variance bias = log of the warm-started network's mean squared error (normalised units)
+        on a batch of clean labelled samples: training starts at the right scale, not at sigma = out_std."""
+        n = len(self.hparams.target_channels)
+        x, y = batch["x"].to(self.in_mean.device), batch["y"].to(self.in_mean.device)
+        errors = torch.cat(
+            [
+                self.split_outputs(self(x[i : i + chunk]))[0] - self.encode_targets(y[i : i + chunk])
+                for i in range(0, len(x), chunk)
+            ]
+        )
+        final = [m for m in self.net.head if isinstance(m, torch.nn.Linear)][-1]
+        low, high = self.hparams.log_var_range
+        final.bias[n:] = errors.square().mean(0).log().clamp(float(low), float(high))
+
+    def freeze_all_but_variance(self) -> None:
+        """Train only the log-variance rows of the final layer (on a warm-started network: the means
+        stay exactly those of the source network, and the few weights left need few samples)."""
+        n = len(self.hparams.target_channels)
+        for parameter in self.net.parameters():
+            parameter.requires_grad_(False)
+        final = [m for m in self.net.head if isinstance(m, torch.nn.Linear)][-1]
+        for parameter in (final.weight, final.bias):
+            parameter.requires_grad_(True)
+            parameter.register_hook(lambda grad: torch.cat([torch.zeros_like(grad[:n]), grad[n:]]))
 
     @torch.no_grad()
     def warm_start(self, path: str) -> None:
