@@ -268,3 +268,24 @@ def test_variance_only_training_keeps_the_means():
     errors = module.split_outputs(module(x))[0] - module.encode_targets(batch["y"])
     final = [m for m in module.net.head if isinstance(m, torch.nn.Linear)][-1]
     assert torch.allclose(final.bias[2:], errors.square().mean(0).log(), rtol=1e-5)
+
+
+def test_warm_start_takes_the_source_networks_means(tmp_path):
+    from hybridqcm.models.checkpoint import warm_start
+    from hybridqcm.testing import _fit
+
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(32, 2, 64, generator=g)
+    y = torch.stack([1 + torch.rand(32, generator=g), 1000 + 500 * torch.rand(32, generator=g)], 1).double()
+    torch.manual_seed(0)
+    path = _fit(
+        LabelledEstimator(net=TINY_NET, window=64),
+        {"x": x, "y": y, "index": torch.arange(32)},
+        tmp_path / "l.ckpt",
+        steps=2,
+    )
+    source = LabelledEstimator.load_from_checkpoint(path, map_location="cpu").eval()
+    model = warm_start(GaussianEstimator(net=TINY_NET, window=64, init_from=str(path))).eval()
+    assert torch.allclose(model.predict_params(x), source.predict_params(x))
+    with pytest.raises(RuntimeError, match="not applied"):
+        GaussianEstimator(net=TINY_NET, window=64, init_from=str(path)).on_fit_start()

@@ -587,7 +587,12 @@ class GaussianEstimator(ParameterEstimator):
 
     def on_fit_start(self) -> None:
         if self.hparams.get("init_from") and not bool(self.norm_fitted):
-            self.warm_start(str(self.hparams.init_from))
+            raise RuntimeError(
+                f"model.init_from={self.hparams.init_from}: not applied; load the source with "
+                f"models.checkpoint.warm_start(model) before fitting (qcm-train does)"
+            )
+        if getattr(self, "_warm_started", False):
+            self._warm_started = False
             datamodule = getattr(self.trainer, "datamodule", None)
             if datamodule is not None and hasattr(datamodule, "stats_batch"):
                 self.init_variance(datamodule.stats_batch())
@@ -623,14 +628,11 @@ class GaussianEstimator(ParameterEstimator):
             parameter.register_hook(lambda grad: torch.cat([torch.zeros_like(grad[:n]), grad[n:]]))
 
     @torch.no_grad()
-    def warm_start(self, path: str) -> None:
+    def warm_start(self, source: ParameterEstimator, path: str = "source") -> None:
         """Start from a trained parameter CNN of the same architecture (LabelledEstimator or
-        PhysicsResidualEstimator, read by the one safe loader): its backbone, normalisation and mean
-        outputs; the log-variance rows start at zero weight and bias 0 (sigma = out_std), so the first
-        steps learn the variances around an already good mean."""
-        from hybridqcm.models.checkpoint import load_checkpoint
-
-        source = load_checkpoint(path, "cnn", "model.init_from")
+        PhysicsResidualEstimator, loaded by models.checkpoint.warm_start): its backbone, normalisation
+        and mean outputs; the log-variance rows start at zero weight (their bias is set from the
+        source's error at fit start, init_variance)."""
         if list(source.hparams.target_channels) != list(self.hparams.target_channels) or int(
             source.hparams.window
         ) != int(self.hparams.window):
@@ -653,6 +655,7 @@ class GaussianEstimator(ParameterEstimator):
         for name in ("in_mean", "in_std", "out_mean", "out_std"):
             getattr(self, name).copy_(getattr(source, name))
         self.norm_fitted.fill_(True)
+        self._warm_started = True
 
     def split_outputs(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """Net outputs [B, 2P] -> (mu [B, P], clamped log-variance [B, P]) in normalised units."""
