@@ -161,6 +161,7 @@ def check_known_keys(cfg) -> None:
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.estimation.fusion import check_cnn_prior
     from hybridqcm.estimation.hybrid import CheckpointKindError, check_networks, load_network
 
     check_known_keys(cfg)
@@ -328,6 +329,14 @@ def validate(cfg) -> dict:
             h_file or 0.01,
         )
     except CheckpointKindError as error:
+        raise ConfigError(str(error)) from None
+    try:  # init.cnn_prior=network: the CNN must predict its variance (estimation/fusion.py)
+        check_cnn_prior(
+            cfg.init.get("cnn_prior"),
+            networks.get("cnn_ckpt") if cfg.init.cnn else None,
+            cfg.init.get("cnn_prior_rel_std"),
+        )
+    except ValueError as error:
         raise ConfigError(str(error)) from None
     needed = n_steps
     windows = {}
@@ -520,6 +529,8 @@ def run(cfg) -> dict:
         base_excitation=plan["base_excitation"],
         input_margin=plan["input_margin"],
         cnn_prior_rel_std=cfg.init.get("cnn_prior_rel_std"),
+        cnn_prior=cfg.init.get("cnn_prior"),
+        cnn_prior_scale=float(cfg.init.get("cnn_prior_scale", 1.0)),
     )
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])

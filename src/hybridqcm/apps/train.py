@@ -218,6 +218,10 @@ def _prepare(cfg) -> dict:
     datamodule.check(stages)  # file/split/key/window errors now, not after training
     if train:
         record_data_step(model, datamodule)
+        if model.hparams.get("init_from") and not cfg.get("ckpt_path"):  # fine-tune a trained CNN (exp13)
+            from hybridqcm.models.checkpoint import warm_start
+
+            warm_start(model)
     return {"model": model, "datamodule": datamodule, "train": train, "test": test}
 
 

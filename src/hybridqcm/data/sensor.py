@@ -8,6 +8,10 @@ noise level.
 s_c is the sample's RMS of channel c over the window when `relative` (sigma, bias are fractions
 of the signal), else 1 (sigma, bias in m/s^2). Channels are (a3, a2, a1).
 
+`sigma_range` = [low, high] instead of sigma: every sample draws its own level s_i, log-uniform on
+[low, high], and uses sigma_c = s_i on every channel (a stream of recordings from loggers of many
+noise floors; log-uniform so that each decade of noise is equally represented).
+
 Reproducibility: the noise of sample i comes from its own generator seeded by (seed, salt, i),
 so it is the same whatever the batching or order; evaluation uses a fixed salt, training a
 fresh one per batch (fresh noise every epoch).
@@ -50,6 +54,7 @@ class SensorModel:
     bias: float | Sequence[float] = 0.0  # constant bias per channel
     quantisation: float = 0.0  # step in m/s^2, 0 = none
     seed: int = 0
+    sigma_range: Sequence[float] | None = None  # [low, high]: per-sample level, log-uniform (replaces sigma)
 
     def validate(self) -> SensorModel:
         """Checks every field (one-line ValueError); returns self."""
@@ -60,6 +65,21 @@ class SensorModel:
         q = float(self.quantisation)
         if not (math.isfinite(q) and q >= 0):
             raise ValueError(f"sensor.quantisation must be finite and >= 0, got {self.quantisation!r}")
+        self._range = None
+        if self.sigma_range is not None:
+            try:
+                low, high = (float(v) for v in self.sigma_range)
+            except (TypeError, ValueError):
+                raise ValueError(f"sensor.sigma_range must be [low, high], got {self.sigma_range!r}") from None
+            if not (math.isfinite(high) and 0 < low <= high):
+                raise ValueError(f"sensor.sigma_range must satisfy 0 < low <= high, got {self.sigma_range!r}")
+            if any(self._sigma):
+                raise ValueError(
+                    f"sensor.sigma_range = {self.sigma_range!r} replaces sensor.sigma = {self.sigma!r}: set sigma=0"
+                )
+            if self.kind == "none":
+                raise ValueError("sensor.kind = 'none' takes no sigma_range; pick sensor=additive or multiplicative")
+            self._range = (low, high)
         if self.kind == "none" and (any(self._sigma) or any(self._bias) or q > 0):
             raise ValueError(
                 f"sensor.kind = 'none' takes no sigma, bias or quantisation (got sigma={self.sigma!r}, "
@@ -86,6 +106,24 @@ class SensorModel:
             out[row] = torch.randn(n_steps, 3, generator=generator, dtype=torch.float64)
         return out
 
+    def levels(self, index: Tensor, salt: int = 0) -> Tensor:
+        """[b, 3] noise level sigma_c per sample: the configured sigma, or with `sigma_range` a log-uniform
+        draw per sample from its own generator seeded by (seed, salt, i, 1) (a stream apart from eta's)."""
+        self._checked()
+        if self._range is None:
+            return torch.tensor(self._sigma, dtype=torch.float64).expand(index.shape[0], 3)
+        low, high = self._range
+        u = torch.tensor(
+            [
+                np.random.default_rng(
+                    np.random.SeedSequence([int(self.seed), int(salt) % 2**63, int(i) % 2**63, 1])
+                ).random()
+                for i in index.tolist()
+            ],
+            dtype=torch.float64,
+        )
+        return (low * (high / low) ** u)[:, None].expand(-1, 3)
+
     def _scale(self, accel: Tensor) -> Tensor:
         """[b, 3]: each sample's channel RMS (relative) or ones."""
         if self.relative:
@@ -103,7 +141,7 @@ class SensorModel:
                 f"sensor: accel must be [b, T, 3] and index [b], got {tuple(accel.shape)}, {tuple(index.shape)}"
             )
         x = accel.double()
-        sigma = torch.tensor(self._sigma, dtype=torch.float64)
+        sigma = self.levels(index, salt)[:, None, :].to(x.device)  # [b, 1, 3]
         bias = torch.tensor(self._bias, dtype=torch.float64)
         scale = self._scale(x)[:, None, :]  # [b, 1, 3]
         eta = self._noise(index, x.shape[1], salt).to(x.device)
@@ -116,11 +154,16 @@ class SensorModel:
             x = torch.round(x / self.quantisation) * self.quantisation
         return x.to(accel.dtype)
 
-    def noise_std(self, accel: Tensor) -> Tensor:
+    def noise_std(self, accel: Tensor, index: Tensor | None = None, salt: int = 0) -> Tensor:
         """[b, 3] nominal noise std per channel (for residual weighting): sigma s_c (additive) or
-        sigma RMS_c (multiplicative), with the quantisation's step/sqrt(12) added in quadrature."""
+        sigma RMS_c (multiplicative), with the quantisation's step/sqrt(12) added in quadrature.
+        With `sigma_range` the per-sample levels need the sample ids `index` (and apply's salt)."""
         self._checked()
-        sigma = torch.tensor(self._sigma, dtype=torch.float64)
+        if self._range is not None and index is None:
+            raise ValueError(
+                "sensor.sigma_range: per-sample noise levels need the sample ids (noise_std(accel, index))"
+            )
+        sigma = torch.tensor(self._sigma, dtype=torch.float64) if self._range is None else self.levels(index, salt)
         if self.kind == "multiplicative":
             std = sigma * accel.double().pow(2).mean(1).sqrt()
         elif self.kind == "additive":

@@ -26,6 +26,7 @@ from torch import Tensor
 from hybridqcm.errors import CheckpointError
 from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
 
+from .fusion import check_cnn_prior, network_prior
 from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
@@ -175,6 +176,8 @@ class HybridEstimator(LightningModule):
         base_excitation: str | None = None,
         input_margin: Sequence[int] = (0, 0),
         cnn_prior_rel_std: float | None = None,
+        cnn_prior: str | None = None,
+        cnn_prior_scale: float = 1.0,
     ):
         super().__init__()
         # (before, after): input samples around the GN window handed to the model with it — the
@@ -203,6 +206,9 @@ class HybridEstimator(LightningModule):
         # relative std (None: the CNN only starts GN). The residuals must be in noise units for
         # the balance to mean anything: use it with residual re-weighting.
         self.cnn_prior_rel_std = None if cnn_prior_rel_std is None else float(cnn_prior_rel_std)
+        # Fusion with the network's own variance (estimation/fusion.py): cnn_prior="network".
+        check_cnn_prior(cnn_prior, self.cnn if self.cnn_init else None, self.cnn_prior_rel_std)
+        self.cnn_prior, self.cnn_prior_scale = cnn_prior, float(cnn_prior_scale)
         known_mask = torch.zeros(N_PARAMS, dtype=torch.bool)
         for name in known:
             known_mask[int(str(name).lstrip("p")) - 1] = True
@@ -264,6 +270,8 @@ class HybridEstimator(LightningModule):
             keep = self.known_mask[:2]
             init[:, :2] = torch.where(keep, init[:, :2], p12)
             cnn_p12 = p12
+            if self.cnn_prior == "network":
+                network = network_prior(self.cnn, accel[:, :, 0], accel[:, :, 1], self.cnn_prior_scale)
         if not self.cnn_init:
             cnn_p12 = None
         before, after = self.input_margin
@@ -288,6 +296,8 @@ class HybridEstimator(LightningModule):
         if cnn_p12 is not None and self.cnn_prior_rel_std:
             prepared["prior_p12"] = cnn_p12
             prepared["prior_p12_std"] = self.cnn_prior_rel_std * cnn_p12.abs()
+        if self.cnn_init and self.cnn_prior == "network":
+            prepared.update(network)
         if batch.get("noise_sigma") is not None and float(batch["noise_sigma"].max()) > 0:
             # Noise-aware weighting for multiplicative noise a(1 + η): a channel's noise std is
             # σ·rms(a_c), so weights 1/(σ rms_c) standardise every channel (completed ones too,

@@ -4,6 +4,7 @@ from hybridqcm.models.modules import (
     CheckpointMismatch,
     CompletionUNet,
     DenoisingAutoencoder,
+    GaussianEstimator,
     LabelledEstimator,
     PhysicsResidualEstimator,
     QCMModule,
@@ -15,6 +16,7 @@ from hybridqcm.models.networks import DenoisingCAE, ParameterCNN, UNet1d, count_
 
 __all__ = [
     "LabelledEstimator",
+    "GaussianEstimator",
     "PhysicsResidualEstimator",
     "DenoisingAutoencoder",
     "CompletionUNet",

@@ -33,7 +33,7 @@ from hybridqcm.models.modules import MODULES
 from hybridqcm.models.untrusted import NETWORK_TARGETS, check_config_tree, read_raw  # noqa: F401
 
 KINDS: dict[str, tuple[str, ...]] = {
-    "cnn": ("LabelledEstimator", "PhysicsResidualEstimator"),
+    "cnn": ("LabelledEstimator", "GaussianEstimator", "PhysicsResidualEstimator"),
     "unet": ("CompletionUNet",),
     "cae": ("DenoisingAutoencoder",),
 }
@@ -140,6 +140,7 @@ def kind_of(module: LightningModule) -> str | None:
 
 __all__ = [
     "KINDS",
+    "warm_start",
     "NETWORK_TARGETS",
     "CheckpointInfo",
     "CheckpointError",
@@ -149,3 +150,12 @@ __all__ = [
     "load_checkpoint",
     "kind_of",
 ]
+
+
+def warm_start(model: LightningModule) -> LightningModule:
+    """Apply ``model.hparams.init_from`` (a trained parameter-CNN checkpoint, loaded here by the one
+    safe loader) to a GaussianEstimator before training: its backbone, normalisation and means."""
+    path = model.hparams.get("init_from")
+    if path and hasattr(model, "warm_start"):
+        model.warm_start(load_checkpoint(path, "cnn", "model.init_from"), str(path))
+    return model

@@ -1,0 +1,291 @@
+"""Issue 13: a CNN with its own variance (Gaussian NLL), per-sample noise levels, and the fusion of
+the network's prediction with Gauss-Newton as a MAP estimate (closed-form checks)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import norm
+
+from hybridqcm.data.sensor import SensorModel
+from hybridqcm.estimation.fusion import (
+    check_cnn_prior,
+    gaussian_posterior,
+    interval_summary,
+    prior_from_log_normal,
+)
+from hybridqcm.estimation.response import ResponseModel
+from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+from hybridqcm.models import GaussianEstimator, LabelledEstimator
+from hybridqcm.models.uncertainty import calibration_rows, gaussian_nll, interval_calibration
+
+TINY_NET = {"channels": [4, 4], "kernels": [16, 8], "strides": [4, 2], "hidden": [8, 4]}
+
+
+# -- the NLL head ------------------------------------------------------------------------------------
+def test_gaussian_nll_is_the_normal_log_density():
+    g = torch.Generator().manual_seed(0)
+    mean, target = torch.randn(6, 2, generator=g), torch.randn(6, 2, generator=g)
+    log_var = torch.randn(6, 2, generator=g)
+    expected = -norm.logpdf(target.numpy(), loc=mean.numpy(), scale=np.exp(0.5 * log_var.numpy())).mean()
+    assert float(gaussian_nll(mean, log_var, target)) == pytest.approx(expected, rel=1e-6)
+    # beta-NLL: each term weighted by sigma^(2 beta)
+    weighted = (
+        -norm.logpdf(target.numpy(), mean.numpy(), np.exp(0.5 * log_var.numpy())) * np.exp(0.5 * log_var.numpy())
+    ).mean()
+    assert float(gaussian_nll(mean, log_var, target, beta=0.5)) == pytest.approx(weighted, rel=1e-6)
+
+
+def test_the_modules_loss_splits_means_and_clamped_log_variances():
+    module = GaussianEstimator(net=TINY_NET, window=64, log_var_range=[-3.0, 2.0])
+    z = torch.tensor([[0.1, -0.2, 5.0, -9.0]])  # mu = (0.1, -0.2); log-variances clamp to (2, -3)
+    target = torch.tensor([[0.3, 0.0]])
+    expected = -norm.logpdf([0.3, 0.0], loc=[0.1, -0.2], scale=np.exp(0.5 * np.array([2.0, -3.0]))).mean()
+    module.hparams.nll_beta = 0.0
+    assert float(module._loss(z, target)) == pytest.approx(expected, rel=1e-6)
+    mu, log_var = module.split_outputs(z)
+    assert mu[0].tolist() == pytest.approx([0.1, -0.2]) and log_var.tolist() == [[2.0, -3.0]]
+
+
+def test_nll_minimiser_of_the_variance_is_the_squared_error():
+    error = torch.tensor([[0.3]])
+    grid = torch.linspace(-6, 2, 8001)[:, None]
+    losses = torch.stack([gaussian_nll(torch.zeros(1, 1), s[None], error) for s in grid])
+    assert float(grid[losses.argmin()]) == pytest.approx(math.log(0.09), abs=2e-3)
+
+
+def test_interval_calibration_of_exact_gaussians():
+    g = torch.Generator().manual_seed(1)
+    n = 200_000
+    log_mean = torch.randn(n, generator=g, dtype=torch.float64)
+    log_std = 0.01 + 0.05 * torch.rand(n, generator=g, dtype=torch.float64)
+    log_true = log_mean + log_std * torch.randn(n, generator=g, dtype=torch.float64)
+    cal = interval_calibration(log_mean, log_std, log_true)
+    for level, (coverage, width) in cal.items():
+        assert coverage == pytest.approx(level, abs=0.005)
+        assert width > 0
+    # m3 = K / p: same coverage as p (monotone), width of K/exp(.)
+    rows = calibration_rows(
+        log_mean[:, None].expand(-1, 2),
+        log_std[:, None].expand(-1, 2),
+        log_true[:, None].expand(-1, 2),
+        ["p1", "p2"],
+        K3=1000.0,
+    )
+    assert [r["quantity"] for r in rows] == ["p1", "p2", "m3"]
+    assert rows[2]["coverage_95"] == rows[1]["coverage_95"]
+    half = 1.96 * log_std
+    m3_width = ((torch.exp(-(log_mean - half)) - torch.exp(-(log_mean + half))) / torch.exp(-log_true)).mean()
+    assert rows[2]["width_95"] == pytest.approx(float(m3_width), rel=1e-3)
+
+
+# -- per-sample noise levels ----------------------------------------------------------------------
+def test_sigma_range_gives_each_sample_its_own_reproducible_level():
+    t = 20000
+    time = torch.linspace(0, 50, t, dtype=torch.float64)
+    accel = torch.sin(3 * time)[None, :, None].expand(64, t, 3).clone()
+    sensor = SensorModel("additive", sigma=0.0, sigma_range=[0.002, 0.1], seed=4).validate()
+    index = torch.arange(64)
+    out = sensor.apply(accel, index, salt=7)
+    levels = sensor.levels(index, salt=7)[:, 0]
+    assert bool(((levels >= 0.002) & (levels <= 0.1)).all()) and float(levels.max() / levels.min()) > 5
+    measured = (out - accel)[..., 1].std(1) / accel[..., 1].pow(2).mean(1).sqrt()
+    assert torch.allclose(measured, levels, rtol=0.05)
+    assert torch.equal(sensor.apply(accel[10:12], index[10:12], salt=7), out[10:12])  # per sample, any batching
+    assert torch.allclose(sensor.noise_std(accel, index, salt=7)[:, 1], levels * accel[..., 1].pow(2).mean(1).sqrt())
+    with pytest.raises(ValueError, match="sigma_range.*replaces sensor.sigma"):
+        SensorModel("additive", sigma=0.01, sigma_range=[0.002, 0.1]).validate()
+    with pytest.raises(ValueError, match="0 < low <= high"):
+        SensorModel("additive", sigma=0.0, sigma_range=[0.1, 0.01]).validate()
+    with pytest.raises(ValueError, match="need the sample ids"):
+        sensor.noise_std(accel)
+
+
+# -- fusion -------------------------------------------------------------------------------------------
+class LinearToy(ResponseModel):
+    """y = X θ: inputs are the design [b, T, P], one output channel."""
+
+    theta_names = ("p1", "p2")
+    output_names = ("y",)
+    n_params = 2
+
+    def outputs(self, theta, inputs, start=0, n_steps=None):
+        x = inputs[:, start : start + (n_steps or inputs.shape[1] - start)]
+        return (x @ theta[..., None]).double()
+
+    def sensitivities(self, theta, inputs, start=0, n_steps=None):
+        x = inputs[:, start : start + (n_steps or inputs.shape[1] - start)].double()
+        return torch.cat([self.outputs(theta, inputs, start, n_steps)[..., None], x[:, :, None, :]], -1)
+
+
+def test_map_fusion_on_a_linear_gaussian_problem_is_the_closed_form_posterior():
+    g = torch.Generator().manual_seed(3)
+    b, t, sigma = 5, 400, 0.3
+    design = torch.randn(b, t, 2, generator=g, dtype=torch.float64)
+    truth = torch.tensor([1.5, 2.5], dtype=torch.float64).expand(b, 2)
+    y = (design @ truth[..., None])[..., 0] + sigma * torch.randn(b, t, generator=g, dtype=torch.float64)
+    prior_mean = truth * (1 + 0.2 * torch.randn(b, 2, generator=g, dtype=torch.float64))
+    prior_std = torch.tensor([0.05, 0.5], dtype=torch.float64).expand(b, 2)  # one strong, one weak prior
+    weights = torch.full((b, 1), 1 / sigma, dtype=torch.float64)  # weighted residual: unit-variance noise
+    problem = LeastSquaresProblem(
+        y[..., None],
+        design,
+        model=LinearToy(),
+        observed=(True,),
+        weights=weights,
+        prior_mean=prior_mean,
+        prior_precision=prior_std**-2,
+    )
+    result = build_solver("gauss_newton", max_iterations=50).solve(problem, prior_mean.clone())
+    mean, _ = gaussian_posterior(design, y, sigma, prior_mean, prior_std**-2)
+    assert torch.allclose(result.params, mean, rtol=1e-7)
+    # one parameter known: the free one is the precision-weighted mean of data and prior
+    x1 = design[..., :1]
+    data_mean = (x1[..., 0] * y).sum(1) / x1[..., 0].square().sum(1)
+    data_precision = x1[..., 0].square().sum(1) / sigma**2
+    scalar, scalar_cov = gaussian_posterior(x1, y, sigma, prior_mean[:, :1], prior_std[:, :1] ** -2)
+    weighted = (data_precision * data_mean + prior_std[:, 0] ** -2 * prior_mean[:, 0]) / (
+        data_precision + prior_std[:, 0] ** -2
+    )
+    assert torch.allclose(scalar[:, 0], weighted) and torch.allclose(
+        scalar_cov[:, 0, 0], 1 / (data_precision + prior_std[:, 0] ** -2)
+    )
+    # the Laplace covariance is the same closed form with the solver's residual variance
+    residual = y - (design @ result.params[..., None])[..., 0]
+    rho1 = (residual[:, 1:] * residual[:, :-1]).sum(1) / residual.square().sum(1)
+    assert bool((rho1 <= 2 / math.sqrt(t)).all())  # white: no AR(1) inflation in the solver
+    sigma_hat = result.residual_variance.sqrt() * sigma  # residual variance is in weighted units
+    _, covariance = gaussian_posterior(design, y, sigma_hat, prior_mean, prior_std**-2)
+    assert torch.allclose(result.covariance, covariance, rtol=1e-6)
+
+
+def test_log_normal_prior_and_interval_summary():
+    mean, std = prior_from_log_normal(torch.tensor([[2.0, 100.0]]), torch.tensor([[0.01, 0.05]]), scale=2.0)
+    assert mean.tolist() == [[2.0, 100.0]] and std[0].tolist() == pytest.approx([0.04, 10.0])
+    s = interval_summary(
+        torch.tensor([1.0, 2.2, 3.0]),
+        torch.tensor([0.9, 2.0, 3.5]),
+        torch.tensor([1.1, 2.1, 4.0]),
+        torch.tensor([1.0, 2.0, 3.0]),
+    )
+    assert s["coverage_95"] == pytest.approx(2 / 3) and s["mean_rel_err"] == pytest.approx(0.1 / 3)
+    assert s["median_rel_width"] == pytest.approx(0.5 / 3) and s["mean_rel_width"] == pytest.approx(
+        (0.2 + 0.05 + 0.5 / 3) / 3
+    )
+
+
+def test_network_prior_needs_a_variance_head():
+    with pytest.raises(ValueError, match="init.cnn_prior='bogus'"):
+        check_cnn_prior("bogus", None, None)
+    with pytest.raises(ValueError, match="LabelledEstimator, which predicts no variance"):
+        check_cnn_prior("network", LabelledEstimator(net=TINY_NET, window=64), None)
+    gaussian = GaussianEstimator(net=TINY_NET, window=64)
+    with pytest.raises(ValueError, match="cnn_prior_rel_std=0.02"):
+        check_cnn_prior("network", gaussian, 0.02)
+    check_cnn_prior("network", gaussian, None)
+    check_cnn_prior(None, None, None)
+
+
+def test_hybrid_estimator_hands_the_networks_variance_to_gauss_newton(tmp_path):
+    from hybridqcm.estimation.hybrid import HybridEstimator
+    from hybridqcm.testing import _fit
+
+    g = torch.Generator().manual_seed(0)
+    n, window = 32, 64
+    x = torch.randn(n, 2, window, generator=g)
+    y = torch.stack([1 + torch.rand(n, generator=g), 1000 + 500 * torch.rand(n, generator=g)], 1).double()
+    torch.manual_seed(0)
+    path = _fit(
+        GaussianEstimator(net=TINY_NET, window=window),
+        {"x": x, "y": y, "index": torch.arange(n)},
+        tmp_path / "g.ckpt",
+        steps=2,
+    )
+    module = HybridEstimator(
+        cnn_ckpt=str(path), observed=["a3", "a2", "a1"], n_steps=40, cnn_prior="network", cnn_prior_scale=1.5
+    )
+    accel = torch.cat([x.transpose(1, 2), torch.randn(n, window, 1, generator=g)], -1).double()
+    batch = {
+        "accel": accel,
+        "road": torch.zeros(n, window),
+        "pu": torch.ones(n),
+        "init": torch.ones(n, 10),
+        "index": torch.arange(n),
+    }
+    prepared = module.prepare(batch)
+    median, log_std = module.cnn.estimate_distribution(x[:, 0], x[:, 1])
+    assert torch.allclose(prepared["prior_p12"], median) and torch.allclose(prepared["init"][:, :2], median)
+    assert torch.allclose(prepared["prior_p12_std"], 1.5 * median * log_std)
+    with pytest.raises(ValueError, match="needs the CNN"):
+        HybridEstimator(cnn_ckpt=str(path), cnn_prior="network", cnn_init=False)
+
+
+def test_exp13_fast_dev_run_on_cpu(tmp_path):
+    """The experiment's whole run (stream of continuous mid-drive samples with per-sample noise
+    levels, NLL training, test-stage calibration) in one batch each, with a tiny network."""
+    import json
+
+    from hybridqcm.apps.train import train
+    from test_train_app import _cfg
+
+    overrides = [
+        "experiment=exp13_cnn_uncertainty",
+        "debug=fdr",
+        "data.val_samples=16",
+        "data.test_samples=16",
+        "data.batch_size=16",
+        "model.net.channels=[4,4]",
+        "model.net.hidden=[8,4]",
+        "seed=1",
+    ]
+    metrics = train(_cfg(overrides, tmp_path))
+    for quantity in ("p1", "p2", "m3"):
+        for level in (50, 90, 95):
+            assert 0 <= metrics[f"test/{quantity}/coverage_{level}"] <= 1
+            assert metrics[f"test/{quantity}/width_{level}"] > 0
+    assert metrics["test/m3/coverage_95"] == metrics["test/p2/coverage_95"]
+    written = json.loads((tmp_path / "test_metrics.json").read_text())
+    assert written["model"] == "GaussianEstimator" and written["sensor"]["sigma_range"] == [0.002, 0.1]
+
+
+def test_variance_only_training_keeps_the_means():
+    torch.manual_seed(0)
+    module = GaussianEstimator(net=TINY_NET, window=64)
+    module.freeze_all_but_variance()
+    x = torch.randn(8, 2, 64)
+    before_mu, before_var = (t.detach().clone() for t in module.split_outputs(module(x)))
+    optimizer = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=0.1)
+    loss = module._loss(module(x), torch.randn(8, 2))
+    loss.backward()
+    optimizer.step()
+    after_mu, after_var = module.split_outputs(module(x))
+    assert torch.equal(after_mu, before_mu) and not torch.allclose(after_var, before_var)
+    batch = {"x": x, "y": torch.rand(8, 2).double() + 1}
+    module.init_variance(batch)
+    errors = module.split_outputs(module(x))[0] - module.encode_targets(batch["y"])
+    final = [m for m in module.net.head if isinstance(m, torch.nn.Linear)][-1]
+    assert torch.allclose(final.bias[2:], errors.square().mean(0).log(), rtol=1e-5)
+
+
+def test_warm_start_takes_the_source_networks_means(tmp_path):
+    from hybridqcm.models.checkpoint import warm_start
+    from hybridqcm.testing import _fit
+
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(32, 2, 64, generator=g)
+    y = torch.stack([1 + torch.rand(32, generator=g), 1000 + 500 * torch.rand(32, generator=g)], 1).double()
+    torch.manual_seed(0)
+    path = _fit(
+        LabelledEstimator(net=TINY_NET, window=64),
+        {"x": x, "y": y, "index": torch.arange(32)},
+        tmp_path / "l.ckpt",
+        steps=2,
+    )
+    source = LabelledEstimator.load_from_checkpoint(path, map_location="cpu").eval()
+    model = warm_start(GaussianEstimator(net=TINY_NET, window=64, init_from=str(path))).eval()
+    assert torch.allclose(model.predict_params(x), source.predict_params(x))
+    with pytest.raises(RuntimeError, match="not applied"):
+        GaussianEstimator(net=TINY_NET, window=64, init_from=str(path)).on_fit_start()
