@@ -19,7 +19,9 @@ from __future__ import annotations
 import functools
 import json
 import math
+import resource
 import time
+import warnings
 from pathlib import Path
 
 import lightning
@@ -188,8 +190,11 @@ def run(cfg) -> dict:
         loader = torch.utils.data.DataLoader(
             RecordingBlocks(InputSettings.from_config(cfg), plan, pending), batch_size=None, shuffle=False
         )
-        trainer.predict(build_module(cfg, plan), dataloaders=loader, return_predictions=False)
+        with warnings.catch_warnings():  # the writer keys shards by block, not by sampler indices
+            warnings.filterwarnings("ignore", message="Couldn't infer the batch indices")
+            trainer.predict(build_module(cfg, plan), dataloaders=loader, return_predictions=False)
     solve_seconds = time.perf_counter() - t_solve
+    rss_solve = _max_rss_mib()
     trainer.strategy.barrier("qcm-estimate merge")
     if not trainer.is_global_zero:
         return {}
@@ -224,12 +229,18 @@ def run(cfg) -> dict:
     metrics, table_rows = write_metrics(cfg, columns, columns.get("true"), plan["known"], run_dir)
     summary.update(metrics)
     summary["seconds_total"] = time.perf_counter() - t_start
+    # This process's peak resident memory after the solve and at the end (spawned ranks excluded).
+    summary["max_rss_mib"] = {"solve": rss_solve, "total": _max_rss_mib()}
     atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
     runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(), inputs_used)
     if not cfg.get("keep_shards", False):
         store.remove()
     print_report(cfg, summary, table_rows, run_dir)
     return summary
+
+
+def _max_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
 def _hydra_entry(cfg) -> None:
