@@ -199,8 +199,8 @@ def run(cfg) -> dict:
     if not trainer.is_global_zero:
         return {}
 
-    columns, stage_stats = store.merge(blocks, n_samples)
-    stage_loss, stage_status = merge_stage_stats(stage_stats, [s["name"] for s in plan["stages"]])
+    columns, markers = store.merge(blocks, n_samples)
+    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], [s["name"] for s in plan["stages"]])
     if cfg.tensorboard:
         log_stage_losses(run_dir / "tb", stage_loss)
     summary = {
@@ -225,6 +225,9 @@ def run(cfg) -> dict:
         "processes": int(trainer.world_size),
         "blocks": len(blocks),
         "blocks_resumed": len(blocks) - len(pending),
+        # per process: seconds spent solving blocks (the rest of seconds_solve is start-up and reading)
+        "seconds_blocks_per_process": _per_process_seconds(markers),
+        "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
     }
     metrics, table_rows = write_metrics(cfg, columns, columns.get("true"), plan["known"], run_dir)
     summary.update(metrics)
@@ -237,6 +240,13 @@ def run(cfg) -> dict:
         store.remove()
     print_report(cfg, summary, table_rows, run_dir)
     return summary
+
+
+def _per_process_seconds(markers) -> list[float]:
+    busy: dict = {}
+    for marker in markers:
+        busy[marker.get("pid")] = busy.get(marker.get("pid"), 0.0) + float(marker.get("seconds", math.nan))
+    return sorted(busy.values(), reverse=True)
 
 
 def _max_rss_mib() -> float:

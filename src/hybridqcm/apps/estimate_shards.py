@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import shutil
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 
@@ -100,17 +101,34 @@ class ShardStore:
         return out
 
     def write(
-        self, block: int, rows: tuple[int, int], header: Sequence[str], estimates, status_header, status, columns, stats
+        self,
+        block: int,
+        rows: tuple[int, int],
+        header: Sequence[str],
+        estimates,
+        status_header,
+        status,
+        columns,
+        stats,
+        seconds: tuple[float, float] = (float("nan"), float("nan")),
     ) -> None:
         atomic_write_csv(self.path(block, ".csv"), header, estimates)
         atomic_write_csv(self.path(block, ".status.csv"), status_header, status)
         with atomic_open(self.path(block, ".pt"), "wb") as handle:
             torch.save(columns, handle)
-        record = {"rows": list(rows), "stages": stats, "fingerprint": self.fingerprint, "pid": os.getpid()}
+        record = {
+            "rows": list(rows),
+            "stages": stats,
+            # GN solve and formatting of this block (not the reading): wall and this process's CPU seconds
+            "seconds": seconds[0],
+            "cpu_seconds": seconds[1],
+            "fingerprint": self.fingerprint,
+            "pid": os.getpid(),
+        }
         atomic_write_text(self.path(block, ".done.json"), json.dumps(record) + "\n")
 
     def merge(self, blocks: Sequence[tuple[int, int]], n_samples: int) -> tuple[dict, list[dict]]:
-        """Write estimates.csv and status.csv from the shards; returns (columns [M, ...], stage stats per block).
+        """Write estimates.csv and status.csv from the shards; returns (columns [M, ...], markers per block).
 
         Raises DatasetError naming the first block that is missing (a rank died: rerun to finish)."""
         records = []
@@ -128,7 +146,7 @@ class ShardStore:
         columns = {key: torch.cat([p[key] for p in parts]) for key in parts[0] if parts[0][key] is not None}
         if not torch.equal(columns["index"], torch.arange(n_samples)):
             raise DatasetError(f"{self.root}: the shards' sample indices are not 0..{n_samples - 1} in order")
-        return columns, [r["stages"] for r in records]
+        return columns, records
 
     @staticmethod
     def _concatenate(target: Path, parts: Sequence[Path], n_samples: int) -> None:
@@ -162,15 +180,16 @@ class BlockRefinement(GaussNewtonRefinement):
     multi-start draws per block (block 0 with seed + 2, as the one-batch run), so a block's result
     does not depend on which process solved it or what it solved before."""
 
+    def __init__(self, *args, seed: int = 0, **kwargs):
+        super().__init__(*args, seed=seed, **kwargs)
+        self._seed = int(seed)
+
     def refine_block(self, outputs: Mapping, module, block: int) -> dict:
+        """The block's record (see GaussNewtonRefinement.refine); nothing is kept after it."""
         self.generator.manual_seed(self._seed + 2 + 1_000_003 * int(block))
         record = self.refine(outputs, module)
         self._batches.clear()
         return record
-
-    def __init__(self, *args, seed: int = 0, **kwargs):
-        super().__init__(*args, seed=seed, **kwargs)
-        self._seed = int(seed)
 
 
 class ShardWriter(BasePredictionWriter):
@@ -192,6 +211,7 @@ class ShardWriter(BasePredictionWriter):
         self.tables, self.stage_stats = tables, stage_stats
 
     def write_on_batch_end(self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0):
+        t0, c0 = time.perf_counter(), time.process_time()
         prediction = move_data_to_device(prediction, "cpu")
         block = int(batch["block"])
         record = self.refinement.refine_block(prediction, pl_module, block)
@@ -208,6 +228,7 @@ class ShardWriter(BasePredictionWriter):
             status_rows,
             columns,
             self.stage_stats(record),
+            (time.perf_counter() - t0, time.process_time() - c0),
         )
 
 
