@@ -3,6 +3,7 @@ so a reader never sees a half-written table or summary."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import os
@@ -32,3 +33,20 @@ def atomic_write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Seq
     writer.writerow(header)
     writer.writerows(rows)
     return atomic_write_text(path, buffer.getvalue())
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path, mode: str = "w", **kwargs):
+    """A file handle for a large output written piece by piece: it appears at `path`, complete,
+    when the block ends, and never appears if the block raises (the temporary file is removed)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **kwargs) as handle:
+            yield handle
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,164 @@
+"""qcm-estimate's inputs, streamed: the file is read in contiguous blocks of recordings.
+
+Block k holds rows [k B, min((k+1) B, M)) of the split (B = batch_size, M = n_samples) and is
+one predict batch, whatever the number of processes: the GN peer test and the multi-start
+generator see the same batches in a 2-process run as in a 1-process one, so the estimates are
+identical. A block is read from the HDF5 file when it is needed (the file is opened per read, in
+whichever process or worker reads it), so memory holds one block, never the file.
+
+Random numbers are those of the in-memory reading, bit for bit: the initial guesses
+p0 = p_ref (1 + σ_init δ), δ rows of ONE draw [M, 10] from ``seed``, and the source's noise
+a (1 + σ η), η rows of ONE draw [M, T, 3] from ``seed + 1`` (estimation/draws.py takes any slice
+of such a draw). The sensor model seeds each sample by its index already.
+
+    batch = {"accel" [b, T, 3], "road" [b, T], "pu" [b], "init" [b, 10], "index" [b] int64,
+             "true" [b, 10] (file has params), "noise_std" [b, 3] / "noise_sigma" [b] (noise-aware),
+             "block" int}
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hybridqcm.apps.estimate_plan import CHANNELS
+from hybridqcm.data.hdf5 import read_split
+from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.physics.parameters import PhysicalConstants
+
+
+@dataclass(frozen=True)
+class InputSettings:
+    """The config values the inputs depend on, as plain values (they travel to spawned ranks)."""
+
+    seed: int
+    init_sigma: float
+    vehicle: tuple[tuple[str, float], ...]
+    known_source: str
+    pu_known: bool
+    noise_sigma: float
+    noise_weighting: bool
+
+    @classmethod
+    def from_config(cls, cfg) -> InputSettings:
+        return cls(
+            seed=int(cfg.seed),
+            init_sigma=float(cfg.init.relative_sigma),
+            vehicle=tuple((str(k), float(v)) for k, v in cfg.vehicle.items()),
+            known_source=str(cfg.known_source),
+            pu_known=bool(cfg.pu_known),
+            noise_sigma=float(cfg.noise_sigma),
+            noise_weighting=bool(cfg.noise_weighting),
+        )
+
+
+class _Streams:
+    """The two seeded draws of a run (δ, η), each read block after block in one pass."""
+
+    def __init__(self, settings: InputSettings, n_samples: int, n_steps: int):
+        self.delta = NormalStream(settings.seed, n_samples * 10)
+        self.noise = NormalStream(settings.seed + 1, n_samples * n_steps * 3) if settings.noise_sigma > 0 else None
+
+
+def build_inputs(cfg, plan: Mapping, rows: slice | None = None, streams: _Streams | None = None) -> dict:
+    """Inputs of rows [start, stop) of the split (default: all n_samples): read, δ drawn, noise applied.
+
+    cfg: the run config or its InputSettings. Returns the batch dict of the module docstring
+    ("true" is None without params). Raises DatasetError/ConfigError naming the file and sample."""
+    settings = cfg if isinstance(cfg, InputSettings) else InputSettings.from_config(cfg)
+    n_total = int(plan["n_samples"])
+    rows = slice(0, n_total) if rows is None else rows
+    start, stop = int(rows.start), int(rows.stop)
+    road_free = plan["base_excitation"] is not None
+    keys = ["accel"] + ([] if road_free else ["road"]) + (["params"] if plan["has_params"] else [])
+    try:
+        arrays = read_split(plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(start, stop))
+    except DatasetError as error:
+        if start == 0:
+            raise
+        raise DatasetError(f"{error} (in the block of rows {start}..{stop - 1})") from None
+    accel = torch.from_numpy(np.asarray(arrays["accel"], dtype=np.float64))
+    for c in plan["observed"]:  # unrecorded channels may be NaN in a file; the ones used may not
+        column = accel[:, :, CHANNELS.index(c)]
+        if not bool(torch.isfinite(column).all()):
+            bad = start + int((~torch.isfinite(column)).any(1).nonzero()[0])
+            raise ConfigError(
+                f"{plan['path']}: /{plan['split']}/accel channel {c} has NaN/inf (sample {bad}); "
+                f"it is in observed={plan['observed']}"
+            )
+    road = (
+        torch.zeros(accel.shape[:2], dtype=torch.float64)
+        if road_free
+        else torch.from_numpy(np.asarray(arrays["road"], dtype=np.float64))
+    )
+    m = accel.shape[0]
+    index = torch.arange(start, stop)
+    streams = streams or _Streams(settings, n_total, accel.shape[1])
+    p_ref = PhysicalConstants(**dict(settings.vehicle)).to_params()
+    true = torch.from_numpy(np.asarray(arrays["params"], dtype=np.float64)) if plan["has_params"] else None
+
+    # The same δ for every experiment: rows of one draw [n_samples, 10] from `seed`.
+    delta = settings.init_sigma * torch.from_numpy(streams.delta.take(start * 10, stop * 10)).reshape(m, 10)
+    init = p_ref * (1.0 + delta)
+    init = torch.where(init > 0, init, p_ref.expand_as(init))  # a δ < -1 would start outside the domain
+    from_file = true is not None and settings.known_source == "file"
+    known_values = true if from_file else p_ref.expand(m, 10)
+    for j in plan["known"]:
+        init[:, j] = known_values[:, j]
+    if settings.pu_known and from_file:
+        pu = known_values[:, 9] - known_values[:, 8]
+    else:  # the reference vehicle's (without pu_known only the U-Net reads it)
+        pu = torch.full((m,), float(p_ref[9] - p_ref[8]), dtype=torch.float64)
+
+    sigma = settings.noise_sigma
+    if sigma > 0:
+        per_row = accel.shape[1] * 3
+        eta = torch.from_numpy(streams.noise.take(start * per_row, stop * per_row)).reshape(accel.shape)
+        accel = accel * (1.0 + sigma * eta)
+    sensor = plan["sensor"]
+    out = {"accel": accel, "road": road, "pu": pu, "init": init, "true": true, "index": index}
+    if sensor.active:
+        out["accel"] = sensor.apply(accel, index)
+        if settings.noise_weighting:  # the user knows the sensor: weight each channel by 1/σ_c
+            out["noise_std"] = sensor.noise_std(accel).clamp_min(1e-12)
+    if sigma > 0 and settings.noise_weighting:
+        out["noise_sigma"] = torch.full((m,), sigma, dtype=torch.float64)
+    return out
+
+
+def block_rows(n_samples: int, batch_size: int) -> list[tuple[int, int]]:
+    """[(start, stop)] of every block: contiguous rows, batch_size each (the last one shorter)."""
+    return [(a, min(a + batch_size, n_samples)) for a in range(0, n_samples, batch_size)]
+
+
+class RecordingBlocks(torch.utils.data.Dataset):
+    """Map-style dataset over the blocks still to estimate; item k is block ``blocks[k]``'s batch.
+
+    Used with ``DataLoader(batch_size=None)``: one item is one predict batch. Under DDP, Lightning
+    hands rank r the items r, r + W, ... (unrepeated for predict; a padded sampler's repeats would
+    rewrite the same shard). The δ/η draws are continued block after block within a process."""
+
+    def __init__(self, settings: InputSettings, plan: Mapping, blocks: list[tuple[int, int, int]]):
+        self.settings = settings
+        self.plan = dict(plan)
+        self.blocks = list(blocks)  # (block id, start, stop)
+        self._streams = None
+
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __getitem__(self, k: int) -> dict:
+        block, start, stop = self.blocks[k]
+        if self._streams is None:  # per process / worker: opened where it is used
+            self._streams = _Streams(self.settings, int(self.plan["n_samples"]), int(self.plan["n_read_steps"]))
+        batch = build_inputs(self.settings, self.plan, slice(start, stop), self._streams)
+        batch = {key: value for key, value in batch.items() if value is not None}
+        batch["block"] = int(block)
+        return batch
+
+
+__all__ = ["InputSettings", "build_inputs", "block_rows", "RecordingBlocks"]

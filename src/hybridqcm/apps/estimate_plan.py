@@ -1,0 +1,400 @@
+"""qcm-estimate's plan: every setting and input checked before any work, resolved once.
+
+``validate(cfg)`` reads the config, the dataset's layout and the checkpoints (once, through the
+safe loader) and returns the plan dict the run is built from: file, split, rows, window, model,
+initial state, stages, sensor and input margins. Every bad input (unknown or non-estimation
+experiment, missing/wrong-kind checkpoint, a key or channel the pipeline needs but the file lacks,
+a window longer than the stored steps) is one ConfigError/DatasetError line naming the file, key
+and value.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from hybridqcm.apps import common
+from hybridqcm.apps.common import CONFIG_DIR, ConfigError
+
+PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
+CHANNELS = ("a3", "a2", "a1")
+MODELS = ("auto", "exact", "euler")
+INITIAL_STATES = ("auto", "unknown", "rest")
+
+
+def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
+    """(model, initial_state) for this file: ``auto`` follows the file's ``physics`` attribute.
+
+    Files from our Euler generator keep the source's model (from rest, as the reproduction, or with
+    the initial state estimated for windows cut mid-drive); everything else — continuous-time
+    simulations, files from other producers and real loggers — gets the exact model with the
+    initial state estimated.
+    """
+    model, initial = str(cfg.dynamics), str(cfg.initial_state)
+    if model not in MODELS:
+        raise ConfigError(f"dynamics={model!r}: choose one of {list(MODELS)}")
+    if initial not in INITIAL_STATES:
+        raise ConfigError(f"initial_state={initial!r}: choose one of {list(INITIAL_STATES)}")
+    physics, file_initial = info["physics"], info["initial_state"]  # rest | mid-drive | unknown
+    if model == "auto":
+        model = "euler" if physics == "euler" else "exact"
+    if initial == "auto":
+        initial = "rest" if (model == "euler" and file_initial == "rest") else "unknown"
+    return model, initial
+
+
+def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
+    """Fail early (before Hydra composes: a training experiment would fail there obscurely)."""
+    common.check_experiment_overrides(args, "estimate", config_dir)
+
+
+def _param_index(names: Sequence[str], key: str) -> list[int]:
+    out = []
+    for name in names:
+        if str(name) not in PARAM_NAMES:
+            raise ConfigError(f"{key}: {name!r} is not a parameter name (p1..p10)")
+        out.append(PARAM_NAMES.index(str(name)))
+    return out
+
+
+def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
+    """(method, SolverConfig kwargs) from the solver group plus per-stage overrides."""
+    from dataclasses import fields
+
+    from omegaconf import OmegaConf
+
+    from hybridqcm.estimation.solver import SOLVERS, SolverConfig
+
+    base = OmegaConf.to_container(cfg.solver, resolve=True)
+    base.update(dict(overrides or {}))
+    method = base.pop("method", "gauss_newton")
+    if method not in SOLVERS:
+        raise ConfigError(f"solver.method={method!r} is unknown; choose one of {sorted(SOLVERS)}")
+    allowed = {f.name for f in fields(SolverConfig)}
+    unknown = sorted(set(base) - allowed)
+    if unknown:
+        raise ConfigError(f"unknown solver setting(s) {unknown}; valid: {sorted(allowed)}")
+    if int(base.get("max_iterations", 1)) < 0:
+        raise ConfigError(f"solver.max_iterations must be >= 0, got {base['max_iterations']}")
+    if float(base.get("initial_step", 1.0)) <= 0:
+        raise ConfigError(f"solver.initial_step must be > 0, got {base['initial_step']}")
+    return method, base
+
+
+def check_positive_params(path: Path, split: str, params, n: int) -> None:
+    """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
+    from hybridqcm.data.hdf5 import DatasetError
+
+    values = np.asarray(params[:n], dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] != 10:
+        raise DatasetError(f"{path}: /{split}/params has shape {values.shape}, expected [M, 10]")
+    bad = np.argwhere(~(np.isfinite(values) & (values > 0)))
+    if bad.size:
+        i, j = (int(x) for x in bad[0])
+        raise DatasetError(
+            f"{path}: /{split}/params[{i}, {j}] ({PARAM_NAMES[j]}) = {float(values[i, j])!r}; parameters "
+            f"must be finite and > 0 ({len(bad)} such values)"
+        )
+
+
+def _known_key_tree() -> dict:
+    """Keys qcm-estimate understands: configs/estimate.yaml plus what its experiments and solvers set."""
+    import yaml
+
+    def merge(into: dict, data) -> None:
+        for k, v in (data or {}).items():
+            if isinstance(v, dict) and isinstance(into.get(k, {}), dict):
+                merge(into.setdefault(k, {}), v)
+            else:
+                into.setdefault(k, None)
+
+    tree: dict = {}
+    merge(tree, yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text()))
+    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
+        data = yaml.safe_load(path.read_text()) or {}
+        if isinstance(data, dict) and data.get("task") == "estimate":
+            merge(tree, data)
+    for group in ("paths", "hydra", "solver", "experiment", "sensor", "trainer"):
+        tree[group] = None  # groups: their own schemas (checked by solver_settings and build_sensor)
+    return tree
+
+
+# Mappings whose entries are free-form (GN stage lists, vehicle constants are checked where used).
+_OPEN_KEYS = ("stages", "vehicle", "defaults")
+
+
+def check_known_keys(cfg) -> None:
+    """Refuse keys qcm-estimate does not know (e.g. `+data.pathh=x`, which would otherwise be ignored)."""
+    from omegaconf import DictConfig
+
+    def walk(node, tree, prefix: str) -> None:
+        for key in node.keys():
+            name = f"{prefix}{key}"
+            if key not in tree:
+                raise ConfigError(
+                    f"unknown setting {name}={node[key]!r} (qcm-estimate does not use it); "
+                    f"known under {prefix or 'the top level'}: {sorted(tree)}"
+                )
+            sub = tree[key]
+            if isinstance(sub, dict) and key not in _OPEN_KEYS and isinstance(node[key], DictConfig):
+                walk(node[key], sub, f"{name}.")
+
+    walk(cfg, _known_key_tree(), "")
+
+
+# --------------------------------------------------------------------------------------------------
+def validate(cfg) -> dict:
+    """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
+    from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.estimation.fusion import check_cnn_prior
+    from hybridqcm.estimation.hybrid import CheckpointKindError, check_networks, load_network
+
+    check_known_keys(cfg)
+    common.check_task_name(cfg.get("task_name", "estimate"))
+    if cfg.get("task") != "estimate":
+        raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
+    longest = str(cfg.n_steps) == "max"  # the longest window the file holds, resolved below
+    try:
+        n_steps = 2 if longest else int(cfg.n_steps)
+    except (TypeError, ValueError):
+        raise ConfigError(f"n_steps={cfg.n_steps!r}: give a number of samples >= 2 or max") from None
+    if n_steps < 2:
+        raise ConfigError(f"n_steps must be >= 2, got {cfg.n_steps}")
+    sigma = float(cfg.noise_sigma)
+    if not math.isfinite(sigma) or sigma < 0:
+        raise ConfigError(f"noise_sigma must be a finite value >= 0, got {cfg.noise_sigma}")
+    if cfg.n_samples is not None and int(cfg.n_samples) < 1:
+        raise ConfigError(f"n_samples must be >= 1 (or null for all), got {cfg.n_samples}")
+    observed = [str(c) for c in cfg.observed]
+    bad = [c for c in observed if c not in CHANNELS]
+    if bad or not observed:
+        raise ConfigError(f"observed={observed}: channels must be a non-empty subset of {list(CHANNELS)}")
+    known = _param_index(cfg.known, "known")
+    if len(known) == 10:
+        raise ConfigError("known lists all 10 parameters: nothing left to estimate")
+    base = cfg.get("base_excitation")
+    n_params = 10
+    if base is not None:
+        from hybridqcm.estimation.hybrid import BASE_EXCITATION
+
+        if base not in BASE_EXCITATION:
+            raise ConfigError(
+                f"base_excitation={base!r}: choose one of {sorted(BASE_EXCITATION)} or null (road-driven)"
+            )
+        driver, outputs, n_params = BASE_EXCITATION[base]
+        missing = [c for c in (driver, *outputs) if c not in observed]
+        if missing:
+            raise ConfigError(
+                f"base_excitation={base} is driven by the measured {driver} and fits {list(outputs)}: "
+                f"observed={observed} lacks {missing}"
+            )
+        if any(j >= n_params for j in known):
+            raise ConfigError(f"known={list(cfg.known)}: the {base} model holds only p1..p{n_params}")
+        if str(cfg.dynamics) == "euler":
+            raise ConfigError(
+                f"base_excitation={base} uses the exact continuous-time model: dynamics=euler is not available"
+            )
+        if str(cfg.initial_state) == "rest":
+            raise ConfigError(
+                f"base_excitation={base}: the initial relative state is always estimated (initial_state=unknown)"
+            )
+    if cfg.known_source not in ("file", "reference"):
+        raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
+    if int(cfg.batch_size) < 1:
+        raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
+
+    stages = []
+    for i, stage in enumerate(cfg.stages):
+        stage = dict(stage)
+        name = str(stage.pop("name", f"stage{i}"))
+        channels = stage.pop("channels", "all")
+        window = stage.pop("n_steps", None)
+        guard = bool(stage.pop("guard", False))
+        if window is not None and not 2 <= int(window):
+            raise ConfigError(f"stages[{i}].n_steps must be >= 2 (or null for n_steps), got {window}")
+        method, settings = solver_settings(cfg, stage)
+        stages.append(
+            {
+                "name": name,
+                "channels": channels if isinstance(channels, str) else list(channels),
+                "method": method,
+                "settings": settings,
+                "n_steps": None if window is None else int(window),
+                "guard": guard,
+            }
+        )
+    if not stages:
+        raise ConfigError("stages is empty: give at least one GN stage")
+
+    # Checkpoints: present, readable, of the right kind — and the ones the experiment needs.
+    # Loaded once, through the one safe loader (models.checkpoint): weights_only, allow-list, strict keys.
+    kinds = {"cnn_ckpt": "cnn", "unet_ckpt": "unet", "cae_ckpt": "cae"}
+    networks = {}
+    for key, kind in kinds.items():
+        if cfg.get(key):
+            try:
+                networks[key] = load_network(cfg[key], kind, key)
+            except CheckpointKindError as error:
+                raise ConfigError(str(error)) from None
+    if cfg.init.cnn and not cfg.cnn_ckpt:
+        raise ConfigError(
+            f"experiment {cfg.experiment_name} initialises p1, p2 with the CNN: give cnn_ckpt=PATH "
+            f"(or init.cnn=false for a random init)"
+        )
+    completes = bool(cfg.unet_ckpt) and not {"a2", "a1"} <= set(observed)
+    if cfg.init.equation_error and not (completes or set(observed) == set(CHANNELS)):
+        raise ConfigError(
+            f"init.equation_error needs all three accelerations: observe them or give unet_ckpt=PATH "
+            f"(observed={observed})"
+        )
+    for stage in stages:  # explicit channel lists must be measured or completed
+        if not isinstance(stage["channels"], str):
+            available = set(observed) | ({"a2", "a1"} if completes else set())
+            missing = [c for c in stage["channels"] if c not in available]
+            if missing:
+                raise ConfigError(
+                    f"stage {stage['name']!r} uses channels {missing}, which are neither observed "
+                    f"(observed={observed}) nor completed by a U-Net"
+                )
+        elif stage["channels"] not in ("all", "observed"):
+            raise ConfigError(f"stage {stage['name']!r}: channels={stage['channels']!r}; use all, observed or a list")
+    if cfg.init.cnn and "a2" not in observed and not completes and not cfg.cnn_a2_from_file:
+        raise ConfigError(
+            "the CNN initialiser reads a2, which is not observed: give unet_ckpt=PATH to complete it "
+            "(or cnn_a2_from_file=true to use the file's a2 for the initial guess only)"
+        )
+    if cfg.cae_ckpt and "a2" not in observed and not completes:
+        raise ConfigError("cae_ckpt denoises (a3, a2) but a2 is neither observed nor completed (give unet_ckpt)")
+
+    # Dataset: split, keys, window; NaNs are checked when reading (read_split names the index).
+    path = Path(str(cfg.data.path))
+    info = dataset_info(path)
+    split = str(cfg.data.split)
+    if split not in info["splits"]:
+        raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
+    keys = info["splits"][split]["keys"]
+    for key in ("accel",) + (("road",) if base is None else ()):
+        if key not in keys:
+            raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
+    has_params = "params" in keys
+    if not has_params and known and cfg.known_source == "file":
+        raise DatasetError(
+            f"{path}: /{split} has no 'params', so the known parameters {[PARAM_NAMES[i] for i in known]} "
+            f"cannot come from the file; set known_source=reference to take them from the vehicle config"
+        )
+    import h5py
+
+    with h5py.File(path, "r") as handle:
+        accel = handle[split]["accel"]
+        if not isinstance(accel, h5py.Dataset) or accel.ndim != 3:
+            raise DatasetError(
+                f"{path}: /{split}/accel is a {type(accel).__name__}"
+                f"{'' if not isinstance(accel, h5py.Dataset) else f' of shape {accel.shape}'}, "
+                f"not an array [M, n_steps, 3]"
+            )
+        stored = int(accel.shape[1])
+        n_total = int(accel.shape[0])
+        h_file = float(handle.attrs["h"]) if "h" in handle.attrs else None
+        if n_total == 0:
+            raise DatasetError(f"{path}: /{split} is empty (0 samples); nothing to estimate")
+        if cfg.n_samples is not None and int(cfg.n_samples) > n_total:
+            raise ConfigError(
+                f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
+                f"(use n_samples<={n_total} or null for all)"
+            )
+        if has_params:
+            check_positive_params(
+                path, split, handle[split]["params"], n_total if cfg.n_samples is None else int(cfg.n_samples)
+            )
+    try:
+        check_networks(
+            networks.get("cnn_ckpt") if cfg.init.cnn else None,
+            networks.get("unet_ckpt"),
+            networks.get("cae_ckpt"),
+            h_file or 0.01,
+        )
+    except CheckpointKindError as error:
+        raise ConfigError(str(error)) from None
+    try:  # init.cnn_prior=network: the CNN must predict its variance (estimation/fusion.py)
+        check_cnn_prior(
+            cfg.init.get("cnn_prior"),
+            networks.get("cnn_ckpt") if cfg.init.cnn else None,
+            cfg.init.get("cnn_prior_rel_std"),
+        )
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    needed = n_steps
+    windows = {}
+    for key in ("cnn_ckpt", "unet_ckpt", "cae_ckpt"):
+        if key in networks and (key != "cnn_ckpt" or cfg.init.cnn):
+            windows[key] = int(networks[key].hparams.window)
+    if cfg.init.cnn:
+        needed = max(needed, windows.get("cnn_ckpt", n_steps))
+    if needed > stored:
+        what = "n_steps" if needed == n_steps else f"the CNN window ({needed})"
+        raise DatasetError(f"{path}: {what} = {needed} steps but /{split}/accel stores {stored} steps")
+    n_samples = n_total if cfg.n_samples is None else int(cfg.n_samples)
+    model, initial_state = resolve_model(cfg, info)
+    from hybridqcm.data.sensor import build_sensor
+
+    try:
+        sensor = build_sensor(cfg.get("sensor"))
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    if sensor.active and sigma > 0:
+        raise ConfigError(
+            f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one"
+        )
+    margin = cfg.get("input_margin", "auto")
+    if longest:  # every stored step, less the exact model's input margins
+        exact = base is not None or model == "exact"
+        n_steps = stored - (12 if exact and str(margin) == "auto" and stored >= 14 else 0)
+        if str(margin) != "auto":
+            n_steps = stored - sum(int(m) for m in margin)
+        if n_steps < 2:
+            raise DatasetError(f"{path}: n_steps=max leaves {n_steps} steps of the {stored} stored")
+    if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
+        margin = (0, 0) if model == "euler" else (min(4, stored - n_steps), max(0, min(8, stored - n_steps - 4)))
+    try:
+        margin = tuple(int(m) for m in margin)
+    except (TypeError, ValueError):
+        raise ConfigError(f"input_margin={margin!r}: give auto or [before, after] sample counts") from None
+    if len(margin) != 2 or min(margin) < 0:
+        raise ConfigError(f"input_margin={list(margin)}: give auto or [before, after] sample counts >= 0")
+    if margin[0] + n_steps > stored:
+        raise DatasetError(
+            f"{path}: input_margin before = {margin[0]} + n_steps = {n_steps} exceed the {stored} stored steps"
+        )
+    needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
+    if base is not None:  # the road-free models are continuous-time, with their initial state estimated
+        model, initial_state = "exact", "unknown"
+    if initial_state == "unknown":
+        # With x0 unknown a short continuation window has up to 6 more unknowns than it can pin
+        # down (diverging or stopping in local minima): such stages are skipped.
+        shortest = int(cfg.get("min_window_unknown_state", 30))
+        stages = [s for s in stages if s["n_steps"] is None or s["n_steps"] >= shortest] or stages[-1:]
+    if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
+        raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
+    return {
+        "path": path,
+        "split": split,
+        "has_params": has_params,
+        "known": known,
+        "observed": observed,
+        "stages": stages,
+        "n_read_steps": needed,
+        "n_samples": n_samples,
+        "h": h_file or 0.01,
+        "completes": completes,
+        "windows": windows,
+        "model": model,
+        "initial_state": initial_state,
+        "base_excitation": base,
+        "n_params": n_params,
+        "sensor": sensor,
+        "input_margin": margin,
+        "n_steps": n_steps,
+    }

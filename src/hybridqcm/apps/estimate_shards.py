@@ -1,0 +1,235 @@
+"""qcm-estimate's shards: each block's results written by the rank that solved it, merged once.
+
+    RUN/shards/block-000007.csv         estimates.csv rows of block 7 (with the header)
+    RUN/shards/block-000007.status.csv  status.csv rows
+    RUN/shards/block-000007.pt          per-sample columns for the metrics (params, std, status, truth)
+    RUN/shards/block-000007.done.json   written last: rows, stage statistics, the run's fingerprint
+
+A block is done when its marker exists (every file is renamed into place complete, the marker
+last), so a run killed at any point restarts where it stopped: rerun the same command into the
+same hydra.run.dir and the finished blocks are skipped, under any number of processes. A marker
+whose fingerprint (the settings that change estimates, and the size/mtime of every input file)
+differs from this run's is refused in one line naming it. The merge (one process) streams the
+shards into estimates.csv and status.csv in block order, each index exactly once, checked
+against 0..M-1, written to temporary files renamed into place: never half-written.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+
+import torch
+from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.utilities import move_data_to_device
+from omegaconf import OmegaConf
+
+from hybridqcm.apps import runfolder
+from hybridqcm.atomic import atomic_open, atomic_write_csv, atomic_write_text
+from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.hybrid import GaussNewtonRefinement
+
+SHARDS = "shards"
+# Settings that do not change a single estimate: where and how the run happens, what it draws.
+_NOT_IN_FINGERPRINT = ("trainer", "progress", "plots", "tensorboard", "overwrite", "keep_shards", "paths", "hydra")
+
+
+def run_fingerprint(cfg, input_files: Iterable[str | os.PathLike | None]) -> dict:
+    """{"settings": the config minus _NOT_IN_FINGERPRINT, "inputs": {file: [size, mtime_ns]}, "hash"}."""
+    try:
+        settings = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # outside Hydra (tests compose the config): ${hydra:...} cannot resolve
+        settings = OmegaConf.to_container(cfg, resolve=False)
+    settings = {k: v for k, v in settings.items() if k not in _NOT_IN_FINGERPRINT}
+    inputs = runfolder.fingerprint(str(Path(p).resolve()) for p in input_files if p)
+    digest = hashlib.sha256(json.dumps([settings, inputs], sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return {"hash": digest, "settings": settings, "inputs": inputs}
+
+
+def _differences(old: Mapping, new: Mapping) -> list[str]:
+    keys = sorted(
+        k
+        for k in set(old.get("settings", {})) | set(new["settings"])
+        if old.get("settings", {}).get(k) != new["settings"].get(k)
+    )
+    if old.get("inputs") != new["inputs"]:
+        keys.append("input files " + ", ".join(sorted(set(old.get("inputs") or {}) ^ set(new["inputs"])) or "changed"))
+    return keys
+
+
+class ShardStore:
+    """The shard folder of one run: which blocks are done, writing a block, merging all of them."""
+
+    def __init__(self, run_dir: str | os.PathLike, fingerprint: Mapping):
+        self.run_dir = Path(run_dir)
+        self.root = self.run_dir / SHARDS
+        self.fingerprint = dict(fingerprint)
+
+    def path(self, block: int, suffix: str) -> Path:
+        return self.root / f"block-{block:06d}{suffix}"
+
+    def marker(self, block: int) -> dict | None:
+        """The block's done marker; ConfigError (one line, naming it) when another run wrote it."""
+        path = self.path(block, ".done.json")
+        try:
+            record = json.loads(path.read_text())
+        except FileNotFoundError:
+            return None
+        except (OSError, ValueError) as error:
+            raise ConfigError(f"{path}: unreadable shard marker ({error}); remove it to redo the block") from None
+        if record.get("fingerprint", {}).get("hash") != self.fingerprint["hash"]:
+            differs = _differences(record.get("fingerprint", {}), self.fingerprint)
+            raise ConfigError(
+                f"{path}: shard written by a different configuration or inputs (differs in {', '.join(differs) or 'hash'}); "
+                f"rerun with those settings, pass overwrite=true, or choose another hydra.run.dir"
+            )
+        return record
+
+    def pending(self, blocks: Sequence[tuple[int, int]]) -> list[tuple[int, int, int]]:
+        """(block id, start, stop) of the blocks without a matching done marker."""
+        out = []
+        for k, (start, stop) in enumerate(blocks):
+            record = self.marker(k)
+            if record is None or record.get("rows") != [start, stop]:
+                out.append((k, start, stop))
+        return out
+
+    def write(
+        self,
+        block: int,
+        rows: tuple[int, int],
+        header: Sequence[str],
+        estimates,
+        status_header,
+        status,
+        columns,
+        stats,
+        seconds: tuple[float, float] = (float("nan"), float("nan")),
+    ) -> None:
+        atomic_write_csv(self.path(block, ".csv"), header, estimates)
+        atomic_write_csv(self.path(block, ".status.csv"), status_header, status)
+        with atomic_open(self.path(block, ".pt"), "wb") as handle:
+            torch.save(columns, handle)
+        record = {
+            "rows": list(rows),
+            "stages": stats,
+            # GN solve and formatting of this block (not the reading): wall and this process's CPU seconds
+            "seconds": seconds[0],
+            "cpu_seconds": seconds[1],
+            "fingerprint": self.fingerprint,
+            "pid": os.getpid(),
+        }
+        atomic_write_text(self.path(block, ".done.json"), json.dumps(record) + "\n")
+
+    def merge(self, blocks: Sequence[tuple[int, int]], n_samples: int) -> tuple[dict, list[dict]]:
+        """Write estimates.csv and status.csv from the shards; returns (columns [M, ...], markers per block).
+
+        Raises DatasetError naming the first block that is missing (a rank died: rerun to finish)."""
+        records = []
+        for k, (start, stop) in enumerate(blocks):
+            record = self.marker(k)
+            if record is None or record.get("rows") != [start, stop]:
+                raise DatasetError(
+                    f"{self.path(k, '.done.json')}: block {k} (rows {start}..{stop - 1}) was not estimated; "
+                    f"rerun the same command to finish the missing blocks"
+                )
+            records.append(record)
+        for name, suffix in (("estimates.csv", ".csv"), ("status.csv", ".status.csv")):
+            self._concatenate(self.run_dir / name, [self.path(k, suffix) for k in range(len(blocks))], n_samples)
+        parts = [torch.load(self.path(k, ".pt"), weights_only=True) for k in range(len(blocks))]
+        columns = {key: torch.cat([p[key] for p in parts]) for key in parts[0] if parts[0][key] is not None}
+        if not torch.equal(columns["index"], torch.arange(n_samples)):
+            raise DatasetError(f"{self.root}: the shards' sample indices are not 0..{n_samples - 1} in order")
+        return columns, records
+
+    @staticmethod
+    def _concatenate(target: Path, parts: Sequence[Path], n_samples: int) -> None:
+        """Every index 0..M-1 exactly once, in order (a repeated row is dropped, a gap is an error)."""
+        expected = 0
+        with atomic_open(target, "w", newline="") as out:
+            writer = csv.writer(out)
+            for i, part in enumerate(parts):
+                with open(part, newline="") as handle:
+                    reader = csv.reader(handle)
+                    header = next(reader)
+                    if i == 0:
+                        writer.writerow(header)
+                    for row in reader:
+                        index = int(row[0])
+                        if index < expected:
+                            continue  # the same sample twice (a padded distributed sampler)
+                        if index > expected:
+                            raise DatasetError(f"{part}: sample {expected} is missing (next row is {index})")
+                        writer.writerow(row)
+                        expected += 1
+            if expected != n_samples:
+                raise DatasetError(f"{target}: the shards hold {expected} of {n_samples} samples")
+
+    def remove(self) -> None:
+        shutil.rmtree(self.root, ignore_errors=True)
+
+
+class BlockRefinement(GaussNewtonRefinement):
+    """GaussNewtonRefinement for one block at a time: keeps nothing between blocks, and seeds the
+    multi-start draws per block (block 0 with seed + 2, as the one-batch run), so a block's result
+    does not depend on which process solved it or what it solved before."""
+
+    def __init__(self, *args, seed: int = 0, **kwargs):
+        super().__init__(*args, seed=seed, **kwargs)
+        self._seed = int(seed)
+
+    def refine_block(self, outputs: Mapping, module, block: int) -> dict:
+        """The block's record (see GaussNewtonRefinement.refine); nothing is kept after it."""
+        self.generator.manual_seed(self._seed + 2 + 1_000_003 * int(block))
+        record = self.refine(outputs, module)
+        self._batches.clear()
+        return record
+
+
+class ShardWriter(BasePredictionWriter):
+    """Prediction writer: runs the GN stages on each predicted block (on the CPU, float64) and writes
+    the block's shard. ``tables(record) -> (rows, status rows, columns)`` formats a block."""
+
+    def __init__(
+        self,
+        store: ShardStore,
+        refinement: BlockRefinement,
+        header: Sequence[str],
+        status_header: Sequence[str],
+        tables: Callable,
+        stage_stats: Callable,
+    ):
+        super().__init__(write_interval="batch")
+        self.store, self.refinement = store, refinement
+        self.header, self.status_header = list(header), list(status_header)
+        self.tables, self.stage_stats = tables, stage_stats
+
+    def write_on_batch_end(self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0):
+        t0, c0 = time.perf_counter(), time.process_time()
+        prediction = move_data_to_device(prediction, "cpu")
+        block = int(batch["block"])
+        record = self.refinement.refine_block(prediction, pl_module, block)
+        rows, status_rows, columns = self.tables(record)
+        true = batch.get("true")
+        columns["true"] = None if true is None else true.detach().cpu().double()
+        start = int(record["index"][0])
+        self.store.write(
+            block,
+            (start, start + len(rows)),
+            self.header,
+            rows,
+            self.status_header,
+            status_rows,
+            columns,
+            self.stage_stats(record),
+            (time.perf_counter() - t0, time.process_time() - c0),
+        )
+
+
+__all__ = ["SHARDS", "run_fingerprint", "ShardStore", "BlockRefinement", "ShardWriter"]

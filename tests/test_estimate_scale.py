@@ -1,0 +1,136 @@
+"""qcm-estimate at scale: streamed blocks, 2 processes (gloo), shards, restart, refusal, atomic merge."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from hybridqcm.apps.common import CONFIG_DIR
+from hybridqcm.apps.estimate import run, validate
+from hybridqcm.apps.estimate_inputs import build_inputs
+from hybridqcm.apps.estimate_shards import ShardStore
+from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.physics.parameters import PhysicalConstants
+
+BIN = Path(sys.executable).parent
+ROADFREE = ["experiment=occupant_roadfree", "progress=false", "plots=false", "tensorboard=false"]
+
+
+def _cfg(overrides):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        return compose("estimate", overrides=list(overrides))
+
+
+def _estimates(path: Path) -> tuple[list[str], np.ndarray, list[str]]:
+    with open(path, newline="") as handle:
+        rows = list(csv.reader(handle))
+    header, body = rows[0], rows[1:]
+    status_col = header.index("status")
+    numbers = np.array([[float(x) for j, x in enumerate(r) if j != status_col] for r in body])
+    return header, numbers, [r[status_col] for r in body]
+
+
+@pytest.mark.parametrize("total", [5, 16, 40, 333, 4096 * 3 + 7])
+def test_normal_stream_slices_are_torch_randn_bit_for_bit(total):
+    reference = torch.randn(total, generator=torch.Generator().manual_seed(11), dtype=torch.float64).numpy()
+    stream = NormalStream(11, total)
+    rng = np.random.default_rng(total)
+    cuts = sorted({0, total, *rng.integers(0, total, 6).tolist()})
+    pieces = [stream.take(a, b) for a, b in zip(cuts, cuts[1:])]
+    assert np.array_equal(np.concatenate(pieces), reference)
+    assert np.array_equal(stream.take(1, min(total, 4)), reference[1:4])  # a step back rewinds
+
+
+def test_blocks_read_the_same_inputs_as_one_in_memory_draw(tiny_dataset):
+    cfg = _cfg(
+        ["experiment=exp5_random_init", f"data.path={tiny_dataset}", "n_samples=37", "noise_sigma=0.05", "seed=3"]
+    )
+    plan = validate(cfg)
+    blocks = [build_inputs(cfg, plan, slice(a, min(a + 8, 37))) for a in range(0, 37, 8)]
+    # The draws of the in-memory reading (one randn over the whole prefix), written out here.
+    p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
+    delta = 0.1 * torch.randn(37, 10, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    init = torch.where(p_ref * (1 + delta) > 0, p_ref * (1 + delta), p_ref.expand(37, 10))
+    from hybridqcm.data.hdf5 import read_split
+
+    raw = torch.from_numpy(read_split(tiny_dataset, "test", ["accel"], n_steps=plan["n_read_steps"])["accel"][:37])
+    eta = torch.randn(raw.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    assert torch.equal(torch.cat([b["init"] for b in blocks]), init)
+    assert torch.equal(torch.cat([b["accel"] for b in blocks]), raw.double() * (1 + 0.05 * eta))
+    assert torch.equal(torch.cat([b["index"] for b in blocks]), torch.arange(37))
+
+
+def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path):
+    """24 recordings in 3 blocks of 8: rank 0 solves blocks 0 and 2, rank 1 block 1 (spawn, gloo)."""
+    common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=24", "batch_size=8"]
+    runs = {}
+    for name, extra in {"one": [], "two": ["trainer=ddp", "trainer.devices=2"]}.items():
+        command = [str(BIN / "qcm-estimate"), *common, *extra, f"hydra.run.dir={tmp_path / name}"]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+        assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
+        runs[name] = tmp_path / name
+    assert json.loads((runs["two"] / "summary.json").read_text())["processes"] == 2
+    header1, one, status1 = _estimates(runs["one"] / "estimates.csv")
+    header2, two, status2 = _estimates(runs["two"] / "estimates.csv")
+    assert header1 == header2 and status1 == status2
+    assert one[:, 0].tolist() == list(range(24))  # every input row once, in input order
+    np.testing.assert_allclose(two, one, rtol=1e-12, atol=0)
+    assert not (runs["two"] / "shards").exists()  # merged, then removed
+
+
+def test_restart_skips_finished_blocks_and_refuses_foreign_shards(tiny_dataset, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    overrides = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=20", "batch_size=8", "keep_shards=true"]
+    first = run(_cfg(overrides))
+    assert first["blocks"] == 3 and first["blocks_resumed"] == 0
+    reference = (tmp_path / "estimates.csv").read_bytes()
+    shards = tmp_path / "shards"
+    kept = (shards / "block-000000.csv").stat().st_mtime_ns
+
+    def interrupt():  # what a run killed after blocks 0 and 2 leaves: shards, no merged outputs
+        for name in ("estimates.csv", "status.csv", "summary.json", "calibration.csv", "error_distribution.csv"):
+            (tmp_path / name).unlink(missing_ok=True)
+        (tmp_path / "error_distribution.md").unlink(missing_ok=True)
+        (tmp_path / ".hybridqcm-done.json").unlink(missing_ok=True)
+
+    interrupt()
+    (shards / "block-000001.done.json").unlink()
+    second = run(_cfg(overrides))
+    assert second["blocks_resumed"] == 2
+    assert (shards / "block-000000.csv").stat().st_mtime_ns == kept  # not solved again
+    assert (tmp_path / "estimates.csv").read_bytes() == reference
+
+    interrupt()
+    with pytest.raises(ConfigError, match=r"block-000000\.done\.json: shard written by a different .*seed"):
+        run(_cfg([*overrides, "seed=5"]))
+    assert not (tmp_path / "estimates.csv").exists()
+
+
+def test_merge_never_leaves_a_half_written_table(tiny_dataset, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    overrides = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=16", "batch_size=8", "keep_shards=true"]
+    run(_cfg(overrides))
+    store = ShardStore(
+        tmp_path, json.loads((tmp_path / "shards" / "block-000000.done.json").read_text())["fingerprint"]
+    )
+    (tmp_path / "estimates.csv").unlink()
+    with open(tmp_path / "shards" / "block-000001.csv", newline="") as handle:  # lose one row of block 1
+        rows = list(csv.reader(handle))
+    with open(tmp_path / "shards" / "block-000001.csv", "w", newline="") as handle:
+        csv.writer(handle).writerows(rows[:3] + rows[4:])
+    with pytest.raises(DatasetError, match=r"block-000001\.csv: sample 10 is missing"):
+        store.merge([(0, 8), (8, 16)], 16)
+    assert not (tmp_path / "estimates.csv").exists()
+    assert not list(tmp_path.glob(".estimates.csv*"))  # the temporary file is gone too
+    (tmp_path / "shards" / "block-000001.done.json").unlink()
+    with pytest.raises(DatasetError, match=r"block 1 \(rows 8\.\.15\) was not estimated"):
+        store.merge([(0, 8), (8, 16)], 16)
