@@ -109,9 +109,11 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         )
     if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
         threshold = math.inf
-    reweight = cfg.residual_weighting
-    if str(reweight) == "auto":
+    reweight = str(cfg.residual_weighting)
+    if reweight == "auto":
         reweight = "spectral" if plan["model"] == "exact" else False
+    elif reweight != "spectral":
+        reweight = reweight.lower() == "true"
     return BlockRefinement(
         stages,
         known=known_mask,

@@ -163,6 +163,8 @@ def validate(cfg) -> dict:
         raise ConfigError(f"n_steps={cfg.n_steps!r}: give a number of samples >= 2 or max") from None
     if n_steps < 2:
         raise ConfigError(f"n_steps must be >= 2, got {cfg.n_steps}")
+    if str(cfg.get("residual_weighting", "auto")) not in ("auto", "spectral", "True", "False", "true", "false"):
+        raise ConfigError(f"residual_weighting={cfg.residual_weighting!r}: choose auto, spectral, true or false")
     sigma = float(cfg.noise_sigma)
     if not math.isfinite(sigma) or sigma < 0:
         raise ConfigError(f"noise_sigma must be a finite value >= 0, got {cfg.noise_sigma}")
