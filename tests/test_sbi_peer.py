@@ -168,3 +168,24 @@ def test_missing_extra_is_one_line_naming_it(monkeypatch):
     assert "\n" not in str(info.value)
     with pytest.raises(ConfigError, match="optional extra"):
         SBIPeer(PeerSettings(**SMALL, latent_dim=1))
+
+
+def test_qcm_sbi_bad_input_is_one_line_before_any_work(tmp_path):
+    import os
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root / "src")}
+    run = subprocess.run(
+        [sys.executable, "-m", "hybridqcm.apps.sbi", "evaluate", f"data.path={root / 'missing.h5'}"]
+        + [f"hydra.run.dir={tmp_path / 'run'}"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "data.path=" in lines[0] and "does not exist" in lines[0], run.stderr
+    assert not (tmp_path / "run" / "sbi_metrics.csv").exists()

@@ -216,6 +216,8 @@ def run(cfg) -> list[dict] | None:
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     common.check_writable_dir(run_dir)
     runfolder.prepare_run_dir(run_dir, ARTEFACTS, bool(cfg.overwrite), inputs=[cfg.ckpt])
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     torch.manual_seed(int(cfg.train.seed))
     if mode == "train":
         peer, _ = train(cfg, run_dir)

@@ -79,7 +79,13 @@ def import_sbi():
 
 class Embedding(nn.Module):
     """Raw x [B, C, window] (m/s²) -> summaries [B, features]: per-sample scale, per-channel
-    standardisation (buffers), then ParameterCNN."""
+    standardisation (buffers), then ParameterCNN; with `noise_features`, the last C summaries are
+    log10(RMS of the second difference / RMS) per channel instead of CNN outputs.
+
+    Why the noise summaries: white noise of std σ has a second difference of RMS √6 σ, while the
+    100 Hz response is smooth, so this ratio reads the noise level almost directly. Without it
+    the CNN's posterior width did not follow the noise level (measured, docs/notes/sbi.md).
+    """
 
     def __init__(
         self,
@@ -91,9 +97,14 @@ class Embedding(nn.Module):
         strides: Sequence[int] = (2, 2),
         hidden: Sequence[int] = (100,),
         scale_channel: int = 1,
+        noise_features: bool = False,
     ) -> None:
         super().__init__()
-        self.cnn = ParameterCNN(in_channels, window, channels, kernels, strides, hidden, out_features=features)
+        learned = features - (in_channels if noise_features else 0)
+        if learned < 1:
+            raise ConfigError(f"sbi.features={features} leaves no CNN summaries beside {in_channels} noise summaries")
+        self.cnn = ParameterCNN(in_channels, window, channels, kernels, strides, hidden, out_features=learned)
+        self.noise_features = bool(noise_features)
         self.scale_channel = int(scale_channel)
         self.register_buffer("in_mean", torch.zeros(in_channels))
         self.register_buffer("in_std", torch.ones(in_channels))
@@ -104,8 +115,12 @@ class Embedding(nn.Module):
         return x / scale[:, None, None]
 
     def forward(self, x: Tensor) -> Tensor:
-        z = (self.scaled(x) - self.in_mean[:, None]) / self.in_std[:, None]
-        return self.cnn(z)
+        scaled = self.scaled(x)
+        z = (scaled - self.in_mean[:, None]) / self.in_std[:, None]
+        if not self.noise_features:
+            return self.cnn(z)
+        rough = scaled.diff(n=2, dim=-1).pow(2).mean(-1).sqrt() / scaled.pow(2).mean(-1).sqrt().clamp_min(1e-12)
+        return torch.cat([self.cnn(z), rough.clamp_min(1e-12).log10()], -1)
 
 
 @dataclass(frozen=True)
@@ -116,6 +131,7 @@ class PeerSettings:
     channels: tuple[str, ...] = ("a3", "a2")
     window: int = 500
     features: int = 20  # embedding summaries handed to the flow
+    noise_features: bool = True  # the last len(channels) summaries read the noise level (see Embedding)
     cnn_channels: tuple[int, ...] = (100, 100)
     cnn_kernels: tuple[int, ...] = (50, 10)
     cnn_strides: tuple[int, ...] = (2, 2)
@@ -175,6 +191,7 @@ class SBIPeer(nn.Module):
             settings.cnn_strides,
             settings.cnn_hidden,
             scale_channel=settings.channels.index("a2") if "a2" in settings.channels else 0,
+            noise_features=settings.noise_features,
         )
         build = getattr(builders, FLOWS[settings.flow])
         # Dummy batches only give the shapes: z-scoring is ours (buffers), so the values never matter.
