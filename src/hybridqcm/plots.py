@@ -99,8 +99,46 @@ def plot_histogram(
     return fig
 
 
+def plot_rank_histograms(
+    ranks: np.ndarray, names: Sequence[str], n_posterior: int, path=None, title=None, bins: int = 20
+):
+    """SBC rank histograms [B, P] (one panel per parameter) with the uniform band (mean ± 2 std of a bin count)."""
+    ranks = np.asarray(ranks, dtype=float)
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 2.8), squeeze=False)
+    expected = ranks.shape[0] / bins
+    band = 2 * np.sqrt(expected * (1 - 1 / bins))
+    for ax, name, column in zip(axes[0], names, ranks.T):
+        ax.axhspan(expected - band, expected + band, color="0.85")
+        ax.hist(column, bins=bins, range=(0, n_posterior), color="C0")
+        ax.set_title(name)
+        ax.set_xlabel("rank")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plot_tarp_curve(ecp: np.ndarray, alpha: np.ndarray, path=None, title=None):
+    """TARP: expected coverage probability against credibility level (the diagonal is calibrated)."""
+    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    ax.plot([0, 1], [0, 1], color="0.5", linestyle="--", label="calibrated")
+    ax.plot(np.asarray(alpha, dtype=float), np.asarray(ecp, dtype=float), color="C1", label="posterior")
+    ax.set_xlabel("credibility level")
+    ax.set_ylabel("expected coverage")
+    ax.legend(loc="upper left")
+    if title:
+        ax.set_title(title)
+    return _save(fig, path)
+
+
 def close(fig) -> None:
     plt.close(fig)
 
 
-__all__: Sequence[str] = ["plot_sorted_predictions", "plot_overlays", "plot_histogram", "close"]
+__all__: Sequence[str] = [
+    "plot_sorted_predictions",
+    "plot_overlays",
+    "plot_histogram",
+    "plot_rank_histograms",
+    "plot_tarp_curve",
+    "close",
+]
