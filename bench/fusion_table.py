@@ -74,7 +74,7 @@ def _cnn_alone(args, sigma: float) -> dict[str, torch.Tensor]:
         cnn_ckpt=args.cnn,
         unet_ckpt=args.unet,
         observed=plan["observed"],
-        n_steps=int(cfg.n_steps),
+        n_steps=plan["n_steps"],
         h=plan["h"],
         pu_known=bool(cfg.pu_known),
         base_excitation=plan["base_excitation"],
