@@ -576,14 +576,7 @@ class GaussianEstimator(ParameterEstimator):
         )
         self.denoiser = None
 
-    def data_requirements(self) -> dict:
-        return {
-            "inputs": list(self.hparams.input_channels),
-            "targets": list(self.hparams.target_channels),
-            "aux": [],
-            "window": int(self.hparams.window),
-            "targets_optional": False,
-        }
+    data_requirements = LabelledEstimator.data_requirements  # the same labelled (inputs, targets) stream
 
     def on_fit_start(self) -> None:
         if self.hparams.get("init_from") and not bool(self.norm_fitted):
