@@ -597,8 +597,8 @@ class GaussNewtonRefinement(Callback):
         v_out, v_in = estimate_variances(residual, H, linear.n_input, reference)
         # An input "noise" far below any accelerometer's floor is the hold's interpolation error
         # between samples (deterministic, concentrated near Nyquist), not noise: modelling it as
-        # white input noise moved the weakly identified p3 of the sprung model by up to 2 % on
-        # noise-free data. Such samples get the output-noise model.
+        # white input noise biases the weakly identified p3 of the sprung model on noise-free data
+        # (docs/notes/real_recordings.md). Such samples get the output-noise model.
         window = road[:, offset : offset + targets.shape[1]]
         input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]
         negligible = (v_in < self.min_input_noise**2 * input_power).all(1)
