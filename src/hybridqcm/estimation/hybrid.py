@@ -587,10 +587,10 @@ class GaussNewtonRefinement(Callback):
         residual = predicted[:, :, channels] - targets[:, :, channels]
         residual = torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
         reference = targets[:, :, channels].square().mean(1)
+        v_alone, _ = estimate_variances(residual, None, 0, reference)  # the residual's power, output noise only
         linear = getattr(self.response, "model", None)
         if self.quarter_car or linear is None or len(channels) != linear.n_output:
-            v_out, _ = estimate_variances(residual, None, 0, reference)
-            return SpectralNoise(v_out)
+            return SpectralNoise(v_alone)
         n_params = self.response.n_params
         omega = 2 * math.pi * torch.fft.rfftfreq(targets.shape[1], d=self.h, dtype=torch.float64)
         H, _ = frequency_response(linear, params[:, :n_params].double(), omega)
@@ -602,7 +602,6 @@ class GaussNewtonRefinement(Callback):
         window = road[:, offset : offset + targets.shape[1]]
         input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]
         negligible = (v_in < self.min_input_noise**2 * input_power).all(1)
-        v_alone, _ = estimate_variances(residual, None, 0, reference)  # the residual's power, output noise only
         v_out = torch.where(negligible[:, None], v_alone, v_out)
         v_in = torch.where(negligible[:, None], torch.zeros_like(v_in), v_in)
         return SpectralNoise(v_out, v_in, linear, self.h, frozen_at=params.double() if frozen else None)

@@ -191,7 +191,6 @@ class SpectralNoise:
         v_in: Tensor | None = None,
         linear_model: LinearModel | None = None,
         h: float | None = None,
-        n_params: int | None = None,
         frozen_at: Tensor | None = None,
     ) -> None:
         self.v_out = v_out.to(torch.float64)
@@ -204,9 +203,10 @@ class SpectralNoise:
             raise ValueError("input noise variances must be finite and >= 0")
         self.model = linear_model
         self.h = None if h is None else float(h)
-        self.n_params = n_params if n_params is not None else (linear_model.n_params if linear_model else 0)
-        # S evaluated at these θ [batch, Q] and held fixed (iteratively reweighted, no dS term).
+        # S evaluated at these θ [batch, Q] and held fixed (iteratively reweighted, no dS term): its
+        # factor for the whole batch is computed once per window length, not at every line-search trial.
         self.frozen_at = None if frozen_at is None else frozen_at.to(torch.float64)
+        self._frozen_factor: dict[int, Tensor] = {}
 
     @property
     def has_input_noise(self) -> bool:
@@ -222,11 +222,13 @@ class SpectralNoise:
             L = torch.diag_embed(v_out.sqrt().to(_COMPLEX))[:, None]
             return L, None
         if self.frozen_at is not None:
-            params, derivatives = self.frozen_at[index], False
+            if n_steps not in self._frozen_factor:
+                H, _ = frequency_response(self.model, self.frozen_at[:, : self.model.n_params], self.omega(n_steps))
+                self._frozen_factor[n_steps] = torch.linalg.cholesky(spectral_matrix(H, self.v_out, self.v_in))
+            return self._frozen_factor[n_steps][index], None
         H, dH = frequency_response(self.model, params[:, : self.model.n_params], self.omega(n_steps), derivatives)
         v_in = self.v_in[index]
-        S = spectral_matrix(H, v_out, v_in)
-        L = torch.linalg.cholesky(S)
+        L = torch.linalg.cholesky(spectral_matrix(H, v_out, v_in))
         if not derivatives:
             return L, None
         HV = H * v_in.to(_COMPLEX)[:, None, None, :]  # [b, K, o, m]
@@ -241,6 +243,11 @@ class SpectralNoise:
         return X * w.view(1, -1, *([1] * (x.ndim - 2)))
 
     @staticmethod
+    def _solve(L: Tensor, X: Tensor) -> Tensor:
+        """L^-1 X per frequency: L [b, 1 or K, o, o] (lower), X [b, K, o, c] -> [b, K, o, c]."""
+        return torch.linalg.solve_triangular(L.expand(-1, X.shape[1], -1, -1), X, upper=False)
+
+    @staticmethod
     def _real_stack(E: Tensor) -> Tensor:
         """[b, K, ...] complex -> [b, 2K, ...] real (real parts, then imaginary parts)."""
         return torch.cat([E.real, E.imag], 1).contiguous()
@@ -248,22 +255,18 @@ class SpectralNoise:
     def whiten_residual(self, residual: Tensor, params: Tensor | None, index: Tensor) -> Tensor:
         """residual [b, T, o] at θ ``params`` [b, Q] of the samples ``index`` -> [b, 2K, o]."""
         L, _ = self._factor(index, params, residual.shape[1], False)
-        Rk = self._spectrum(residual)  # [b, K, o]
-        e = torch.linalg.solve_triangular(L.expand(-1, Rk.shape[1], -1, -1), Rk[..., None], upper=False)[..., 0]
-        return self._real_stack(e)
+        return self._real_stack(self._solve(L, self._spectrum(residual)[..., None])[..., 0])
 
     def whiten(self, augmented: Tensor, params: Tensor, index: Tensor) -> Tensor:
         """(R | J) [b, T, o, 1 + Q] -> the whitened (e | de/dθ) [b, 2K, o, 1 + Q]; S depends on the
         first ``n_params`` entries of θ (input noise), which adds -Phi(M) e to their columns."""
         n_steps = augmented.shape[1]
         L, dS = self._factor(index, params, n_steps, self.has_input_noise)
-        X = self._spectrum(augmented)  # [b, K, o, 1 + Q]
-        Lk = L.expand(-1, X.shape[1], -1, -1)
-        E = torch.linalg.solve_triangular(Lk, X, upper=False)  # L^-1 (R | J)
+        E = self._solve(L, self._spectrum(augmented))  # L^-1 (R | J), [b, K, o, 1 + Q]
         if dS is not None:
             e = E[..., 0]  # [b, K, o]
             P = dS.shape[1]
-            Linv = torch.linalg.solve_triangular(Lk, torch.eye(L.shape[-1], dtype=_COMPLEX).expand_as(Lk), upper=False)
+            Linv = self._solve(L, torch.eye(L.shape[-1], dtype=_COMPLEX).expand(*E.shape[:2], -1, -1))
             M = Linv[:, None] @ dS @ Linv.conj().transpose(-1, -2)[:, None]  # [b, P, K, o, o]
             phi = M.tril()
             phi = phi - 0.5 * torch.diag_embed(M.diagonal(dim1=-2, dim2=-1))
@@ -277,5 +280,4 @@ class SpectralNoise:
         L, _ = self._factor(index, params, T, False)
         Rk = torch.fft.rfft(residual.to(torch.float64), dim=1)
         Rk[:, 0] = 0
-        e = torch.linalg.solve_triangular(L.expand(-1, Rk.shape[1], -1, -1), Rk[..., None], upper=False)[..., 0]
-        return torch.fft.irfft(e, n=T, dim=1)
+        return torch.fft.irfft(self._solve(L, Rk[..., None])[..., 0], n=T, dim=1)
