@@ -545,7 +545,7 @@ def test_modal_evaluation_matches_the_step_recursion(case, hold):
 def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
     """Seat damped near critically, p1^2 = 4 p2 (1 + delta)^2: a double eigenvalue at delta = 0."""
     from hybridqcm.estimation._modal import modal_sensitivities
-    from hybridqcm.estimation.exact import _balance, _fine_samples
+    from hybridqcm.estimation.exact import _balance, held_input
 
     model = SeatBaseExcitation()
     p2 = torch.tensor([400.0, 150.0], dtype=F64)
@@ -556,7 +556,7 @@ def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
     new = exact_sensitivities(model, p, x0, w, H, start=8, n_steps=100)
     assert torch.isfinite(new).all() and _column_error(new, old) <= 1e-10
     A, B, C, E = model.matrices(p)
-    fine = _fine_samples(w, "spline", 4, 8, 100)
+    fine = held_input(w, "spline", 4, 8, 100).permute(2, 1, 0)
     _, ok = modal_sensitivities(
         (A, B, C, E), model.matrix_derivatives(p), _balance(A), x0, fine, w[:, 8:108], H, "spline", True
     )
@@ -567,3 +567,23 @@ def test_unknown_method_raises(samples):
     model, p, w = _model_case("quarter", samples)
     with pytest.raises(ValueError, match="unknown method 'fast'"):
         exact_sensitivities(model, p, None, w, H, method="fast")
+
+
+def test_prepared_inputs_give_the_same_outputs_and_jacobian_per_chunk():
+    """A solver holds the input of a window once (ResponseModel.prepare) and evaluates chunks of samples
+    from it: the numbers equal those computed from the raw inputs of the same samples."""
+    from hybridqcm.estimation.response import base_excitation_response
+
+    model, p, w = _random_case("seat", 24, 160, seed=5)
+    theta = torch.cat([p, _x0(24, 2, seed=6)], 1)
+    chunk = torch.tensor([3, 17, 0, 9])
+    for hold in HOLDS:
+        response = base_excitation_response("seat", H, hold=hold)
+        prepared = response.prepare(w, 10, 120)
+        m_sub = 4 if hold == "spline" else 1
+        assert prepared.held.shape == (m_sub + 119 * m_sub + 1, 1, 24)
+        for call in (response.outputs, response.sensitivities):
+            from_raw = call(theta[chunk], w[chunk], 10, 120)
+            assert _column_error(call(theta[chunk], prepared[chunk], 10, 120), from_raw) <= 1e-13
+        with pytest.raises(ValueError, match="prepared for the window start=10, n_steps=120"):
+            response.outputs(theta, prepared, 10, 100)

@@ -1,5 +1,7 @@
 """HybridEstimator (networks from checkpoints) + GaussNewtonRefinement callback, end to end."""
 
+import math
+
 import lightning
 import pytest
 import torch
@@ -195,3 +197,54 @@ def test_guarded_stage_never_worsens_the_measured_fit(batch):
         return (euler_accelerations(p, forcing, H, scaled_road=True)[:, :, 0] - targets[:, :, 0]).square().sum(1)
 
     assert (a3_loss(params) <= a3_loss(batch["init"])).all()
+
+
+def test_restart_attempts_for_few_samples_run_in_one_solver_call():
+    """Seat model, noise-free, started at a tenth of the true p1, p2 (ten times the occupant's mass):
+    the mass ladder of restarts recovers every sample, one attempt per call (restart_batch=1) or all
+    attempts for the few failed samples in one call (the default), with the same answer."""
+    from hybridqcm.estimation.exact import exact_outputs
+    from hybridqcm.estimation.response import base_excitation_response
+    from hybridqcm.physics.linear_models import SeatBaseExcitation
+
+    g = torch.Generator().manual_seed(3)
+    b, T, margin = 16, 200, 8
+    t = torch.arange(T + 2 * margin, dtype=torch.float64)[None, :] * H
+    freq = torch.rand(b, 12, generator=g, dtype=torch.float64) * 14 + 0.5
+    phase = torch.rand(b, 12, generator=g, dtype=torch.float64) * 2 * math.pi
+    a2 = torch.sin(2 * math.pi * freq[:, :, None] * t[:, None] + phase[:, :, None]).sum(1)[..., None]
+    p = torch.stack(
+        [
+            torch.rand(b, generator=g, dtype=torch.float64) * 8 + 6,
+            torch.rand(b, generator=g, dtype=torch.float64) * 1500 + 900,
+        ],
+        1,
+    )
+    a3 = exact_outputs(SeatBaseExcitation(), p, None, a2, H)[:, margin : margin + T]
+    outputs = {"targets": a3, "road": a2, "init": p * 0.1, "index": torch.arange(b), "input_offset": margin}
+    results, calls = {}, {}
+    for restart_batch in (1, 64):
+        callback = GaussNewtonRefinement(
+            [GaussNewtonStage("seat", GaussNewton(SolverConfig(max_iterations=30)))],
+            h=H,
+            response=base_excitation_response("seat", H),
+            restarts=6,
+            restart_threshold=math.inf,
+            restart_mass_factors=[0.6, 1.6, 0.4, 2.5, 0.8, 1.25],
+            restart_batch=restart_batch,
+            peer_factor=None,
+        )
+        calls[restart_batch] = []
+        run = callback._run_stages
+
+        def spy(outputs, init, *args, _calls=calls[restart_batch], _run=run, **kwargs):
+            _calls.append(init.shape[0])
+            return _run(outputs, init, *args, **kwargs)
+
+        callback._run_stages = spy
+        results[restart_batch] = callback.refine(outputs)
+    for out in results.values():
+        assert int((out["restarts"] > 0).sum()) >= 2  # the ladder was needed
+        assert float(((out["params"][:, :2] - p) / p).abs().max()) < 1e-6
+    assert len(calls[1]) > 2 and len(calls[64]) == 2, calls  # the first fit, then one call for all attempts
+    assert calls[64][1] == 6 * int((results[64]["restarts"] > 0).sum())

@@ -173,3 +173,18 @@ def test_errors_in_variables_intervals_cover_where_output_error_ones_do_not():
     cover_plain, cover_spec = float((z_plain < 1.96).double().mean()), float((z_spec < 1.96).double().mean())
     assert cover_spec > 0.88, cover_spec
     assert cover_plain < cover_spec - 0.1, (cover_plain, cover_spec)
+
+
+def test_small_psd_solve_matches_lapack_and_leaves_unidentified_directions_at_zero():
+    from hybridqcm.estimation.noise import _solve_psd
+
+    g = torch.Generator().manual_seed(0)
+    for J in (1, 2, 3, 5):
+        X = torch.randn(40, J, J + 3, generator=g, dtype=torch.float64)
+        A = X @ X.transpose(1, 2)
+        y = torch.randn(40, J, generator=g, dtype=torch.float64)
+        torch.testing.assert_close(_solve_psd(A, y), torch.linalg.solve(A, y), rtol=1e-9, atol=1e-12)
+    # a direction with no information (zero row and column) gets 0, as the minimum-norm solution
+    A = torch.tensor([[[4.0, 0.0, 2.0], [0.0, 0.0, 0.0], [2.0, 0.0, 3.0]]], dtype=torch.float64)
+    y = torch.tensor([[1.0, 0.0, 2.0]], dtype=torch.float64)
+    torch.testing.assert_close(_solve_psd(A, y), (torch.linalg.pinv(A) @ y[..., None])[..., 0])

@@ -117,8 +117,8 @@ def modal_sensitivities(
 
     matrices A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]; derivatives dA [b, P, n, n],
     dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m] (float64); scale [b, n] the balancing
-    D; x0 [b, n] or None; fine [b, m, M + (T - 1) M + 1]: M zeros, then the held input at the
-    sub-steps (exact._fine_samples), window [b, T, m] the input samples of the window. Rows of samples
+    D; x0 [b, n] or None; fine [b, m, M + (T - 1) M + 1] (any strides): M zeros, then the held input
+    at the sub-steps (exact._held, permuted), window [b, T, m] the input samples of the window. Rows of samples
     with ok False are not valid.
     """
     A, B, C, E = matrices
@@ -209,7 +209,8 @@ def modal_sensitivities(
     for c in range(m):  # [b, (c, j), (channel, kind, slot, re/im)]
         weights[:, c, :, 1 + c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
     # fine [b, m, M + L] starts with M zeros: row k of `held` is s_{k-1, 0..M} (row 0: padding)
-    held = fine.as_strided((batch, T, m, m_sub + 1), (fine.stride(0), m_sub, fine.stride(1), 1))
+    sb, sc, st = fine.stride()
+    held = fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st))
     forcing = torch.bmm(held.reshape(batch, T, m * (m_sub + 1)), weights.view(batch, m * (m_sub + 1), n_real))
     Z = torch.view_as_complex(forcing.view(batch, T, 1 + m, 2, n_slot, 2)).transpose(0, 1).contiguous()
     Z[0] = 0

@@ -217,44 +217,67 @@ def _bands(n_fine: int, n_local: int, m_sub: int, start: int, steps: int = 64):
     return blocks
 
 
-def _sub_samples(
-    inputs: Tensor, hold: str, substeps: int, start: int = 0, n_steps: int | None = None, degree: int = 5
-) -> Tensor:
-    """inputs [b, T_in, m] -> s [m_sub+1, m, n_steps-1, b] (batch innermost, a strided view):
-    s[j, c, k] = w_c(t_{start+k} + j h/m_sub), the spline through the samples (all of them up to
-    _SPLINE_REACH beyond each end of the window) for "spline", the samples themselves otherwise."""
+def _held(inputs: Tensor, hold: str, substeps: int, start: int, n_steps: int, degree: int = 5) -> Tensor:
+    """inputs [b, T_in, m] -> held [M + (n_steps - 1) M + 1, m, b] (time first, batch innermost): M
+    zero rows, then the held input at the sub-steps of the window (M = substeps for "spline", 1
+    otherwise): the spline through the samples (all of them up to _SPLINE_REACH beyond each end of
+    the window) for "spline", the samples themselves otherwise. The leading zeros let
+    estimation._modal read step k - 1's sub-samples as row k of one strided view."""
     batch, n_in, n_ch = inputs.shape
-    n_steps = n_in - start if n_steps is None else n_steps
     m_sub = substeps if hold == "spline" else 1
+    out = inputs.new_zeros(m_sub + (n_steps - 1) * m_sub + 1, n_ch * batch)
     if m_sub > 1:
         lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
         weights = _window_spline(hi - lo, m_sub, degree, start - lo, n_steps).to(inputs.device)
         columns = inputs[:, lo:hi].permute(1, 2, 0).reshape(hi - lo, n_ch * batch)  # [T, (c, b)]
-        fine = torch.empty(weights.shape[0], n_ch * batch, dtype=inputs.dtype, device=inputs.device)
+        fine = out[m_sub:]
         for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, m_sub, start - lo):
-            torch.mm(weights[r0:r1, c0:c1], columns[c0:c1], out=fine[r0:r1])  # [(n_steps-1) m_sub + 1, (c, b)]
+            torch.mm(weights[r0:r1, c0:c1], columns[c0:c1], out=fine[r0:r1])
     else:
-        fine = inputs[:, start : start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch).contiguous()
-    return fine.as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (n_ch * batch, batch, m_sub * n_ch * batch, 1))
+        out[1:] = inputs[:, start : start + n_steps].permute(1, 2, 0).reshape(n_steps, n_ch * batch)
+    return out.view(-1, n_ch, batch)
 
 
-def _fine_samples(inputs: Tensor, hold: str, substeps: int, start: int, n_steps: int, degree: int = 5) -> Tensor:
-    """inputs [b, T_in, m] -> [b, m, m_sub + (n_steps - 1) m_sub + 1]: m_sub zeros, then the held
-    input at the sub-steps of the window (the samples of _sub_samples, batch first, one row per
-    sample and channel; m_sub = substeps for "spline", 1 otherwise). The leading zeros let
-    estimation._modal read step k - 1's sub-samples as row k of one strided view."""
-    batch, n_in, n_ch = inputs.shape
-    if hold == "spline" and substeps > 1:
-        lo, hi = max(0, start - _SPLINE_REACH), min(n_in, start + n_steps + _SPLINE_REACH)
-        weights = _window_spline(hi - lo, substeps, degree, start - lo, n_steps).to(inputs.device)
-        local = inputs[:, lo:hi].transpose(1, 2).reshape(batch * n_ch, hi - lo)
-        out = inputs.new_zeros(batch * n_ch, substeps + weights.shape[0])
-        for r0, r1, c0, c1 in _bands(weights.shape[0], hi - lo, substeps, start - lo):
-            out[:, substeps + r0 : substeps + r1] = torch.mm(local[:, c0:c1], weights[r0:r1, c0:c1].t())
-        return out.view(batch, n_ch, -1)
-    out = inputs.new_zeros(batch, n_ch, n_steps + 1)
-    out[:, :, 1:] = inputs[:, start : start + n_steps].transpose(1, 2)
-    return out
+def _sub_samples(held: Tensor, n_steps: int) -> Tensor:
+    """held [M + (n_steps - 1) M + 1, m, b] (_held) -> s [M + 1, m, n_steps - 1, b], a strided view:
+    s[j, c, k] = w_c(t_{start+k} + j h/M)."""
+    width, n_ch, batch = held.shape
+    m_sub = (width - 1) // n_steps
+    st, sc, sb = held.stride()
+    return held[m_sub:].as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (st, sc, m_sub * st, sb))
+
+
+def held_input(
+    inputs: Tensor,
+    hold: str = "spline",
+    substeps: int = 4,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+) -> Tensor:
+    """The held input of a window, [M + (n_steps - 1) M + 1, m, b] (time first, batch innermost; M =
+    substeps for "spline", else 1, and M leading zero rows): what exact_outputs and
+    exact_sensitivities compute from ``inputs`` [b, T_in, m] at every call. It does not depend on the
+    parameters, so an iterative solver computes it once per window and passes it back as ``held=``
+    (for the spline hold it is about a third of an output evaluation's cost); a subset of samples is
+    ``held[..., index]``."""
+    if hold not in HOLDS:
+        raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
+    if spline_degree not in SPLINE_DEGREES:
+        raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
+    if inputs.ndim != 3:
+        raise ValueError(f"exact: inputs must be [batch, time, n_in], got {tuple(inputs.shape)}")
+    n_steps = inputs.shape[1] - start if n_steps is None else int(n_steps)
+    if not (0 <= start and 1 <= n_steps and start + n_steps <= inputs.shape[1]):
+        raise ValueError(f"exact: window start={start}, n_steps={n_steps} outside {inputs.shape[1]} input samples")
+    return _held(inputs.to(_DTYPE), hold, int(substeps), int(start), n_steps, int(spline_degree))
+
+
+def _check_held(held: Tensor | None, inputs: Tensor, hold: str, substeps: int, n_steps: int) -> None:
+    m_sub = substeps if hold == "spline" else 1
+    shape = (m_sub + (n_steps - 1) * m_sub + 1, inputs.shape[2], inputs.shape[0])
+    if held is not None and tuple(held.shape) != shape:
+        raise ValueError(f"exact: held input must be {list(shape)} (held_input of this window), got {list(held.shape)}")
 
 
 def _forcing(lam: Tensor, s: Tensor) -> Tensor:
@@ -502,20 +525,25 @@ def exact_outputs(
     start: int = 0,
     n_steps: int | None = None,
     spline_degree: int = 5,
+    held: Tensor | None = None,
 ) -> Tensor:
     """params [b, P], x0 [b, n] (None = rest), inputs [b, T_in, m] -> y [b, n_steps, o] (float64).
 
     The outputs are for the samples start .. start + n_steps - 1 (n_steps default T_in - start) and
     x0 is the state at sample ``start`` in the model's state coordinates. The spline hold
     interpolates all T_in samples, so samples outside the window (margins) make the held input
-    near the window's edges as accurate as inside it.
+    near the window's edges as accurate as inside it. ``held``: held_input of the same inputs and
+    window, if the caller has it (the same result, without recomputing it).
     """
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    _check_held(held, inputs, hold, substeps, T)
     batch = inputs.shape[0]
     _, _, C, E = model.matrices(params)
     if T > 1:
         phi, lam = _maps(model, params, h, hold, substeps, False)
-        forcing = _forcing(lam, _sub_samples(inputs, hold, substeps, start, T, spline_degree))  # [T-1, n, b]
+        if held is None:
+            held = _held(inputs, hold, substeps, start, T, spline_degree)
+        forcing = _forcing(lam, _sub_samples(held.to(_DTYPE), T))  # [T-1, n, b]
     else:
         phi, forcing = None, None
     states = _primal_states(phi, forcing, x0, batch, model.n_state, T, params.device)
@@ -537,6 +565,7 @@ def exact_sensitivities(
     n_steps: int | None = None,
     spline_degree: int = 5,
     method: str = "modal",
+    held: Tensor | None = None,
 ) -> Tensor:
     """Prediction and Jacobian in one forward pass.
 
@@ -547,20 +576,22 @@ def exact_sensitivities(
     ``method``: "modal" (default) evaluates the same quantities in eigen-coordinates of A, one
     small matrix product per sample (estimation._modal; samples with nearly repeated eigenvalues
     or ill-conditioned eigenvectors go to the recursion); "recursion" runs the step recursion
-    below for every sample. They agree to round-off (tests/test_exact.py).
+    below for every sample. They agree to round-off (tests/test_exact.py). ``held`` as in exact_outputs.
     """
     if method not in METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    _check_held(held, inputs, hold, substeps, T)
+    held = _held(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
     if method == "recursion" or T == 1:
-        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, spline_degree)
+        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
     A, B, C, E = model.matrices(params)
     out, ok = modal_sensitivities(
         (A, B, C, E),
         model.matrix_derivatives(params),
         _balance(A),
         x0,
-        _fine_samples(inputs, hold, substeps, start, T, spline_degree),
+        held.permute(2, 1, 0),
         inputs[:, start : start + T],
         h,
         hold,
@@ -579,13 +610,13 @@ def exact_sensitivities(
             with_x0,
             start,
             T,
-            spline_degree,
+            held[..., bad],
         )
     return out
 
 
-def _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, spline_degree) -> Tensor:
-    """exact_sensitivities by the step recursion (validated float64 arguments)."""
+def _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
+    """exact_sensitivities by the step recursion (validated float64 arguments, held from _held)."""
     batch = inputs.shape[0]
     n, o, n_params, n_in = model.n_state, model.n_output, model.n_params, model.n_input
     _, _, C, E = model.matrices(params)
@@ -593,7 +624,7 @@ def _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_
     window = inputs[:, start : start + T]
     if T > 1:
         phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # batch innermost
-        s = _sub_samples(inputs, hold, substeps, start, T, spline_degree)
+        s = _sub_samples(held, T)
         forcing = _forcing(lam, s)  # [T-1, n, b]
     else:
         phi = forcing = None

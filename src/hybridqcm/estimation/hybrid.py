@@ -30,7 +30,7 @@ from .fusion import check_cnn_prior, network_prior
 from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
-from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus
+from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus, torch_threads
 
 CHANNELS = ("a3", "a2", "a1")
 # Road-free (base-excitation) models: the measured channel that drives the model, the channels it
@@ -389,6 +389,7 @@ class GaussNewtonRefinement(Callback):
         min_input_noise: float = 1e-3,
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
+        restart_batch: int = 64,
     ):
         super().__init__()
         if not stages:
@@ -434,6 +435,7 @@ class GaussNewtonRefinement(Callback):
         self.restarts = int(restarts)
         self.restart_threshold = float(restart_threshold)
         self.restart_sigma = float(restart_sigma)
+        self.restart_batch = int(restart_batch)  # attempts run together while retried samples x attempts <= this
         self.generator = torch.Generator().manual_seed(int(seed) + 2)
         # Restart k (k < len) also rescales the start of p1, p2 by restart_mass_factors[k]: both are
         # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
@@ -623,33 +625,51 @@ class GaussNewtonRefinement(Callback):
         return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
 
     def refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
-        """Run every stage (and restarts) on one prepared batch; returns per-sample results."""
+        """Run every stage (and restarts) on one prepared batch; returns per-sample results. The noise
+        model and the tests between solves run at the solver's thread count too (torch_threads)."""
+        with torch_threads(self.stages[0].solver.config.num_threads):
+            return self._refine(outputs, module)
+
+    def _refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
         init = outputs["init"].double()
         per_stage, result, params, relative = self._run_stages(outputs, init, module)
         restarted = torch.zeros(init.shape[0], dtype=torch.int64)
         typical = self._flag_outliers(result)
-        for attempt in range(self.restarts):
+        attempt = 0
+        while attempt < self.restarts:
             failed = (result.status == SolverStatus.MISFIT) | (result.status == SolverStatus.DIVERGED)
             retry = ((relative > self.restart_threshold) | failed).nonzero().squeeze(1)
             if retry.numel() == 0:
                 break
+            # A few retried samples: run several attempts in one solver call (a small batch costs
+            # the solver's fixed per-step overhead, not its size); many: one attempt at a time, so
+            # samples that succeed are not retried again.
+            group = min(self.restarts - attempt, max(1, self.restart_batch // retry.numel()))
+            starts = []
+            for number in range(attempt, attempt + group):
+                delta = torch.randn(retry.numel(), init.shape[1], generator=self.generator, dtype=torch.float64)
+                new_init = init[retry] * (1.0 + self.restart_sigma * delta)
+                if number < len(self.restart_mass_factors):
+                    new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[number]
+                starts.append(torch.where(self.known[: init.shape[1]] | (new_init <= 0), init[retry], new_init))
+            rows = retry.repeat(group)
             sub = {
-                k: (v[retry] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
+                k: (v[rows] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
                 for k, v in outputs.items()
             }
-            delta = torch.randn(retry.numel(), init.shape[1], generator=self.generator, dtype=torch.float64)
-            new_init = init[retry] * (1.0 + self.restart_sigma * delta)
-            if attempt < len(self.restart_mass_factors):
-                new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[attempt]
-            new_init = torch.where(self.known[: init.shape[1]] | (new_init <= 0), init[retry], new_init)
-            _, sub_result, sub_params, sub_relative = self._run_stages(sub, new_init, module, restart=True)
-            better = sub_relative < relative[retry]
-            take = retry[better]
-            restarted[retry] += 1
-            params[take] = sub_params[better]
-            relative[take] = sub_relative[better]
-            _take(result, sub_result, better, take)
+            _, sub_result, sub_params, sub_relative = self._run_stages(sub, torch.cat(starts), module, restart=True)
+            for number in range(group):  # in attempt order, as if run one after the other
+                mask = torch.zeros(rows.numel(), dtype=torch.bool)
+                part = slice(number * retry.numel(), (number + 1) * retry.numel())
+                better = sub_relative[part] < relative[retry]
+                mask[part] = better
+                take = retry[better]
+                params[take] = sub_params[part][better]
+                relative[take] = sub_relative[part][better]
+                _take(result, sub_result, mask, take)
+            restarted[retry] += group
             self._flag_outliers(result, typical)
+            attempt += group
         record = {
             "index": outputs["index"].cpu(),
             "init": init.cpu(),

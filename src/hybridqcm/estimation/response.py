@@ -6,7 +6,10 @@ The solver (:mod:`hybridqcm.estimation.solver`) only ever asks a model for
     sensitivities(theta, inputs)        -> [b, time, n_out, 1 + n_theta]   (prediction | ∂y/∂θ)
 
 so the Euler recursion of the source study and the exact discretisation of a continuous-time
-linear model are interchangeable behind it. θ holds the physical parameters first (they must
+linear model are interchangeable behind it. A solver that evaluates one window many times first
+calls ``prepare(inputs, start, n_steps)`` and passes what it returns (indexable by sample like
+the inputs) instead of the inputs: the exact model holds the input between samples there once
+(the spline hold's up-sampling is a third of an output evaluation), the Euler model keeps them. θ holds the physical parameters first (they must
 stay > 0: ``positive``) and, for the exact model with an unknown initial state, the state x0 at
 the first sample after them (any sign). ``inputs`` is whatever the model is driven by, indexed
 by sample along its first axis and by time along its second: the road [b, time] for the Euler
@@ -15,13 +18,15 @@ model, the input signals [b, time, n_in] for a linear model.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
 from hybridqcm.physics.parameters import PARAM_NAMES
 
-from .exact import exact_outputs, exact_sensitivities
+from .exact import exact_outputs, exact_sensitivities, held_input
 from .sensitivity import euler_accelerations, euler_sensitivities
 
 CHANNELS = ("a3", "a2", "a1")
@@ -47,6 +52,10 @@ class ResponseModel:
         mask[: self.n_params] = True
         return mask
 
+    def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor | PreparedInputs:
+        """What to pass as ``inputs`` for repeated evaluations of one window (default: the inputs)."""
+        return inputs
+
     def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         """y [b, n_steps, n_out] for the input samples start .. start + n_steps - 1 (default: to the end)."""
         raise NotImplementedError
@@ -54,6 +63,24 @@ class ResponseModel:
     def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         """[b, n_steps, n_out, 1 + n_theta] for the same samples."""
         raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class PreparedInputs:
+    """Inputs [b, T_in, m] with the held input of one window (exact.held_input, [M (T - 1) + M + 1, m, b]);
+    indexing selects samples, like indexing the inputs."""
+
+    samples: Tensor
+    held: Tensor
+    start: int
+    n_steps: int
+
+    def __getitem__(self, index) -> PreparedInputs:
+        return PreparedInputs(self.samples[index], self.held[..., index], self.start, self.n_steps)
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.samples.shape
 
 
 STATE_NAMES = ("v3", "v2", "v1", "q3", "q2", "q1")
@@ -120,25 +147,37 @@ class ExactResponse(ResponseModel):
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
         return theta[:, : self.n_params], (theta[:, self.n_params :] if self.with_x0 else None)
 
-    def outputs(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
-        params, x0 = self._split(theta)
-        return exact_outputs(
-            self.model, params, x0, _as_3d(inputs), self.h, self.hold, self.substeps, **_window(inputs, start, n_steps)
+    def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> PreparedInputs:
+        samples = _as_3d(inputs).to(torch.float64)
+        n_steps = samples.shape[1] - start if n_steps is None else int(n_steps)
+        return PreparedInputs(
+            samples, held_input(samples, self.hold, self.substeps, start, n_steps), int(start), n_steps
         )
 
-    def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
+    def outputs(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
+        samples, window = self._unpack(inputs, start, n_steps)
+        return exact_outputs(self.model, params, x0, samples, self.h, self.hold, self.substeps, **window)
+
+    def sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
+        params, x0 = self._split(theta)
+        samples, window = self._unpack(inputs, start, n_steps)
         return exact_sensitivities(
-            self.model,
-            params,
-            x0,
-            _as_3d(inputs),
-            self.h,
-            self.hold,
-            self.substeps,
-            with_x0=self.with_x0,
-            **_window(inputs, start, n_steps),
+            self.model, params, x0, samples, self.h, self.hold, self.substeps, with_x0=self.with_x0, **window
         )
+
+    @staticmethod
+    def _unpack(inputs, start: int, n_steps: int | None) -> tuple[Tensor, dict]:
+        """(inputs [b, T_in, m], keyword arguments of the exact layer for the window)."""
+        if not isinstance(inputs, PreparedInputs):
+            return _as_3d(inputs), _window(inputs, start, n_steps)
+        n_steps = inputs.samples.shape[1] - start if n_steps is None else int(n_steps)
+        if (int(start), n_steps) != (inputs.start, inputs.n_steps):
+            raise ValueError(
+                f"inputs prepared for the window start={inputs.start}, n_steps={inputs.n_steps} "
+                f"evaluated at start={start}, n_steps={n_steps}"
+            )
+        return inputs.samples, {"start": inputs.start, "n_steps": inputs.n_steps, "held": inputs.held}
 
 
 def _window(inputs: Tensor, start: int, n_steps: int | None) -> dict:

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -272,6 +273,20 @@ class SolverResult:
 IterationCallback = Callable[[int, Tensor, int], None]  # (iteration, loss [batch], n_active)
 
 
+@contextmanager
+def torch_threads(count: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to ``count`` (None or 0: unchanged) inside the block. The solver's
+    tensors are small ([chunk, time] per step): more threads cost more in wake-ups than they save,
+    and on a loaded machine each parallel region waits for a busy core (25x slower, notes)."""
+    before = torch.get_num_threads()
+    if count:
+        torch.set_num_threads(int(count))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 class NonlinearLeastSquares:
     """Base loop. Subclasses implement :meth:`direction` (and optionally :meth:`after_line_search`)."""
 
@@ -300,14 +315,8 @@ class NonlinearLeastSquares:
         self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None
     ) -> SolverResult:
         """Minimise every sample's loss from ``initial_params`` = θ0 [batch, n_theta] (known entries kept)."""
-        threads = torch.get_num_threads()
-        if self.config.num_threads:
-            torch.set_num_threads(int(self.config.num_threads))
-        try:
-            with torch.no_grad():
-                return self._solve(problem, initial_params, callback)
-        finally:
-            torch.set_num_threads(threads)
+        with torch_threads(self.config.num_threads), torch.no_grad():
+            return self._solve(problem, initial_params, callback)
 
     def _solve(self, problem, initial_params, callback):
         cfg = self.config
@@ -329,7 +338,8 @@ class NonlinearLeastSquares:
         # others (initial states) have any sign.
         self._positive = problem.model.positive[free]
         # targets [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
-        road = problem.inputs.to(dtype)
+        # The window's inputs as the model evaluates them repeatedly (the exact model holds them once).
+        road = problem.model.prepare(problem.inputs.to(dtype), *problem.window)
         self._weights = (
             None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
         )  # [batch, n_obs]
