@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -102,8 +102,21 @@ class QCMModule(LightningModule):
 
     # -- data contract ----------------------------------------------------------------------------
     def data_requirements(self) -> dict:
-        """Channels and window the datamodule must provide (inputs, targets, aux, window, targets_optional)."""
-        raise NotImplementedError
+        """Channels and window the datamodule must provide (inputs, targets, aux, window, targets_optional).
+
+        By default hparams input_channels -> target_channels, labels required, no aux channels."""
+        return self._requirements(self.hparams.input_channels, self.hparams.target_channels)
+
+    def _requirements(
+        self, inputs: Sequence[str], targets: Sequence[str], aux: Sequence[str] = (), targets_optional: bool = False
+    ) -> dict:
+        return {
+            "inputs": list(inputs),
+            "targets": list(targets),
+            "aux": list(aux),
+            "window": int(self.hparams.window),
+            "targets_optional": targets_optional,
+        }
 
     # -- normalisation ------------------------------------------------------------------------------
     def _scale(self, x: Tensor) -> Tensor:

@@ -229,15 +229,6 @@ class LabelledEstimator(ParameterEstimator):
         self.check_physics()
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
-    def data_requirements(self) -> dict:
-        return {
-            "inputs": list(self.hparams.input_channels),
-            "targets": list(self.hparams.target_channels),
-            "aux": [],
-            "window": int(self.hparams.window),
-            "targets_optional": False,
-        }
-
 
 class GaussianEstimator(ParameterEstimator):
     """ParameterCNN with a variance head: (a3, a2) [B, 2, window] -> mean and variance of each parameter.
@@ -297,8 +288,6 @@ class GaussianEstimator(ParameterEstimator):
         self.check_physics()
         # The same backbone, twice the outputs: means then log-variances.
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net, 2)
-
-    data_requirements = LabelledEstimator.data_requirements  # the same labelled (inputs, targets) stream
 
     def on_fit_start(self) -> None:
         if self.hparams.get("init_from") and not bool(self.norm_fitted):
@@ -505,13 +494,8 @@ class PhysicsResidualEstimator(ParameterEstimator):
         self._init_estimator(input_channels, target_channels, window, target_transform, train_noise_max, net)
 
     def data_requirements(self) -> dict:
-        return {
-            "inputs": list(self.hparams.input_channels),
-            "targets": ["p1", "p2"],
-            "aux": list(self.AUX),
-            "window": int(self.hparams.window),
-            "targets_optional": True,
-        }
+        """Labels only where the data has them (metrics); the clean aux channels drive the loss."""
+        return self._requirements(self.hparams.input_channels, ["p1", "p2"], self.AUX, targets_optional=True)
 
     def _fit_output_normalisation(self, batch: Mapping[str, Tensor], scale: Tensor) -> None:
         p = least_squares_p12(batch["aux"].to(self.out_mean.device)).clamp_min(1e-9)

@@ -144,13 +144,8 @@ class DenoisingAutoencoder(_SignalModule):
         self._setup_common(net, len(channels), len(channels), {"in_channels": len(channels)})
 
     def data_requirements(self) -> dict:
-        return {
-            "inputs": list(self.hparams.channels),
-            "targets": list(self.hparams.channels),
-            "aux": [],
-            "window": int(self.hparams.window),
-            "targets_optional": False,
-        }
+        """Noisy channels in, the same clean channels as targets."""
+        return self._requirements(self.hparams.channels, self.hparams.channels)
 
     def denoise(self, x: Tensor) -> Tensor:
         """Noisy raw signals [B, C, N] (channels as hparams.channels, any N) -> denoised [B, C, N], same dtype."""
@@ -191,15 +186,6 @@ class CompletionUNet(_SignalModule):
             len(target_channels),
             {"in_channels": len(input_channels), "out_channels": len(target_channels)},
         )
-
-    def data_requirements(self) -> dict:
-        return {
-            "inputs": list(self.hparams.input_channels),
-            "targets": list(self.hparams.target_channels),
-            "aux": [],
-            "window": int(self.hparams.window),
-            "targets_optional": False,
-        }
 
     def complete(self, a3: Tensor, pu_u: Tensor) -> Tensor:
         """Raw a3, p_u u [B, N] (any N) -> completed (a2, a1) [B, 2, N] in m/s^2, same dtype as a3."""
