@@ -37,7 +37,7 @@ STAGES = ("val", "test")
 
 
 class ParameterEstimator(QCMModule):
-    """Shared by the two CNN estimators: raw (a3, a2) -> (p1, p2), metrics, denoiser hook, inference API."""
+    """Shared by the three CNN estimators: raw (a3, a2) -> (p1, p2), metrics, denoiser hook, inference API."""
 
     kind = "estimator"
     default_net = {"_target_": "hybridqcm.models.networks.ParameterCNN"}
