@@ -162,3 +162,45 @@ def test_hybridqcm_has_no_import_cycle():
 def test_pipeline_modules_point_one_way(lower, upper):
     graph = import_graph()
     assert lower in graph[upper] and upper not in graph[lower]
+
+
+# models/: one concept a module, imports pointing down (issue 8). Each module may import only
+# the models modules listed here (and anything outside models/); models.modules is the
+# compatibility re-export of the old single file, which no library module imports.
+MODELS_LAYERS = {
+    "hybridqcm.models.networks": set(),
+    "hybridqcm.models.uncertainty": set(),
+    "hybridqcm.models.physics_losses": set(),
+    "hybridqcm.models.schedule": set(),
+    "hybridqcm.models.untrusted": {"hybridqcm.models.networks"},
+    "hybridqcm.models.base": {
+        "hybridqcm.models.networks",
+        "hybridqcm.models.physics_losses",
+        "hybridqcm.models.schedule",
+        "hybridqcm.models.untrusted",
+    },
+    "hybridqcm.models.signal_models": {"hybridqcm.models.base"},
+    "hybridqcm.models.estimators": {
+        "hybridqcm.models.base",
+        "hybridqcm.models.physics_losses",
+        "hybridqcm.models.uncertainty",
+    },
+    "hybridqcm.models.checkpoint": {
+        "hybridqcm.models.estimators",
+        "hybridqcm.models.signal_models",
+        "hybridqcm.models.untrusted",
+    },
+}
+
+
+@pytest.mark.parametrize("module", sorted(MODELS_LAYERS))
+def test_models_modules_import_only_the_layers_below(module):
+    graph = import_graph()
+    inside = {m for m in graph[module] if m.startswith("hybridqcm.models")}
+    assert inside <= MODELS_LAYERS[module], sorted(inside - MODELS_LAYERS[module])
+
+
+def test_no_library_module_imports_the_compatibility_module():
+    graph = import_graph()
+    users = sorted(m for m, targets in graph.items() if "hybridqcm.models.modules" in targets)
+    assert users == []

@@ -23,7 +23,8 @@ from hybridqcm.models import (
     physics_residual,
     physics_residual_loss,
 )
-from hybridqcm.models.modules import balanced_residual_loss, one_cycle_lr
+from hybridqcm.models.physics_losses import balanced_residual_loss
+from hybridqcm.models.schedule import one_cycle_lr
 from hybridqcm.physics import RoadProfile, build_prior
 
 SMALL_CNN = {

@@ -87,11 +87,20 @@ class ErrorDistribution(Metric):
     def update(self, pred: Tensor, target: Tensor) -> None:
         self.errors.append(relative_errors(pred.detach().reshape(target.shape), target.detach()))
 
-    def compute(self) -> list[dict]:
+    def _all_errors(self) -> Tensor:
+        """The accumulated errors [n, n_params] float64 (a list before a sync, a tensor after one)."""
         errors = self.errors
         if isinstance(errors, list):
             errors = torch.cat(errors) if errors else torch.zeros(0, len(self.names), dtype=torch.float64)
+        return errors
+
+    def compute(self) -> list[dict]:
+        errors = self._all_errors()
         return [_row(name, errors[:, j]) for j, name in enumerate(self.names)]
+
+    def mean_error(self) -> float:
+        """Mean of e over all samples and parameters (the training monitor `val/mean_rel_err`); this process's errors."""
+        return float(self._all_errors().mean())
 
     def scalars(self, prefix: str = "") -> dict[str, float]:
         """Flat {prefix/p1/mean_err: ...} for loggers."""

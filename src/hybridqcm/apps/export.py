@@ -36,7 +36,8 @@ class ParityError(RuntimeError):
 
 def _load(path: str):
     """The checkpoint's LightningModule on the CPU, in eval mode. The one place checkpoints are read here."""
-    from hybridqcm.models.modules import MODULES, stored_model_class
+    from hybridqcm.models.base import stored_model_class
+    from hybridqcm.models.checkpoint import MODULES
 
     name = stored_model_class(path)
     if name not in MODULES:
@@ -236,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> None:
     from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.modules import CheckpointMismatch
+    from hybridqcm.models.base import CheckpointMismatch
 
     args = build_parser().parse_args(argv)
     if args.n_check < 1:

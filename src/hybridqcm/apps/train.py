@@ -79,8 +79,8 @@ def load_module(path: str, cls: type):
     """A checkpoint of class ``cls`` through the one safe loader (weights_only, allow-list, strict keys);
     CheckpointMismatch (one line) for a missing, refused or foreign one."""
     from hybridqcm.errors import CheckpointError
+    from hybridqcm.models.base import CheckpointMismatch, stored_model_class
     from hybridqcm.models.checkpoint import load_checkpoint
-    from hybridqcm.models.modules import CheckpointMismatch, stored_model_class
 
     stored = stored_model_class(path)
     if stored != cls.__name__:
@@ -97,7 +97,7 @@ def load_model(cfg, train: bool):
     """The model: instantiated from cfg.model, or loaded (and class-checked) from cfg.ckpt_path for evaluation."""
     from hydra.utils import get_class, instantiate
 
-    from hybridqcm.models.modules import MODULES
+    from hybridqcm.models.checkpoint import MODULES
 
     model_cls = get_class(cfg.model._target_)
     if model_cls.__name__ not in MODULES:
@@ -469,7 +469,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from hydra.errors import InstantiationException
 
     from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.modules import CheckpointMismatch
+    from hybridqcm.models.base import CheckpointMismatch
 
     return (
         HybridQCMError,
@@ -486,7 +486,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def run(cfg) -> float | None:
     """Hydra task function: train/test, return `optimized_metric` (for sweepers)."""
     from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.modules import CheckpointMismatch
+    from hybridqcm.models.base import CheckpointMismatch
 
     try:
         # Every input is validated in prepare(), which train() runs before any training step;

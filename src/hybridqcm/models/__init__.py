@@ -1,18 +1,10 @@
 """Networks (plain nn.Modules) and LightningModules of the estimators, denoiser and completion U-Net."""
 
-from hybridqcm.models.modules import (
-    CheckpointMismatch,
-    CompletionUNet,
-    DenoisingAutoencoder,
-    GaussianEstimator,
-    LabelledEstimator,
-    PhysicsResidualEstimator,
-    QCMModule,
-    least_squares_p12,
-    physics_residual,
-    physics_residual_loss,
-)
+from hybridqcm.models.base import CheckpointMismatch, QCMModule
+from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
 from hybridqcm.models.networks import DenoisingCAE, ParameterCNN, UNet1d, count_parameters
+from hybridqcm.models.physics_losses import least_squares_p12, physics_residual, physics_residual_loss
+from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 
 __all__ = [
     "LabelledEstimator",

@@ -29,9 +29,16 @@ import torch
 from lightning import LightningModule
 
 from hybridqcm.errors import CheckpointError
-from hybridqcm.models.modules import MODULES
+from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
+from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 from hybridqcm.models.untrusted import NETWORK_TARGETS, check_config_tree, read_raw  # noqa: F401
 
+# The classes a checkpoint may name, by the class name it stores (``hybridqcm_class``): a file
+# records no module path, so moving a class between modules leaves every checkpoint loadable.
+MODULES = {
+    cls.__name__: cls
+    for cls in (LabelledEstimator, GaussianEstimator, PhysicsResidualEstimator, DenoisingAutoencoder, CompletionUNet)
+}
 KINDS: dict[str, tuple[str, ...]] = {
     "cnn": ("LabelledEstimator", "GaussianEstimator", "PhysicsResidualEstimator"),
     "unet": ("CompletionUNet",),
@@ -140,6 +147,7 @@ def kind_of(module: LightningModule) -> str | None:
 
 __all__ = [
     "KINDS",
+    "MODULES",
     "warm_start",
     "NETWORK_TARGETS",
     "CheckpointInfo",

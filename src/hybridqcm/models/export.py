@@ -21,7 +21,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from hybridqcm.models.modules import CompletionUNet, DenoisingAutoencoder, ParameterEstimator, QCMModule
+from hybridqcm.models.base import QCMModule
+from hybridqcm.models.estimators import ParameterEstimator
+from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 
 CONTRACT_SCHEMA = "hybridqcm.export/1"
 

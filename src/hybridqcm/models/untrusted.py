@@ -3,7 +3,7 @@
 ``read_raw``: ``torch.load(weights_only=True)`` — tensors and plain containers only, a pickle
 payload is refused before any of its code can run. ``check_config_tree``: every ``_target_``
 anywhere in stored hyper-parameters must be on the allow-list (our network classes, torch
-optimizers and LR schedulers). ``models.checkpoint`` (the loader) and ``models.modules`` (which
+optimizers and LR schedulers). ``models.checkpoint`` (the loader) and ``models.base`` (which
 builds its networks from hyper-parameters) both use these; neither imports the other's layer.
 """
 
