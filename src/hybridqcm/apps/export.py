@@ -35,14 +35,15 @@ class ParityError(RuntimeError):
 
 
 def _load(path: str):
-    """The checkpoint's LightningModule on the CPU, in eval mode. The one place checkpoints are read here."""
-    from hybridqcm.models.base import stored_model_class
-    from hybridqcm.models.checkpoint import MODULES
+    """The checkpoint's LightningModule on the CPU, in eval mode, through the safe loader (no code in the
+    file runs: weights only, classes from the allow-list). The one place checkpoints are read here."""
+    from hybridqcm.errors import CheckpointError
+    from hybridqcm.models.checkpoint import load_checkpoint
 
-    name = stored_model_class(path)
-    if name not in MODULES:
-        raise ConfigError(f"{path}: holds a {name or 'non-hybridqcm'} model; qcm-export takes one of {sorted(MODULES)}")
-    return MODULES[name].load_from_checkpoint(path, map_location="cpu").eval()
+    try:
+        return load_checkpoint(path, None, "ckpt")
+    except CheckpointError as error:
+        raise ConfigError(str(error)) from None
 
 
 def _temporary(path: Path) -> Path:
