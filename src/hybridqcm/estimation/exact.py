@@ -243,6 +243,8 @@ def _sub_samples(held: Tensor, n_steps: int) -> Tensor:
     s[j, c, k] = w_c(t_{start+k} + j h/M)."""
     width, n_ch, batch = held.shape
     m_sub = (width - 1) // n_steps
+    if held.stride(2) != 1:  # a batch-first chunk (PreparedInputs): the recursion reads batch rows
+        held = held.contiguous()
     st, sc, sb = held.stride()
     return held[m_sub:].as_strided((m_sub + 1, n_ch, n_steps - 1, batch), (st, sc, m_sub * st, sb))
 
@@ -260,7 +262,7 @@ def held_input(
     exact_sensitivities compute from ``inputs`` [b, T_in, m] at every call. It does not depend on the
     parameters, so an iterative solver computes it once per window and passes it back as ``held=``
     (for the spline hold it is about a third of an output evaluation's cost); a subset of samples is
-    ``held[..., index]``."""
+    ``held[..., index]``, and any strides are accepted (e.g. a permuted batch-first copy)."""
     if hold not in HOLDS:
         raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
     if spline_degree not in SPLINE_DEGREES:

