@@ -71,6 +71,11 @@ class SolverConfig:
     step_tol: float = 1e-9  # converged when max_j |δ_j| / p_j ≤ step_tol
     decrease_tol: float = 1e-12  # ... or when the predicted decrease δᵀJᵀR ≤ decrease_tol · L
     loss_tol: float = 1e-26  # ... or when L ≤ loss_tol · ½ Σ a² (noise-free exact fit)
+    # ... or, when the residual is whitened by a noise model (its loss in units of the noise
+    # variance), when the GN decrement δᵀJᵀR = δᵀFδ ≤ decrement_tol: the full step moves θ by
+    # less than sqrt(decrement_tol) of a standard deviation in every direction (1e-6: 0.001 σ),
+    # well below what the data can resolve. None: off.
+    decrement_tol: float | None = 1e-6
     rcond: float = 1e-7  # singular values of the scaled J below rcond·s_max count as zero
     chunk_size: int = 512  # samples per Jacobian pass (keeps the per-step working set in cache)
     # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
@@ -402,6 +407,8 @@ class NonlinearLeastSquares:
             predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
             full_rel_step = self._relative_step(step, params[index][:, free])
             stationary = (full_rel_step <= cfg.step_tol) | (predicted <= cfg.decrease_tol * loss_now)
+            if problem.noise is not None and cfg.decrement_tol:
+                stationary |= predicted <= cfg.decrement_tol
 
             accepted_alpha, new_loss = self._line_search(
                 problem, params, targets, road, index, free, step, loss_now, predicted
