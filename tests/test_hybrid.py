@@ -223,7 +223,7 @@ def test_restart_attempts_for_few_samples_run_in_one_solver_call():
     a3 = exact_outputs(SeatBaseExcitation(), p, None, a2, H)[:, margin : margin + T]
     outputs = {"targets": a3, "road": a2, "init": p * 0.1, "index": torch.arange(b), "input_offset": margin}
     results, calls = {}, {}
-    for restart_batch in (1, 64):
+    for restart_batch in (1, 64):  # 64: all attempts for the few failed samples at once
         callback = GaussNewtonRefinement(
             [GaussNewtonStage("seat", GaussNewton(SolverConfig(max_iterations=30)))],
             h=H,

@@ -389,7 +389,7 @@ class GaussNewtonRefinement(Callback):
         min_input_noise: float = 1e-3,
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
-        restart_batch: int = 64,
+        restart_batch: int = 16,
     ):
         super().__init__()
         if not stages:
@@ -435,7 +435,9 @@ class GaussNewtonRefinement(Callback):
         self.restarts = int(restarts)
         self.restart_threshold = float(restart_threshold)
         self.restart_sigma = float(restart_sigma)
-        self.restart_batch = int(restart_batch)  # attempts run together while retried samples x attempts <= this
+        # Attempts run together while retried samples x attempts <= restart_batch: a solver call on a
+        # few samples costs its fixed per-step overhead; on more, attempts that are not needed cost more.
+        self.restart_batch = int(restart_batch)
         self.generator = torch.Generator().manual_seed(int(seed) + 2)
         # Restart k (k < len) also rescales the start of p1, p2 by restart_mass_factors[k]: both are
         # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
@@ -658,17 +660,23 @@ class GaussNewtonRefinement(Callback):
                 for k, v in outputs.items()
             }
             _, sub_result, sub_params, sub_relative = self._run_stages(sub, torch.cat(starts), module, restart=True)
-            for number in range(group):  # in attempt order, as if run one after the other
+            # In attempt order, as if run one after the other: a sample takes an attempt that lowers
+            # its loss, and once its status is no longer misfit/diverged later attempts are not
+            # considered (a lower loss at a misfit is a structured residual, not a better fit).
+            settled = torch.zeros(retry.numel(), dtype=torch.bool)
+            for number in range(group):
                 mask = torch.zeros(rows.numel(), dtype=torch.bool)
                 part = slice(number * retry.numel(), (number + 1) * retry.numel())
-                better = sub_relative[part] < relative[retry]
+                better = (sub_relative[part] < relative[retry]) & ~settled
                 mask[part] = better
                 take = retry[better]
                 params[take] = sub_params[part][better]
                 relative[take] = sub_relative[part][better]
                 _take(result, sub_result, mask, take)
-            restarted[retry] += group
-            self._flag_outliers(result, typical)
+                restarted[retry[~settled]] += 1
+                self._flag_outliers(result, typical)
+                status = result.status[retry]
+                settled |= (status != SolverStatus.MISFIT) & (status != SolverStatus.DIVERGED)
             attempt += group
         record = {
             "index": outputs["index"].cpu(),
