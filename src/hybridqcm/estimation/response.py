@@ -6,14 +6,16 @@ The solver (:mod:`hybridqcm.estimation.solver`) only ever asks a model for
     sensitivities(theta, inputs)        -> [b, time, n_out, 1 + n_theta]   (prediction | ∂y/∂θ)
 
 so the Euler recursion of the source study and the exact discretisation of a continuous-time
-linear model are interchangeable behind it. A solver that evaluates one window many times first
-calls ``prepare(inputs, start, n_steps)`` and passes what it returns (indexable by sample like
-the inputs) instead of the inputs: the exact model holds the input between samples there once
-(the spline hold's up-sampling is a third of an output evaluation), the Euler model keeps them. θ holds the physical parameters first (they must
+linear model are interchangeable behind it. θ holds the physical parameters first (they must
 stay > 0: ``positive``) and, for the exact model with an unknown initial state, the state x0 at
 the first sample after them (any sign). ``inputs`` is whatever the model is driven by, indexed
 by sample along its first axis and by time along its second: the road [b, time] for the Euler
 model, the input signals [b, time, n_in] for a linear model.
+
+A solver that evaluates one window many times first calls ``prepare(inputs, start, n_steps)`` and
+passes what it returns (indexable by sample like the inputs) in their place: the exact model holds
+the input between samples there once (the spline hold's up-sampling is a third of an output
+evaluation); the Euler model returns the inputs unchanged.
 """
 
 from __future__ import annotations
