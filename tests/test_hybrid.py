@@ -203,24 +203,11 @@ def test_restart_attempts_for_few_samples_run_in_one_solver_call():
     """Seat model, noise-free, started at a tenth of the true p1, p2 (ten times the occupant's mass):
     the mass ladder of restarts recovers every sample, one attempt per call (restart_batch=1) or all
     attempts for the few failed samples in one call (the default), with the same answer."""
-    from hybridqcm.estimation.exact import exact_outputs
     from hybridqcm.estimation.response import base_excitation_response
-    from hybridqcm.physics.linear_models import SeatBaseExcitation
+    from hybridqcm.testing import seat_recordings
 
-    g = torch.Generator().manual_seed(3)
-    b, T, margin = 16, 200, 8
-    t = torch.arange(T + 2 * margin, dtype=torch.float64)[None, :] * H
-    freq = torch.rand(b, 12, generator=g, dtype=torch.float64) * 14 + 0.5
-    phase = torch.rand(b, 12, generator=g, dtype=torch.float64) * 2 * math.pi
-    a2 = torch.sin(2 * math.pi * freq[:, :, None] * t[:, None] + phase[:, :, None]).sum(1)[..., None]
-    p = torch.stack(
-        [
-            torch.rand(b, generator=g, dtype=torch.float64) * 8 + 6,
-            torch.rand(b, generator=g, dtype=torch.float64) * 1500 + 900,
-        ],
-        1,
-    )
-    a3 = exact_outputs(SeatBaseExcitation(), p, None, a2, H)[:, margin : margin + T]
+    b, margin = 16, 8
+    p, a2, a3 = seat_recordings(b, 200, margin, seed=3, h=H, substeps=4)
     outputs = {"targets": a3, "road": a2, "init": p * 0.1, "index": torch.arange(b), "input_offset": margin}
     results, calls = {}, {}
     for restart_batch in (1, 64):  # 64: all attempts for the few failed samples at once

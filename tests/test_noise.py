@@ -19,6 +19,7 @@ from hybridqcm.estimation.noise import (
 from hybridqcm.estimation.response import base_excitation_response
 from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverStatus
 from hybridqcm.physics.linear_models import SeatBaseExcitation, SprungBaseExcitation
+from hybridqcm.testing import seat_recordings
 
 H_STEP = 0.01
 
@@ -99,26 +100,7 @@ def test_variances_are_recovered_from_the_residual_and_whiten_it():
 
 
 def _seat_recordings(b: int, T: int, margin: int, sigma: float, seed: int):
-    """Seat base-excitation recordings: a2 a sum of random sinusoids, a3 its exact response at the true p;
-    white noise of ``sigma`` x RMS on both channels."""
-    g = torch.Generator().manual_seed(seed)
-    n = T + 2 * margin
-    t = torch.arange(n, dtype=torch.float64)[None, :] * H_STEP
-    freq = torch.rand(b, 12, generator=g, dtype=torch.float64) * 14 + 0.5
-    phase = torch.rand(b, 12, generator=g, dtype=torch.float64) * 2 * math.pi
-    a2 = torch.sin(2 * math.pi * freq[:, :, None] * t[:, None] + phase[:, :, None]).sum(1)[..., None]
-    p = torch.stack(
-        [
-            torch.rand(b, generator=g, dtype=torch.float64) * 8 + 6,
-            torch.rand(b, generator=g, dtype=torch.float64) * 1500 + 900,
-        ],
-        1,
-    )
-    a3 = exact_outputs(SeatBaseExcitation(), p, None, a2, H_STEP, substeps=16)
-    rms2, rms3 = a2.square().mean(1, keepdim=True).sqrt(), a3.square().mean(1, keepdim=True).sqrt()
-    a2 = a2 + sigma * rms2 * torch.randn(a2.shape, generator=g, dtype=torch.float64)
-    a3 = a3 + sigma * rms3 * torch.randn(a3.shape, generator=g, dtype=torch.float64)
-    return p, a2, a3[:, margin : margin + T]
+    return seat_recordings(b, T, margin, sigma, seed, H_STEP, substeps=16)
 
 
 def _fit(p_true, a2, a3, margin, noise_factory=None):

@@ -39,6 +39,38 @@ def synthetic_samples(
     }
 
 
+def seat_recordings(
+    b: int, T: int, margin: int = 8, sigma: float = 0.0, seed: int = 0, h: float = 0.01, substeps: int = 16
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Seat base-excitation recordings with known truth: (p [b, 2], a2 [b, T + 2 margin, 1], a3 [b, T, 1]).
+
+    a2 is a sum of 12 random sinusoids (0.5-14.5 Hz), a3 the exact seat response (spline hold at
+    ``substeps``) from rest at the first input sample, cut to the T samples after ``margin``; p1 in
+    [6, 14], p2 in [900, 2400]; white noise of ``sigma`` x each channel's RMS on both (float64)."""
+    import math
+
+    from hybridqcm.estimation.exact import exact_outputs
+    from hybridqcm.physics.linear_models import SeatBaseExcitation
+
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(T + 2 * margin, dtype=torch.float64)[None, :] * h
+    freq = torch.rand(b, 12, generator=g, dtype=torch.float64) * 14 + 0.5
+    phase = torch.rand(b, 12, generator=g, dtype=torch.float64) * 2 * math.pi
+    a2 = torch.sin(2 * math.pi * freq[:, :, None] * t[:, None] + phase[:, :, None]).sum(1)[..., None]
+    p = torch.stack(
+        [
+            torch.rand(b, generator=g, dtype=torch.float64) * 8 + 6,
+            torch.rand(b, generator=g, dtype=torch.float64) * 1500 + 900,
+        ],
+        1,
+    )
+    a3 = exact_outputs(SeatBaseExcitation(), p, None, a2, h, substeps=substeps)
+    rms2, rms3 = a2.square().mean(1, keepdim=True).sqrt(), a3.square().mean(1, keepdim=True).sqrt()
+    a2 = a2 + sigma * rms2 * torch.randn(a2.shape, generator=g, dtype=torch.float64)
+    a3 = a3 + sigma * rms3 * torch.randn(a3.shape, generator=g, dtype=torch.float64)
+    return p, a2, a3[:, margin : margin + T]
+
+
 def write_dataset(
     path: str | Path, samples: dict[str, Tensor], split: str = "test", with_params: bool = True, h: float = 0.01
 ) -> Path:
