@@ -27,6 +27,7 @@ from hybridqcm.errors import CheckpointError
 from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
 
 from .fusion import check_cnn_prior, network_prior
+from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
@@ -365,7 +366,10 @@ class GaussNewtonRefinement(Callback):
     known [10] bool: parameters held fixed; pu_known: the wheel forcing p_u u is data (scaled road,
     p9/p10 only through S), else it depends on p9, p10 through p_u = p10 - p9.
     response: the model GN fits (default: the Euler recursion with ``h`` and ``pu_known``); with an
-    unknown initial state its θ is (p1..p10, x0), x0 started at rest and estimated with p.
+    unknown initial state its θ is (p1..p10, x0), estimated together. x0_start: where x0 starts —
+    "rest" (0) or "least_squares": x0*(p0), the linear least-squares x0 at the start p over the
+    first stage's window, channels and weights, for the first attempt and every restart
+    (estimation/initial_state.py).
     Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
     """
 
@@ -390,10 +394,14 @@ class GaussNewtonRefinement(Callback):
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
         restart_batch: int = 64,
+        x0_start: str = "rest",
     ):
         super().__init__()
         if not stages:
             raise ValueError("GaussNewtonRefinement needs at least one stage")
+        if x0_start not in X0_STARTS:
+            raise ValueError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
+        self.x0_start = x0_start
         self.stages = list(stages)
         self.pu_known = bool(pu_known)
         self.h = float(h)
@@ -475,6 +483,23 @@ class GaussNewtonRefinement(Callback):
         offset = int(outputs.get("input_offset", 0))
         skip_guarded = restart and not all(stage.guard for stage in self.stages)
         stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
+        if self.x0_start == "least_squares":  # variable-projection start: x0*(p0) on the first stage's problem
+            first = stages[0]
+            window = (
+                outputs["targets"].shape[1]
+                if first.n_steps is None
+                else min(int(first.n_steps), outputs["targets"].shape[1])
+            )
+            params = project_initial_state(
+                self.response,
+                params,
+                road,
+                outputs["targets"][:, :window].double(),
+                self._channels(first, module),
+                weights,
+                offset,
+                chunk_size=first.solver.config.chunk_size,
+            )
         for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
             last = number == len(stages) - 1
