@@ -106,3 +106,38 @@ def test_rank_deficient_window_still_fits(drive):
 def test_refinement_validates_x0_start():
     with pytest.raises(ValueError, match="x0_start='zero'"):
         GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], x0_start="zero")
+
+
+def test_restarts_alternate_the_x0_start(drive):
+    """x0_start="alternate": the first attempt starts x0 at the projection, restart 1 at rest,
+    restart 2 at the projection again (at its own start p)."""
+    params, road, accel, _ = drive
+    starts = []
+
+    class Recording(GaussNewton):
+        def solve(self, problem, initial_params, callback=None):
+            starts.append(initial_params.clone())
+            return super().solve(problem, initial_params, callback)
+
+    response = _response()
+    refinement = GaussNewtonRefinement(
+        [GaussNewtonStage("gn", Recording(max_iterations=1))],
+        response=response,
+        restarts=2,
+        restart_threshold=0.0,  # every sample is retried
+        x0_start="alternate",
+        peer_factor=None,
+    )
+    init = params * 1.05
+    outputs = {"targets": accel, "road": road, "pu": params[:, 9] - params[:, 8], "init": init}
+    outputs.update(index=torch.arange(4), input_offset=BEFORE)
+    refinement.refine(outputs)
+    first, restarts = starts[0], starts[1]  # the two restarts run in one solver call
+    assert len(starts) == 2 and restarts.shape[0] == 8
+    expected = project_initial_state(
+        response, torch.cat([init, torch.zeros(4, 6, dtype=F64)], 1), road, accel, (True,) * 3, start=BEFORE
+    )
+    assert torch.allclose(first, expected, rtol=1e-12, atol=0)
+    assert bool((restarts[:4, 10:] == 0).all())  # restart 1: at rest
+    again = project_initial_state(response, restarts[4:], road, accel, (True,) * 3, start=BEFORE)
+    assert bool((restarts[4:, 10:].abs().amax(1) > 0).all()) and torch.allclose(restarts[4:], again, rtol=1e-12, atol=0)

@@ -367,9 +367,10 @@ class GaussNewtonRefinement(Callback):
     p9/p10 only through S), else it depends on p9, p10 through p_u = p10 - p9.
     response: the model GN fits (default: the Euler recursion with ``h`` and ``pu_known``); with an
     unknown initial state its θ is (p1..p10, x0), estimated together. x0_start: where x0 starts —
-    "rest" (0) or "least_squares": x0*(p0), the linear least-squares x0 at the start p over the
-    first stage's window, channels and weights, for the first attempt and every restart
-    (estimation/initial_state.py).
+    "rest" (0); "least_squares": x0*(p0), the linear least-squares x0 at the start p over the
+    first stage's window, channels and weights (estimation/initial_state.py), for the first
+    attempt and every restart; "alternate": x0*(p0) first, then restarts alternately from rest and
+    from x0*(p0) — at a start p far off, x0*(p0) absorbs part of p's error and is no better than rest.
     Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
     """
 
@@ -468,11 +469,12 @@ class GaussNewtonRefinement(Callback):
         return wanted
 
     def _run_stages(
-        self, outputs, init: Tensor, module, restart: bool = False
+        self, outputs, init: Tensor, module, restart: bool = False, x0_at_rest: Tensor | None = None
     ) -> tuple[dict, SolverResult, Tensor, Tensor]:
         """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
         guess directly, in case the completed channels were what misled the first attempt);
-        returns (per-stage results, last result, params, relative loss)."""
+        ``x0_at_rest`` [batch] bool: rows whose initial state starts at rest whatever x0_start says.
+        Returns (per-stage results, last result, params, relative loss)."""
         params = self._theta(init)
         road = outputs["road"].double()
         if self.pu_known and self.quarter_car:
@@ -483,7 +485,7 @@ class GaussNewtonRefinement(Callback):
         offset = int(outputs.get("input_offset", 0))
         skip_guarded = restart and not all(stage.guard for stage in self.stages)
         stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
-        if self.x0_start == "least_squares":  # variable-projection start: x0*(p0) on the first stage's problem
+        if self.x0_start != "rest":  # variable-projection start: x0*(p0) on the first stage's problem
             first = stages[0]
             window = (
                 outputs["targets"].shape[1]
@@ -500,6 +502,8 @@ class GaussNewtonRefinement(Callback):
                 offset,
                 chunk_size=first.solver.config.chunk_size,
             )
+            if x0_at_rest is not None:
+                params[x0_at_rest, self.response.n_params :] = 0.0
         for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
             last = number == len(stages) - 1
@@ -682,7 +686,13 @@ class GaussNewtonRefinement(Callback):
                 k: (v[rows] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
                 for k, v in outputs.items()
             }
-            _, sub_result, sub_params, sub_relative = self._run_stages(sub, torch.cat(starts), module, restart=True)
+            # x0_start="alternate": restarts 1, 3, 5, ... start x0 at rest, the others projected.
+            at_rest = torch.tensor(
+                [self.x0_start == "alternate" and number % 2 == 0 for number in range(attempt, attempt + group)]
+            ).repeat_interleave(retry.numel())
+            _, sub_result, sub_params, sub_relative = self._run_stages(
+                sub, torch.cat(starts), module, restart=True, x0_at_rest=at_rest
+            )
             for number in range(group):  # in attempt order, as if run one after the other
                 mask = torch.zeros(rows.numel(), dtype=torch.bool)
                 part = slice(number * retry.numel(), (number + 1) * retry.numel())

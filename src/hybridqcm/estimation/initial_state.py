@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-X0_STARTS = ("rest", "least_squares")
+X0_STARTS = ("rest", "least_squares", "alternate")  # alternate: see GaussNewtonRefinement
 
 
 def project_initial_state(
