@@ -129,6 +129,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
         restart_batch=int(cfg.restarts.get("batch", 16)),
+        x0_start=plan["x0_start"],
     )
 
 
@@ -220,6 +221,7 @@ def run(cfg) -> dict:
         "known": [PARAM_NAMES[j] for j in plan["known"]],
         "model": plan["model"],
         "initial_state": plan["initial_state"],
+        "x0_start": plan["x0_start"],
         "base_excitation": plan["base_excitation"],
         "hold": str(cfg.hold) if plan["model"] == "exact" else None,
         "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},

@@ -378,6 +378,11 @@ def validate(cfg) -> dict:
         # down (diverging or stopping in local minima): such stages are skipped.
         shortest = int(cfg.get("min_window_unknown_state", 30))
         stages = [s for s in stages if s["n_steps"] is None or s["n_steps"] >= shortest] or stages[-1:]
+    from hybridqcm.estimation.initial_state import X0_STARTS
+
+    x0_start = str(cfg.get("x0_start", "rest"))
+    if x0_start not in X0_STARTS:
+        raise ConfigError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     return {
@@ -394,6 +399,7 @@ def validate(cfg) -> dict:
         "windows": windows,
         "model": model,
         "initial_state": initial_state,
+        "x0_start": x0_start,
         "base_excitation": base,
         "n_params": n_params,
         "sensor": sensor,

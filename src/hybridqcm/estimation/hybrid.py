@@ -27,6 +27,7 @@ from hybridqcm.errors import CheckpointError
 from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
 
 from .fusion import check_cnn_prior, network_prior
+from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, ResponseModel
 from .sensitivity import N_PARAMS
@@ -365,7 +366,11 @@ class GaussNewtonRefinement(Callback):
     known [10] bool: parameters held fixed; pu_known: the wheel forcing p_u u is data (scaled road,
     p9/p10 only through S), else it depends on p9, p10 through p_u = p10 - p9.
     response: the model GN fits (default: the Euler recursion with ``h`` and ``pu_known``); with an
-    unknown initial state its θ is (p1..p10, x0), x0 started at rest and estimated with p.
+    unknown initial state its θ is (p1..p10, x0), estimated together. x0_start: where x0 starts —
+    "rest" (0); "least_squares": x0*(p0), the linear least-squares x0 at the start p over the
+    first stage's window, channels and weights (estimation/initial_state.py), for the first
+    attempt and every restart; "alternate": x0*(p0) first, then restarts alternately from rest and
+    from x0*(p0) — at a start p far off, x0*(p0) absorbs part of p's error and is no better than rest.
     Per-iteration mean losses go to TensorBoard under ``gn/<stage>/mean_loss`` when ``log_dir``.
     """
 
@@ -390,10 +395,14 @@ class GaussNewtonRefinement(Callback):
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
         restart_batch: int = 16,
+        x0_start: str = "rest",
     ):
         super().__init__()
         if not stages:
             raise ValueError("GaussNewtonRefinement needs at least one stage")
+        if x0_start not in X0_STARTS:
+            raise ValueError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
+        self.x0_start = x0_start
         self.stages = list(stages)
         self.pu_known = bool(pu_known)
         self.h = float(h)
@@ -462,11 +471,12 @@ class GaussNewtonRefinement(Callback):
         return wanted
 
     def _run_stages(
-        self, outputs, init: Tensor, module, restart: bool = False
+        self, outputs, init: Tensor, module, restart: bool = False, x0_at_rest: Tensor | None = None
     ) -> tuple[dict, SolverResult, Tensor, Tensor]:
         """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
         guess directly, in case the completed channels were what misled the first attempt);
-        returns (per-stage results, last result, params, relative loss)."""
+        ``x0_at_rest`` [batch] bool: rows whose initial state starts at rest whatever x0_start says.
+        Returns (per-stage results, last result, params, relative loss)."""
         params = self._theta(init)
         road = outputs["road"].double()
         if self.pu_known and self.quarter_car:
@@ -477,6 +487,25 @@ class GaussNewtonRefinement(Callback):
         offset = int(outputs.get("input_offset", 0))
         skip_guarded = restart and not all(stage.guard for stage in self.stages)
         stages = [stage for stage in self.stages if not (skip_guarded and stage.guard)]
+        if self.x0_start != "rest":  # variable-projection start: x0*(p0) on the first stage's problem
+            first = stages[0]
+            window = (
+                outputs["targets"].shape[1]
+                if first.n_steps is None
+                else min(int(first.n_steps), outputs["targets"].shape[1])
+            )
+            params = project_initial_state(
+                self.response,
+                params,
+                road,
+                outputs["targets"][:, :window].double(),
+                self._channels(first, module),
+                weights,
+                offset,
+                chunk_size=first.solver.config.chunk_size,
+            )
+            if x0_at_rest is not None:
+                params[x0_at_rest, self.response.n_params :] = 0.0
         for number, stage in enumerate(stages):
             observed = self._channels(stage, module)
             last = number == len(stages) - 1
@@ -659,7 +688,13 @@ class GaussNewtonRefinement(Callback):
                 k: (v[rows] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == init.shape[0] else v)
                 for k, v in outputs.items()
             }
-            _, sub_result, sub_params, sub_relative = self._run_stages(sub, torch.cat(starts), module, restart=True)
+            # x0_start="alternate": restarts 1, 3, 5, ... start x0 at rest, the others projected.
+            at_rest = torch.tensor(
+                [self.x0_start == "alternate" and number % 2 == 0 for number in range(attempt, attempt + group)]
+            ).repeat_interleave(retry.numel())
+            _, sub_result, sub_params, sub_relative = self._run_stages(
+                sub, torch.cat(starts), module, restart=True, x0_at_rest=at_rest
+            )
             # In attempt order, as if run one after the other: a sample takes an attempt that lowers
             # its loss, and once its status is no longer misfit/diverged later attempts are not
             # considered (a lower loss at a misfit is a structured residual, not a better fit).
