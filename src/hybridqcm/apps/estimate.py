@@ -128,7 +128,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         restart_sigma=float(cfg.restarts.sigma),
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
-        restart_batch=int(cfg.restarts.get("batch", 16)),
+        restart_batch=int(cfg.restarts.get("batch", 64)),
         x0_start=plan["x0_start"],
     )
 

@@ -394,7 +394,7 @@ class GaussNewtonRefinement(Callback):
         min_input_noise: float = 1e-3,
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
-        restart_batch: int = 16,
+        restart_batch: int = 64,
         x0_start: str = "rest",
     ):
         super().__init__()
@@ -695,23 +695,27 @@ class GaussNewtonRefinement(Callback):
             _, sub_result, sub_params, sub_relative = self._run_stages(
                 sub, torch.cat(starts), module, restart=True, x0_at_rest=at_rest
             )
-            # In attempt order, as if run one after the other: a sample takes an attempt that lowers
-            # its loss, and once its status is no longer misfit/diverged later attempts are not
-            # considered (a lower loss at a misfit is a structured residual, not a better fit).
-            settled = torch.zeros(retry.numel(), dtype=torch.bool)
+            # In attempt order: an attempt replaces a sample's current fit if it fits (not misfit or
+            # diverged) where the current does not, or fits as well and has the lower loss; a lower
+            # loss at a misfit is a structured residual, not a better fit. Candidates are judged by
+            # the same peer test as the first fits.
+            self._flag_outliers(sub_result, typical)
+            fits = sub_result.status.ne(SolverStatus.MISFIT) & sub_result.status.ne(SolverStatus.DIVERGED)
             for number in range(group):
                 mask = torch.zeros(rows.numel(), dtype=torch.bool)
                 part = slice(number * retry.numel(), (number + 1) * retry.numel())
-                better = (sub_relative[part] < relative[retry]) & ~settled
+                current = result.status[retry]
+                current_fits = current.ne(SolverStatus.MISFIT) & current.ne(SolverStatus.DIVERGED)
+                better = (fits[part] & ~current_fits) | (
+                    (fits[part] == current_fits) & (sub_relative[part] < relative[retry])
+                )
                 mask[part] = better
                 take = retry[better]
                 params[take] = sub_params[part][better]
                 relative[take] = sub_relative[part][better]
                 _take(result, sub_result, mask, take)
-                restarted[retry[~settled]] += 1
-                self._flag_outliers(result, typical)
-                status = result.status[retry]
-                settled |= (status != SolverStatus.MISFIT) & (status != SolverStatus.DIVERGED)
+            restarted[retry] += group
+            self._flag_outliers(result, typical)
             attempt += group
         record = {
             "index": outputs["index"].cpu(),
@@ -733,7 +737,7 @@ class GaussNewtonRefinement(Callback):
         that mimics the signal leaves ~1e-3 — both far below any absolute floor. With sensor noise
         every residual is noise, white, and nothing is flagged. Returns the batch's median (kept
         from the first pass, so restarts on a subset are judged against the whole batch)."""
-        if self.peer_factor is None or result.status.numel() < self.peer_min_batch:
+        if self.peer_factor is None or (typical is None and result.status.numel() < self.peer_min_batch):
             return typical
         settled = result.status != SolverStatus.DIVERGED
         rel = result.relative_residual
