@@ -200,3 +200,14 @@ def test_robust_covariance_with_a_prior_is_the_gaussian_product():
     # θ2 given θ1 has variance 1/F22 ≤ (F⁻¹)22 (equal here: nearly orthogonal regressors); per sample the
     # jackknife is re-estimated at a different fit, so compare on average
     assert pinned[:, 1].square().mean() <= 1.05 * free[:, 1].square().mean()
+
+
+def test_fewer_groups_than_unknowns_fall_back_to_the_model_based_covariance():
+    g = torch.Generator().manual_seed(6)
+    noise = 0.3 * torch.randn(20, T, generator=g, dtype=torch.float64)
+    wide = _fit_small(noise, band=T, dof=True)  # one group, two unknowns
+    design = _design()
+    y = torch.einsum("ton,n->to", design, torch.tensor([1.0, -2.0], dtype=torch.float64))[None] + noise[..., None]
+    problem = LeastSquaresProblem(y, torch.zeros(20, T, dtype=torch.float64), observed=(True,), model=Linear(design))
+    model = GaussNewton(SolverConfig(max_iterations=3, misfit_lags=0)).solve(problem, torch.zeros(20, 2)).std
+    assert torch.equal(wide, model) and torch.isfinite(wide).all()

@@ -484,8 +484,8 @@ class NonlinearLeastSquares:
 
     def _data_normal_equations(self, problem, params, targets, road, index, band: int | None = None):
         """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``; with ``band``
-        also the score outer products Σ_g s_g s_gᵀ [b, n_free, n_free] and the number of groups G
-        (see :func:`_score_groups`).
+        also the score matrix of :func:`_score_groups` [b, n_free, n_free] and (G, Satterthwaite degrees of
+        freedom [b, n_free] or None).
 
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
@@ -681,10 +681,13 @@ class NonlinearLeastSquares:
         combines with the prior precision Λ as (C⁻¹ + Λ)⁻¹, as the model-based one does.
         "robust_*": per parameter the larger variance of ``model_cov`` and the robust one, applied as a
         diagonal rescaling of ``model_cov`` (stays positive semi-definite, keeps its correlations).
+        With no more groups than unknowns there is no robust estimate: ``model_cov`` is returned.
         """
         cfg = self.config
         n_free = fisher.shape[-1]
         n_groups, dof = groups
+        if n_groups <= n_free:  # fewer groups than unknowns (a short window, a wide band): nothing to estimate from
+            return model_cov
         if cfg.covariance.endswith("jackknife"):
             data_cov = meat
             if cfg.covariance_dof:
@@ -693,7 +696,7 @@ class NonlinearLeastSquares:
                 ratio = torch.from_numpy(student_t.ppf(0.975, nu) / student_t.ppf(0.975, math.inf)).to(data_cov.dtype)
                 data_cov = data_cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
         else:
-            factor = n_groups / (n_groups - n_free) if n_groups > n_free else math.inf
+            factor = n_groups / (n_groups - n_free)
             inverse, _, _, _ = _pseudo_inverse(fisher, cfg.rcond)
             data_cov = factor * inverse @ meat @ inverse
         if problem.prior_mean is not None:
