@@ -84,6 +84,25 @@ def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
     return method, base
 
 
+def interval_settings(cfg) -> dict:
+    """SolverConfig fields from the ``intervals`` group of configs/estimate.yaml (empty when absent)."""
+    from hybridqcm.estimation.solver import COVARIANCES
+
+    intervals = cfg.get("intervals")
+    if intervals is None:
+        return {}
+    covariance = intervals.get("covariance", "model")
+    if covariance not in COVARIANCES:
+        raise ConfigError(f"intervals.covariance={covariance!r}: choose one of {list(COVARIANCES)}")
+    band = intervals.get("band", 1)
+    if isinstance(band, bool) or not isinstance(band, int) or band < 1:
+        raise ConfigError(f"intervals.band={band!r}: must be an integer >= 1")
+    student_t = intervals.get("student_t", True)
+    if not isinstance(student_t, bool):
+        raise ConfigError(f"intervals.student_t={student_t!r}: must be true or false")
+    return {"covariance": covariance, "covariance_band": band, "covariance_dof": student_t}
+
+
 def check_positive_params(path: Path, split: str, params, n: int) -> None:
     """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
     from hybridqcm.data.hdf5 import DatasetError
@@ -218,6 +237,8 @@ def validate(cfg) -> dict:
         if window is not None and not 2 <= int(window):
             raise ConfigError(f"stages[{i}].n_steps must be >= 2 (or null for n_steps), got {window}")
         method, settings = solver_settings(cfg, stage)
+        if i == len(cfg.stages) - 1:  # only the last stage's intervals are reported
+            settings = {**interval_settings(cfg), **settings}
         stages.append(
             {
                 "name": name,

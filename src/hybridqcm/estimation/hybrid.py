@@ -554,7 +554,9 @@ class GaussNewtonRefinement(Callback):
                     # very resonant seat that blames the fit on input noise). Keep the reweighted
                     # estimate where the two disagree beyond ml_guard of its standard deviations.
                     n_p = self.response.n_params
-                    moved = (result.params[:, :n_p] - previous.params[:, :n_p]).abs() > self.ml_guard * previous.std[
+                    # (judged on the model-based std, so the reported interval never moves the estimate)
+                    spread = previous.std if previous.model_std is None else previous.model_std
+                    moved = (result.params[:, :n_p] - previous.params[:, :n_p]).abs() > self.ml_guard * spread[
                         :, :n_p
                     ].clamp_min(1e-300)
                     _take(result, previous, moved.any(1) | (result.status == SolverStatus.DIVERGED))
@@ -800,6 +802,7 @@ class GaussNewtonRefinement(Callback):
             seconds=[s for f in final for s in f.seconds],
             relative_residual=torch.cat([f.relative_residual for f in final]),
             whiteness=torch.cat([f.whiteness for f in final]),
+            model_std=None if any(f.model_std is None for f in final) else torch.cat([f.model_std for f in final]),
         )
         stage_loss, stage_status = {}, {}
         for stage in self.stages:
@@ -866,3 +869,5 @@ def _take(into: SolverResult, other: SolverResult, mask: Tensor, rows: Tensor | 
     rows = mask.nonzero().squeeze(1) if rows is None else rows
     for name in _PER_SAMPLE:
         getattr(into, name)[rows] = getattr(other, name)[mask]
+    if into.model_std is not None and other.model_std is not None:
+        into.model_std[rows] = other.model_std[mask]

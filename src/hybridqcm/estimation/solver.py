@@ -34,6 +34,7 @@ from enum import IntEnum
 
 import torch
 from scipy.stats import chi2
+from scipy.stats import t as student_t
 from torch import Tensor
 
 from .noise import SpectralNoise
@@ -56,6 +57,7 @@ class SolverStatus(IntEnum):
 
 
 STATUS_LABELS = {s.value: s.label for s in SolverStatus}
+COVARIANCES = ("model", "sandwich", "jackknife", "robust_sandwich", "robust_jackknife")  # SolverConfig.covariance
 
 
 @dataclass
@@ -98,6 +100,19 @@ class SolverConfig:
     misfit_floor: float = 0.005
     misfit_lags: int = 5
     misfit_alpha: float = 1e-4
+    # Standard deviations at the estimate (see NonlinearLeastSquares._finish):
+    #   "model":    σ̂² (JᵀJ)⁺ times the AR(1) inflation — exact when the whitened residual is white noise;
+    #   "sandwich": (JᵀJ)⁺ (Σ_g s_g s_gᵀ) (JᵀJ)⁺ from the score s_g = J_gᵀ e_g of each group g of
+    #               ``covariance_band`` adjacent frequencies (spectral noise model) or time steps
+    #               (time-domain loss) — Huber-White, band-averaged so that model error coherent
+    #               over neighbouring frequencies is seen;
+    #   "jackknife": the delete-a-group jackknife over the same groups (the sandwich with leverage
+    #               correction), at the Student-t quantile of its effective degrees of freedom;
+    #   "robust_sandwich" / "robust_jackknife": per parameter the larger of "model" and that variance
+    #               (correlations of "model"). The app's default is robust_jackknife (configs/estimate.yaml).
+    covariance: str = "model"
+    covariance_band: int = 1
+    covariance_dof: bool = True  # jackknife: Student-t quantile at its Satterthwaite degrees of freedom
     lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
     lm_min_damping: float = 1e-12
     lm_max_damping: float = 1e8
@@ -247,7 +262,7 @@ class SolverResult:
     params = θ [batch, n_theta] (p1..p10 for the Euler model), status [batch] (SolverStatus values),
     iterations [batch], loss [batch] (final ½ RSS), loss_history [max_iterations + 1, batch]
     (finished samples carry their last loss), std [batch, n_theta] (0 for known entries),
-    covariance [batch, n_theta, n_theta] (σ̂² (JᵀJ)⁺ times the AR(1) inflation, zero rows/cols for known), singular_values [batch, n_free] of the column-scaled J
+    covariance [batch, n_theta, n_theta] (by SolverConfig.covariance; "model": σ̂² (JᵀJ)⁺ times the AR(1) inflation; zero rows/cols for known), singular_values [batch, n_free] of the column-scaled J
     (descending), residual_variance [batch] σ̂², seconds: wall time per iteration.
     """
 
@@ -265,6 +280,8 @@ class SolverResult:
     # χ² threshold (> 1: the residual is not white); inf where not evaluated (diverged).
     relative_residual: Tensor | None = None
     whiteness: Tensor | None = None
+    # [batch, n_theta] the model-based std (config covariance = "model"), whatever ``std`` was built from
+    model_std: Tensor | None = None
 
     def status_counts(self) -> dict[str, int]:
         return {s.label: int((self.status == s.value).sum()) for s in SolverStatus}
@@ -303,6 +320,10 @@ class NonlinearLeastSquares:
             setattr(self.config, key, value)
         if self.config.parametrization not in ("log", "linear", "unconstrained"):
             raise ValueError(f"solver parametrization must be 'log' or 'linear', got {self.config.parametrization!r}")
+        if self.config.covariance not in COVARIANCES:
+            raise ValueError(f"solver covariance={self.config.covariance!r}: choose one of {list(COVARIANCES)}")
+        if int(self.config.covariance_band) < 1:
+            raise ValueError(f"solver covariance_band={self.config.covariance_band!r}: must be an integer >= 1")
 
     # --- method hooks -------------------------------------------------------------------
     def init_state(self, batch: int, dtype) -> None:
@@ -468,8 +489,10 @@ class NonlinearLeastSquares:
             loss = loss + 0.5 * (precision * deviation.square()).sum(1)
         return fisher, gradient, loss
 
-    def _data_normal_equations(self, problem, params, targets, road, index):
-        """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``.
+    def _data_normal_equations(self, problem, params, targets, road, index, band: int | None = None):
+        """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``; with ``band``
+        also the score matrix of :func:`_score_groups` [b, n_free, n_free] and (G, Satterthwaite degrees of
+        freedom [b, n_free] or None).
 
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
@@ -478,7 +501,8 @@ class NonlinearLeastSquares:
         cols = torch.cat([torch.zeros(1, dtype=torch.long), free_cols])
         obs = problem.observed_index
         width = problem.n_theta + 1
-        fishers, grads, losses = [], [], []
+        fishers, grads, losses, meats, dofs = [], [], [], [], []
+        n_groups = 0
         for chunk in index.split(self.config.chunk_size):
             out = problem.model.sensitivities(params[chunk], road[chunk], *problem.window)  # [b, T, n_out, 1 + n_theta]
             if len(obs) < out.shape[2]:
@@ -496,6 +520,15 @@ class NonlinearLeastSquares:
             losses.append(0.5 * gram[:, 0, 0])
             grads.append(gram[:, 1:, 0])
             fishers.append(gram[:, 1:, 1:])
+            if band is not None:
+                meat, n_groups, dof = _score_groups(
+                    out[..., cols], band, problem.noise is not None, self.config.covariance.endswith("jackknife")
+                )
+                meats.append(meat)
+                dofs.append(dof)
+        if band is not None:
+            dof = None if dofs[0] is None else torch.cat(dofs)
+            return torch.cat(fishers), torch.cat(grads), torch.cat(losses), torch.cat(meats), (n_groups, dof)
         return torch.cat(fishers), torch.cat(grads), torch.cat(losses)
 
     def _apply_step(self, free_params: Tensor, scaled_step: Tensor) -> Tensor:
@@ -580,8 +613,15 @@ class NonlinearLeastSquares:
         index = (status != SolverStatus.DIVERGED).nonzero().squeeze(1)
         std[status == SolverStatus.DIVERGED] = math.inf
         std[:, problem.known] = 0.0
+        model_std = std.clone()
         if index.numel():
-            fisher, _, final_loss = self._normal_equations(problem, params, targets, road, index, with_prior=False)
+            robust = cfg.covariance != "model"
+            if robust:
+                fisher, _, final_loss, meat, groups = self._data_normal_equations(
+                    problem, params, targets, road, index, band=int(cfg.covariance_band)
+                )
+            else:
+                fisher, _, final_loss = self._data_normal_equations(problem, params, targets, road, index)
             ok = torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(final_loss)
             fisher = torch.where(ok[:, None, None], fisher, torch.zeros_like(fisher))
             final_loss = torch.where(ok, final_loss, loss[index])
@@ -602,6 +642,9 @@ class NonlinearLeastSquares:
                     precision
                 )
                 cov_free, unidentified, _, rank_deficient = _pseudo_inverse(information, cfg.rcond)
+            model_std_free = cov_free.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+            if robust:
+                cov_free = self._robust_covariance(problem, params, index, free, fisher, meat, groups, cov_free)
             std_free = torch.where(
                 unidentified,
                 torch.full_like(sigma2[:, None], math.inf),
@@ -609,6 +652,9 @@ class NonlinearLeastSquares:
             )
             rows = index.unsqueeze(1)
             std[rows, free.unsqueeze(0)] = std_free
+            model_std[rows, free.unsqueeze(0)] = torch.where(
+                unidentified, torch.full_like(model_std_free, math.inf), model_std_free
+            )
             cov_full = torch.zeros(index.numel(), n_theta, n_theta, dtype=params.dtype)
             cov_full[:, free.unsqueeze(1), free.unsqueeze(0)] = cov_free
             covariance[index] = cov_full
@@ -628,7 +674,48 @@ class NonlinearLeastSquares:
             seconds=seconds,
             relative_residual=relative_residual,
             whiteness=whiteness,
+            model_std=model_std,
         )
+
+    def _robust_covariance(self, problem, params, index, free, fisher, meat, groups, model_cov) -> Tensor:
+        """Covariance [b, n_free, n_free] of the free θ by the ``covariance`` setting (SolverConfig).
+
+        Sandwich: for the estimate θ̂ = argmin ½‖e(θ)‖², θ̂ − θ* ≈ −F⁻¹ Σ_g s_g with F = JᵀJ and s_g the
+        score of group g, so Cov θ̂ ≈ F⁻¹ (Σ_g E s_g s_gᵀ) F⁻¹ whatever the residual's distribution, as
+        long as the groups are uncorrelated. At θ̂ the scores sum to zero (n_free linear constraints),
+        hence the small-sample factor G/(G − n_free) (G groups). Jackknife: ``meat`` is already the
+        delete-a-group covariance (:func:`_score_groups`). With a prior (MAP) this data covariance C
+        combines with the prior precision Λ as (C⁻¹ + Λ)⁻¹, as the model-based one does.
+        "robust_*": per parameter the larger variance of ``model_cov`` and the robust one, applied as a
+        diagonal rescaling of ``model_cov`` (stays positive semi-definite, keeps its correlations).
+        With no more groups than unknowns there is no robust estimate: ``model_cov`` is returned.
+        """
+        cfg = self.config
+        n_free = fisher.shape[-1]
+        n_groups, dof = groups
+        if n_groups <= n_free:  # fewer groups than unknowns (a short window, a wide band): nothing to estimate from
+            return model_cov
+        if cfg.covariance.endswith("jackknife"):
+            data_cov = meat
+            if cfg.covariance_dof:
+                # The variance is estimated from few effective groups: widen to the Student-t quantile.
+                nu = dof.clamp_min(1.0).numpy()
+                ratio = torch.from_numpy(student_t.ppf(0.975, nu) / student_t.ppf(0.975, math.inf)).to(data_cov.dtype)
+                data_cov = data_cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
+        else:
+            factor = n_groups / (n_groups - n_free)
+            inverse, _, _, _ = _pseudo_inverse(fisher, cfg.rcond)
+            data_cov = factor * inverse @ meat @ inverse
+        if problem.prior_mean is not None:
+            precision, _ = self._prior_terms(problem, params[index][:, free], index)
+            information, _, _, _ = _pseudo_inverse(data_cov, cfg.rcond)
+            data_cov, _, _, _ = _pseudo_inverse(information + torch.diag_embed(precision), cfg.rcond)
+        if not cfg.covariance.startswith("robust"):
+            return data_cov
+        model_var = model_cov.diagonal(dim1=1, dim2=2).clamp_min(0)
+        ratio = data_cov.diagonal(dim1=1, dim2=2) / model_var.clamp_min(1e-300)
+        scale = torch.where(model_var > 0, ratio.clamp_min(1.0), torch.ones_like(ratio)).sqrt()
+        return model_cov * scale.unsqueeze(2) * scale.unsqueeze(1)
 
     def _residual_tests(self, problem, params, targets, inputs, index) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Misfit test and covariance inflation from the final residuals of the samples ``index``.
@@ -676,6 +763,49 @@ class NonlinearLeastSquares:
             rho = rho.clamp(0.0, 0.98)
             inflation.append(torch.where(significant, (1 + rho) / (1 - rho), torch.ones_like(rho)))
         return torch.cat(misfits), torch.cat(rel), torch.cat(white), torch.cat(inflation)
+
+
+def _score_groups(
+    augmented: Tensor, band: int, spectral: bool, jackknife: bool = False
+) -> tuple[Tensor, int, Tensor | None]:
+    """Σ_g s_g s_gᵀ [b, n, n] of the per-group scores s_g = Σ_{rows in g} J_rᵀ e_r of the (whitened)
+    stack ``augmented`` = (e | J) [b, rows, o, 1 + n], and the number of groups G. Spectral stack
+    (rows = Re of K frequencies, then Im): a group is ``band`` adjacent frequencies from k = 1 (DC
+    carries no rows), real and imaginary parts and all outputs together — at one frequency they are
+    correlated, across frequencies asymptotically not (the DFT of a stationary process). Time-domain
+    stack: ``band`` consecutive time steps.
+
+    ``jackknife``: instead the delete-a-group jackknife covariance (G − 1)/G Σ_g (d_g − d̄)(d_g − d̄)ᵀ of
+    the one-step shifts d_g = (F − F_g)⁻¹ s_g that leaving group g out makes (F = JᵀJ, F_g = J_gᵀJ_g):
+    the sandwich with each score taken at its own leave-out fit, so a group that carries much of the
+    information (a sharp resonance) is not under-weighted (the cluster "CR3" estimator)."""
+    J = augmented[..., 1:]
+    contributions = (J * augmented[..., :1]).sum(2)  # [b, rows, n]
+    outer = torch.einsum("broi,broj->brij", J, J) if jackknife else None  # [b, rows, n, n]
+    if spectral:
+        K = contributions.shape[1] // 2
+        contributions = (contributions[:, :K] + contributions[:, K:])[:, 1:]
+        if outer is not None:
+            outer = (outer[:, :K] + outer[:, K:])[:, 1:]
+    b, rows, n = contributions.shape
+    groups = -(-rows // band)
+    pad = groups * band - rows
+    scores = torch.nn.functional.pad(contributions, (0, 0, 0, pad)).view(b, groups, band, n).sum(2)
+    if not jackknife:
+        return torch.bmm(scores.transpose(1, 2), scores), groups, None
+    group_fisher = torch.nn.functional.pad(outer, (0, 0, 0, 0, 0, pad)).view(b, groups, band, n, n).sum(2)
+    fisher = group_fisher.sum(1, keepdim=True)  # [b, 1, n, n]
+    left = fisher - group_fisher  # [b, G, n, n]
+    # column scaling by F's diagonal, as in the steps (θ mixes parameters and initial states)
+    scale = fisher.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()  # [b, 1, n]
+    scaled = left / (scale.unsqueeze(-1) * scale.unsqueeze(-2))
+    shifts, _ = _pseudo_inverse_solve(scaled.reshape(b * groups, n, n), (scores / scale).reshape(b * groups, n), 1e-7)
+    shifts = shifts.view(b, groups, n) / scale  # d_g [b, G, n]
+    centred = shifts - shifts.mean(1, keepdim=True)
+    # Satterthwaite: a sum of G independent squares a_g² has (Σ a_g²)² / Σ a_g⁴ degrees of freedom.
+    squares = centred.square()
+    dof = squares.sum(1).square() / squares.square().sum(1).clamp_min(1e-300)  # [b, n]
+    return (groups - 1) / groups * torch.bmm(centred.transpose(1, 2), centred), groups, dof
 
 
 def _pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:

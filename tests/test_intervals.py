@@ -1,0 +1,213 @@
+"""Robust covariances of the solver (SolverConfig.covariance) against Monte-Carlo on linear models.
+
+For y = X θ + ε the least-squares estimate is exactly θ̂ = θ + (XᵀX)⁻¹ Xᵀ ε, so its covariance over
+many noise draws is the independent fact: (XᵀX)⁻¹ Xᵀ Cov(ε) X (XᵀX)⁻¹. The model-based σ̂² (XᵀX)⁻¹ is
+that only for white ε; the sandwich estimates it from the residuals whatever Cov(ε) is, as long as the
+groups it sums over are uncorrelated (time steps for heteroscedastic ε, DFT frequencies for
+stationary coloured ε).
+"""
+
+import math
+
+import pytest
+import torch
+
+from hybridqcm.estimation.noise import SpectralNoise
+from hybridqcm.estimation.response import ResponseModel
+from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+
+T, N_MC = 256, 3000
+
+
+class Linear(ResponseModel):
+    """y = X θ with a fixed design X [T, 1, n] (no physical parameters: θ are free of sign)."""
+
+    output_names = ("y",)
+    n_params = 0
+
+    def __init__(self, design):
+        self.design = design
+        self.theta_names = tuple(f"t{j}" for j in range(design.shape[-1]))
+
+    def outputs(self, theta, inputs, start=0, n_steps=None):
+        return torch.einsum("ton,bn->bto", self.design, theta)
+
+    def sensitivities(self, theta, inputs, start=0, n_steps=None):
+        jac = self.design.expand(theta.shape[0], *self.design.shape)
+        return torch.cat([self.outputs(theta, inputs).unsqueeze(-1), jac], -1)
+
+
+def _design():
+    """Broadband regressors (information spread over many frequencies, so no group has high leverage):
+    a low-passed (moving average over 16 steps) and a white fixed random sequence."""
+    g = torch.Generator().manual_seed(0)
+    raw = torch.randn(2, T + 15, generator=g, dtype=torch.float64)
+    slow = raw[0].unfold(0, 16, 1).mean(1)[:T]
+    fast = raw[1, :T]
+    return torch.stack([slow / slow.std(), fast], -1)[:, None]
+
+
+def _fit(noise_t, covariance, band=1, spectral=None, dof=False):
+    """Estimates and std of N_MC fits of y = X·(1, -2) + noise_t [N_MC, T]."""
+    design = _design()
+    truth = torch.tensor([1.0, -2.0], dtype=torch.float64)
+    y = torch.einsum("ton,n->to", design, truth)[None] + noise_t[..., None]
+    problem = LeastSquaresProblem(
+        y,
+        torch.zeros(N_MC, T, dtype=torch.float64),
+        observed=(True,),
+        model=Linear(design),
+        noise=spectral,
+    )
+    config = SolverConfig(
+        max_iterations=3, misfit_lags=0, covariance=covariance, covariance_band=band, covariance_dof=dof
+    )
+    result = GaussNewton(config).solve(problem, torch.zeros(N_MC, 2, dtype=torch.float64))
+    return result.params - truth, result.std
+
+
+def _mc_var(errors):
+    return errors.var(0)
+
+
+def test_white_noise_sandwich_and_jackknife_equal_the_model_based_covariance():
+    g = torch.Generator().manual_seed(1)
+    noise = 0.3 * torch.randn(N_MC, T, generator=g, dtype=torch.float64)
+    err, model = _fit(noise, "model")
+    _, sandwich = _fit(noise, "sandwich")
+    _, jackknife = _fit(noise, "jackknife")
+    mc = _mc_var(err)
+    # sampling error of a variance from 3000 draws: ~ sqrt(2/3000) = 2.6 %
+    for std in (model, sandwich, jackknife):
+        assert torch.allclose(std.square().mean(0), mc, rtol=0.08)
+    # with low leverage (T = 256, 2 unknowns) the jackknife is the sandwich to O(1/T)
+    assert torch.allclose(jackknife.square().mean(0), sandwich.square().mean(0), rtol=0.03)
+
+
+def test_heteroscedastic_noise_sandwich_matches_monte_carlo_where_model_based_does_not():
+    """Noise std growing with the slow regressor's magnitude: model-based is wrong by a known factor."""
+    g = torch.Generator().manual_seed(2)
+    scale = 0.05 + 1.0 * _design()[:, 0, 0].abs() ** 2  # [T], large where regressor 1 is large
+    noise = scale * torch.randn(N_MC, T, generator=g, dtype=torch.float64)
+    err, model = _fit(noise, "model")
+    _, sandwich = _fit(noise, "sandwich")
+    mc = _mc_var(err)
+    assert torch.allclose(sandwich.square().mean(0), mc, rtol=0.08)
+    assert model.square().mean(0)[0] < 0.8 * mc[0]  # the white-noise formula underestimates
+
+
+def test_coloured_noise_frequency_sandwich_matches_monte_carlo():
+    """AR(1) noise (ρ = 0.9) under a white spectral noise model: the model-based covariance assumes one
+    variance at every frequency and is far too narrow for the slow regressor (the noise is strong at
+    low frequencies); the per-frequency sandwich sees each frequency's own power."""
+    g = torch.Generator().manual_seed(3)
+    white = torch.randn(N_MC, T + 200, generator=g, dtype=torch.float64)
+    ar = torch.zeros_like(white)
+    for k in range(1, white.shape[1]):
+        ar[:, k] = 0.9 * ar[:, k - 1] + white[:, k]
+    noise = 0.1 * ar[:, 200:]  # stationary part
+    spectral = SpectralNoise(torch.full((N_MC, 1), float(noise.var()), dtype=torch.float64))
+    err, model = _fit(noise, "model", spectral=spectral)
+    _, sandwich = _fit(noise, "sandwich", spectral=spectral)
+    _, jackknife = _fit(noise, "jackknife", spectral=spectral)
+    mc = _mc_var(err)
+    assert model.square().mean(0)[0] < 0.2 * mc[0]  # measured: 10x too small
+    # The slow regressor's information sits in the ~16 lowest bins, where the AR(1) power is too:
+    # leverage. The sandwich (from residuals shrunk by the fit) is then biased low and the jackknife
+    # high (Efron & Stein 1981), so they bracket the truth; both within 30 % of it (measured -20/+20 %).
+    var_s, var_j = sandwich.square().mean(0), jackknife.square().mean(0)
+    assert (var_s[0] < mc[0] < var_j[0]) and torch.allclose(var_s, mc, rtol=0.3) and torch.allclose(var_j, mc, rtol=0.3)
+    # the robust choice takes the larger per parameter: never narrower than either
+    _, robust = _fit(noise, "robust_sandwich", spectral=spectral)
+    assert (robust >= model * (1 - 1e-12)).all() and (robust >= sandwich * (1 - 1e-12)).all()
+
+
+def test_student_t_widening_follows_the_effective_degrees_of_freedom():
+    """With groups so wide that only G = 8 remain (256 time steps / 32), the jackknife std at the t
+    quantile is the plain one times t_ν(0.975)/z(0.975) with Satterthwaite's ν ≤ G (Cauchy-Schwarz);
+    with 256 groups it is a few per cent on average."""
+    from scipy.stats import t as student_t
+
+    g = torch.Generator().manual_seed(4)
+    noise = 0.3 * torch.randn(200, T, generator=g, dtype=torch.float64)
+    ratio_many = _fit_small(noise, band=1, dof=True) / _fit_small(noise, band=1, dof=False)
+    assert (ratio_many >= 1.0).all() and ratio_many.mean() < 1.06  # measured mean 1.04
+    ratio_few = _fit_small(noise, band=32, dof=True) / _fit_small(noise, band=32, dof=False)
+    lower = student_t.ppf(0.975, 8) / student_t.ppf(0.975, math.inf)
+    assert (ratio_few >= lower * (1 - 1e-9)).all()
+
+
+def _fit_small(noise_t, band, dof):
+    design = _design()
+    b = noise_t.shape[0]
+    y = torch.einsum("ton,n->to", design, torch.tensor([1.0, -2.0], dtype=torch.float64))[None] + noise_t[..., None]
+    problem = LeastSquaresProblem(y, torch.zeros(b, T, dtype=torch.float64), observed=(True,), model=Linear(design))
+    config = SolverConfig(
+        max_iterations=3, misfit_lags=0, covariance="jackknife", covariance_band=band, covariance_dof=dof
+    )
+    return GaussNewton(config).solve(problem, torch.zeros(b, 2, dtype=torch.float64)).std
+
+
+def test_bad_covariance_settings_are_one_line_errors():
+    with pytest.raises(ValueError, match="covariance='hc3'"):
+        GaussNewton(SolverConfig(covariance="hc3"))
+    with pytest.raises(ValueError, match="covariance_band=0"):
+        GaussNewton(SolverConfig(covariance="sandwich", covariance_band=0))
+
+
+def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
+    from omegaconf import OmegaConf
+
+    from hybridqcm.apps.common import ConfigError
+    from hybridqcm.apps.estimate_plan import interval_settings
+
+    cfg = OmegaConf.create({"intervals": {"covariance": "jackknife", "band": 4, "student_t": False}})
+    assert interval_settings(cfg) == {"covariance": "jackknife", "covariance_band": 4, "covariance_dof": False}
+    assert interval_settings(OmegaConf.create({})) == {}
+    for key, value, message in (
+        ("covariance", "hc3", "intervals.covariance='hc3'"),
+        ("band", 0, "intervals.band=0"),
+        ("student_t", "yes", "intervals.student_t='yes'"),
+    ):
+        bad = OmegaConf.create({"intervals": {"covariance": "model", key: value}})
+        with pytest.raises(ConfigError, match=message.replace("(", r"\(")) as error:
+            interval_settings(bad)
+        assert "\n" not in str(error.value)
+
+
+def test_robust_covariance_with_a_prior_is_the_gaussian_product():
+    """MAP: the robust data covariance C combines with the prior precision Λ as (C⁻¹ + Λ)⁻¹ — a strong
+    prior pins its parameter's std at 1/√λ and leaves the other one no wider than without it."""
+    design = _design()
+    g = torch.Generator().manual_seed(5)
+    b = 50
+    y = torch.einsum("ton,n->to", design, torch.tensor([1.0, -2.0], dtype=torch.float64))[None]
+    y = y + 0.3 * torch.randn(b, T, 1, generator=g, dtype=torch.float64)
+    config = SolverConfig(max_iterations=3, misfit_lags=0, covariance="robust_jackknife")
+    stds = []
+    for precision in (0.0, 1e8):
+        problem = LeastSquaresProblem(
+            y,
+            torch.zeros(b, T, dtype=torch.float64),
+            observed=(True,),
+            model=Linear(design),
+            prior_mean=torch.tensor([[1.0, -2.0]], dtype=torch.float64).expand(b, 2),  # a correct prior
+            prior_precision=torch.tensor([[precision, 0.0]], dtype=torch.float64).expand(b, 2),
+        )
+        stds.append(GaussNewton(config).solve(problem, torch.zeros(b, 2, dtype=torch.float64)).std)
+    free, pinned = stds
+    assert torch.allclose(pinned[:, 0], torch.full((b,), 1e-4, dtype=torch.float64), rtol=1e-3)
+    # θ2 given θ1 has variance 1/F22 ≤ (F⁻¹)22 (equal here: nearly orthogonal regressors); per sample the
+    # jackknife is re-estimated at a different fit, so compare on average
+    assert pinned[:, 1].square().mean() <= 1.05 * free[:, 1].square().mean()
+
+
+def test_fewer_groups_than_unknowns_fall_back_to_the_model_based_covariance():
+    g = torch.Generator().manual_seed(6)
+    noise = 0.3 * torch.randn(20, T, generator=g, dtype=torch.float64)
+    wide = _fit_small(noise, band=T, dof=True)  # one group, two unknowns
+    design = _design()
+    y = torch.einsum("ton,n->to", design, torch.tensor([1.0, -2.0], dtype=torch.float64))[None] + noise[..., None]
+    problem = LeastSquaresProblem(y, torch.zeros(20, T, dtype=torch.float64), observed=(True,), model=Linear(design))
+    model = GaussNewton(SolverConfig(max_iterations=3, misfit_lags=0)).solve(problem, torch.zeros(20, 2)).std
+    assert torch.equal(wide, model) and torch.isfinite(wide).all()
