@@ -63,7 +63,7 @@ def _cnn_alone(args, sigma: float) -> dict[str, torch.Tensor]:
 
     from hybridqcm.apps.common import CONFIG_DIR
     from hybridqcm.apps.estimate import build_inputs, validate
-    from hybridqcm.estimation.hybrid import HybridEstimator
+    from hybridqcm.estimation.front import HybridEstimator
 
     overrides = [o for o in _estimate_cmd(args, sigma, "fused", Path("."))[1:] if not o.startswith("hydra.")]
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

@@ -36,7 +36,7 @@ def _reference_samples(path, n: int, seed: int):
 
 def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dict]:
 
-    from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
     from hybridqcm.estimation.solver import build_solver
 
     accel, road, true, g, init = _reference_samples(path, n, seed)

@@ -190,7 +190,7 @@ def test_network_prior_needs_a_variance_head():
 
 
 def test_hybrid_estimator_hands_the_networks_variance_to_gauss_newton(tmp_path):
-    from hybridqcm.estimation.hybrid import HybridEstimator
+    from hybridqcm.estimation.front import HybridEstimator
     from hybridqcm.testing import _fit
 
     g = torch.Generator().manual_seed(0)

@@ -6,14 +6,8 @@ import lightning
 import pytest
 import torch
 
-from hybridqcm.estimation.hybrid import (
-    CheckpointKindError,
-    GaussNewtonRefinement,
-    GaussNewtonStage,
-    HybridEstimator,
-    equation_error_params,
-    load_network,
-)
+from hybridqcm.estimation.front import CheckpointKindError, HybridEstimator, equation_error_params, load_network
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
 

@@ -6,8 +6,8 @@ sensitivities the projection uses)."""
 import pytest
 import torch
 
-from hybridqcm.estimation.hybrid import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.initial_state import project_initial_state
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.response import ExactResponse
 from hybridqcm.estimation.solver import GaussNewton
 from hybridqcm.physics.continuous import simulate_continuous

@@ -61,7 +61,7 @@ def _tampered(source: Path, target: Path, edit) -> Path:
 def test_error_hierarchy_keeps_old_names():
     from hybridqcm.apps.common import ConfigError as AppConfigError
     from hybridqcm.data.hdf5 import DatasetError as DataDatasetError
-    from hybridqcm.estimation.hybrid import CheckpointKindError
+    from hybridqcm.estimation.front import CheckpointKindError
     from hybridqcm.models.modules import CheckpointMismatch
 
     assert AppConfigError is ConfigError and DataDatasetError is DatasetError
@@ -95,7 +95,7 @@ def test_pickle_payload_is_refused_and_never_runs(tiny_cnn, tmp_path):
     assert "\n" not in str(info.value)
     assert not marker.exists()
     # The two apps' legacy entry points go through the same loader.
-    from hybridqcm.estimation.hybrid import CheckpointKindError, load_network
+    from hybridqcm.estimation.front import CheckpointKindError, load_network
     from hybridqcm.models import PhysicsResidualEstimator
     from hybridqcm.models.modules import CheckpointMismatch
 
@@ -202,7 +202,7 @@ def test_state_dict_missing_unexpected_or_misshaped_key_is_one_line(tiny_cnn, tm
 
 
 def test_estimator_refuses_cnn_for_other_targets_or_channels(tiny_cnn, tmp_path):
-    from hybridqcm.estimation.hybrid import CheckpointKindError, HybridEstimator
+    from hybridqcm.estimation.front import CheckpointKindError, HybridEstimator
 
     labelled = tmp_path / "labelled.ckpt"
     from hybridqcm.models import LabelledEstimator

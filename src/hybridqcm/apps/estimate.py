@@ -60,7 +60,8 @@ from hybridqcm.apps.estimate_report import (
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import DatasetError, HybridQCMError
-from hybridqcm.estimation.hybrid import GaussNewtonStage, HybridEstimator
+from hybridqcm.estimation.front import HybridEstimator
+from hybridqcm.estimation.refinement import GaussNewtonStage
 from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
 from hybridqcm.estimation.solver import build_solver
 

@@ -168,8 +168,8 @@ def check_known_keys(cfg) -> None:
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
     from hybridqcm.estimation.fusion import check_cnn_prior
-    from hybridqcm.estimation.hybrid import CheckpointKindError, check_networks, load_network
 
     check_known_keys(cfg)
     common.check_task_name(cfg.get("task_name", "estimate"))
@@ -199,7 +199,7 @@ def validate(cfg) -> dict:
     base = cfg.get("base_excitation")
     n_params = 10
     if base is not None:
-        from hybridqcm.estimation.hybrid import BASE_EXCITATION
+        from hybridqcm.estimation.front import BASE_EXCITATION
 
         if base not in BASE_EXCITATION:
             raise ConfigError(

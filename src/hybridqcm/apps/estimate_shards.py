@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 from hybridqcm.apps import runfolder
 from hybridqcm.atomic import atomic_open, atomic_write_csv, atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError
-from hybridqcm.estimation.hybrid import GaussNewtonRefinement
+from hybridqcm.estimation.refinement import GaussNewtonRefinement
 
 SHARDS = "shards"
 # Settings that do not change a single estimate: where and how the run happens, what it draws.

@@ -1,14 +1,13 @@
 """Parameter estimation: forward-mode sensitivities, batched Gauss-Newton / LM, hybrid pipeline."""
 
-from hybridqcm.estimation.hybrid import (
+from hybridqcm.estimation.front import (
     CheckpointKindError,
-    GaussNewtonRefinement,
-    GaussNewtonStage,
     HybridEstimator,
     check_networks,
     equation_error_params,
     load_network,
 )
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.sensitivity import (
     EulerSensitivity,
     accelerations_and_jacobian,
