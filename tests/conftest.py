@@ -46,6 +46,25 @@ def write_tiny_dataset(path: Path, seed: int = TINY_SEED, **overrides) -> dict:
     return write_dataset(path, **kwargs)
 
 
+def tiny_datamodule(path, module, **kwargs):
+    """The HDF5 datamodule a module asks for (its data_requirements) on a tiny file: batches of 8,
+    evaluation batches of 16, a quarter of the training split for validation."""
+    from hybridqcm.data.datamodules import HDF5DataModule
+
+    req = module.data_requirements()
+    return HDF5DataModule(
+        path,
+        inputs=req["inputs"],
+        targets=req["targets"],
+        aux=req["aux"],
+        window=req["window"],
+        batch_size=8,
+        eval_batch_size=16,
+        val_fraction=0.25,
+        **kwargs,
+    )
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT

@@ -6,8 +6,8 @@ import lightning as L
 import pytest
 import torch
 
+from conftest import tiny_datamodule
 from hybridqcm.apps.train import load_module
-from hybridqcm.data.datamodules import HDF5DataModule
 from hybridqcm.data.simulate import simulate_samples, write_dataset
 from hybridqcm.models import (
     CheckpointMismatch,
@@ -116,21 +116,6 @@ def test_balanced_residual_weighs_p1_and_p2_alike(clean_batch):
 
 
 # -- modules ------------------------------------------------------------------------------------------------
-def _dm(tiny, module, **kwargs):
-    req = module.data_requirements()
-    return HDF5DataModule(
-        tiny,
-        inputs=req["inputs"],
-        targets=req["targets"],
-        aux=req["aux"],
-        window=req["window"],
-        batch_size=8,
-        eval_batch_size=16,
-        val_fraction=0.25,
-        **kwargs,
-    )
-
-
 def _modules():
     return [
         LabelledEstimator(net=SMALL_CNN, train_noise_max=0.1, plot_every_n_epochs=0),
@@ -143,7 +128,7 @@ def _modules():
 @pytest.mark.parametrize("index", range(4))
 def test_fast_dev_run_every_module(tiny, index):
     module = _modules()[index]
-    dm = _dm(tiny, module, noise_sigma=0.1 if isinstance(module, DenoisingAutoencoder) else 0.0)
+    dm = tiny_datamodule(tiny, module, noise_sigma=0.1 if isinstance(module, DenoisingAutoencoder) else 0.0)
     trainer = L.Trainer(
         fast_dev_run=True, accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False
     )
@@ -160,7 +145,7 @@ def test_fast_dev_run_every_module(tiny, index):
 @pytest.mark.parametrize("index", range(4))
 def test_checkpoint_round_trip_and_inference_api(tiny, tmp_path, index):
     module = _modules()[index]
-    dm = _dm(tiny, module)
+    dm = tiny_datamodule(tiny, module)
     trainer = L.Trainer(
         max_steps=2,
         limit_val_batches=1,
@@ -205,7 +190,7 @@ def test_checkpoint_round_trip_and_inference_api(tiny, tmp_path, index):
 
 def test_estimate_is_scale_invariant_and_denoiser_attaches(tiny, tmp_path):
     module = LabelledEstimator(net=SMALL_CNN)
-    dm = _dm(tiny, module)
+    dm = tiny_datamodule(tiny, module)
     dm.setup("fit")
     module.fit_normalisation(dm.stats_batch())
     x = dm.data_train.tensors["x"][:3].double()

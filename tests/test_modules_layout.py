@@ -17,7 +17,7 @@ import torch
 
 import hybridqcm.models as models
 import hybridqcm.models.modules as old_home
-from hybridqcm.data.datamodules import HDF5DataModule
+from conftest import tiny_datamodule
 from hybridqcm.metrics import ErrorDistribution
 from hybridqcm.models.checkpoint import MODULES, load_checkpoint
 from hybridqcm.models.estimators import LabelledEstimator, PhysicsResidualEstimator
@@ -68,21 +68,6 @@ def _strings(value):
             yield from _strings(v)
 
 
-def _datamodule(path, module):
-    req = module.data_requirements()
-    return HDF5DataModule(
-        path,
-        inputs=req["inputs"],
-        targets=req["targets"],
-        aux=req["aux"],
-        window=req["window"],
-        batch_size=8,
-        eval_batch_size=16,  # the 40 test samples arrive in 3 batches (16, 16, 8)
-        val_fraction=0.25,
-        num_workers=0,
-    )
-
-
 def _trainer(**kwargs):
     return L.Trainer(
         accelerator="cpu",
@@ -126,7 +111,7 @@ def test_error_distribution_over_several_batches_equals_numpy():
 def test_logged_statistics_keys_and_values_and_new_checkpoint(tiny_dataset, tmp_path):
     torch.manual_seed(0)
     module = LabelledEstimator(net=SMALL_CNN, plot_every_n_epochs=0)
-    dm = _datamodule(tiny_dataset, module)
+    dm = tiny_datamodule(tiny_dataset, module, num_workers=0)  # the 40 test samples arrive in 3 batches (16, 16, 8)
     trainer = _trainer(max_epochs=1, limit_train_batches=2, limit_val_batches=2)
     trainer.fit(module, dm)
     stats = ("mean_rel_err", "max_rel_err", "over_25pct")
