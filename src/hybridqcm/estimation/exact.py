@@ -94,10 +94,6 @@ def _check(
     and the window length n_steps (default T_in - start)."""
     if not isinstance(model, LinearModel):
         raise ValueError(f"exact: model must be a LinearModel, got {type(model).__name__}")
-    if hold not in HOLDS:
-        raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
-    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"exact: substeps must be an integer >= 1, got {substeps!r}")
     if not (isinstance(h, (int, float)) and math.isfinite(h) and h > 0):
         raise ValueError(f"exact: step h must be a finite number > 0, got {h!r}")
     n_params, n, m = model.n_params, model.n_state, model.n_input
@@ -114,6 +110,17 @@ def _check(
         raise ValueError(
             f"exact: x0 must be [batch={batch}, {n}] ({', '.join(model.state_names)}) or None, got {tuple(x0.shape)}"
         )
+    return inputs, _check_hold_and_window(inputs, hold, substeps, start, n_steps, spline_degree)
+
+
+def _check_hold_and_window(
+    inputs: Tensor, hold: str, substeps: int, start: int, n_steps: int | None, spline_degree: int
+) -> int:
+    """Validate the hold settings and the window of inputs [b, T_in, m]; return n_steps (default T_in - start)."""
+    if hold not in HOLDS:
+        raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"exact: substeps must be an integer >= 1, got {substeps!r}")
     if spline_degree not in SPLINE_DEGREES:
         raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
     n_in = inputs.shape[1]
@@ -126,7 +133,7 @@ def _check(
             f"exact: n_steps must be an integer in [1, {n_in - start}] (start={start}, "
             f"{n_in} input samples), got {n_steps!r}"
         )
-    return inputs, int(n_steps)
+    return int(n_steps)
 
 
 # ----------------------------------------------------------------------------- input hold
@@ -263,16 +270,10 @@ def held_input(
     parameters, so an iterative solver computes it once per window and passes it back as ``held=``
     (for the spline hold it is about a third of an output evaluation's cost); a subset of samples is
     ``held[..., index]``, and any strides are accepted (e.g. a permuted batch-first copy)."""
-    if hold not in HOLDS:
-        raise ValueError(f"exact: unknown hold {hold!r}; choose one of {HOLDS}")
-    if spline_degree not in SPLINE_DEGREES:
-        raise ValueError(f"exact: spline_degree must be one of {SPLINE_DEGREES}, got {spline_degree!r}")
-    if inputs.ndim != 3:
-        raise ValueError(f"exact: inputs must be [batch, time, n_in], got {tuple(inputs.shape)}")
-    n_steps = inputs.shape[1] - start if n_steps is None else int(n_steps)
-    if not (0 <= start and 1 <= n_steps and start + n_steps <= inputs.shape[1]):
-        raise ValueError(f"exact: window start={start}, n_steps={n_steps} outside {inputs.shape[1]} input samples")
-    return _held(inputs.to(_DTYPE), hold, int(substeps), int(start), n_steps, int(spline_degree))
+    if inputs.ndim != 3 or inputs.shape[1] < 1:
+        raise ValueError(f"exact: inputs must be [batch, time>=1, n_in], got {tuple(inputs.shape)}")
+    n_steps = _check_hold_and_window(inputs, hold, substeps, start, n_steps, spline_degree)
+    return _held(inputs.to(_DTYPE), hold, substeps, int(start), n_steps, spline_degree)
 
 
 def _check_held(held: Tensor | None, inputs: Tensor, hold: str, substeps: int, n_steps: int) -> None:
