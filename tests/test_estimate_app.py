@@ -188,6 +188,10 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
         validate(_cfg(["experiment=exp5_random_init", "data.path=/nonexistent/file.h5"]))
     with pytest.raises(ConfigError, match="noise_sigma"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "noise_sigma=-1"]))
+    with pytest.raises(ConfigError, match=r"restarts\.batch must be an integer >= 1, got 0"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.batch=0"]))
+    with pytest.raises(ConfigError, match=r"solver\.decrement_tol must be null or a finite number >= 0, got -1"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "solver.decrement_tol=-1"]))
     with pytest.raises(DatasetError, match="no 'params'.*known_source=reference"):
         validate(_cfg(["experiment=exp7_known_p3p5", f"data.path={files['no_params']}", "init.cnn=false"]))
 

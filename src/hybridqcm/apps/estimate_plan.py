@@ -81,6 +81,9 @@ def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
         raise ConfigError(f"solver.max_iterations must be >= 0, got {base['max_iterations']}")
     if float(base.get("initial_step", 1.0)) <= 0:
         raise ConfigError(f"solver.initial_step must be > 0, got {base['initial_step']}")
+    tol = base.get("decrement_tol")
+    if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
+        raise ConfigError(f"solver.decrement_tol must be null or a finite number >= 0, got {tol!r}")
     return method, base
 
 
@@ -226,6 +229,9 @@ def validate(cfg) -> dict:
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if int(cfg.batch_size) < 1:
         raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
+    restart_batch = cfg.restarts.get("batch", 64)
+    if isinstance(restart_batch, bool) or not isinstance(restart_batch, int) or restart_batch < 1:
+        raise ConfigError(f"restarts.batch must be an integer >= 1, got {restart_batch!r}")
 
     stages = []
     for i, stage in enumerate(cfg.stages):
