@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install demo test lint test-slow reproduce reproduce-plan results bench tensorboard clean-outputs help
+.PHONY: install demo noise test lint test-slow reproduce reproduce-plan results bench tensorboard clean-outputs help
 
 help:
 	@echo "make demo       - end-to-end hybrid pipeline on a small dataset (about 15-20 min on 2 CPU cores)"
@@ -14,6 +14,7 @@ help:
 	@echo "make lint       - ruff check and ruff format --check over src, tests, bench"
 	@echo "make test-slow  - also the long end-to-end checks (pytest -m slow)"
 	@echo "make reproduce  - the full reference protocol, all experiments (hours; see 'make reproduce-plan')"
+	@echo "make noise      - after make demo: occupant mass with and without the road at sensor noise 0-10 % (~20 min)"
 	@echo "make results    - regenerate docs/RESULTS.md from the run folders"
 	@echo "make bench      - benchmarks (simulation, road, Gauss-Newton)"
 
@@ -39,6 +40,9 @@ lint: install
 test-slow: install
 	$(BIN)/python -m pytest -q -m slow
 
+noise: install
+	$(BIN)/qcm-pipeline noise
+
 reproduce-plan: install
 	$(BIN)/qcm-pipeline reproduce --plan
 
@@ -56,4 +60,4 @@ tensorboard: install
 	$(BIN)/tensorboard --logdir outputs
 
 clean-outputs:
-	rm -rf outputs/demo outputs/reproduce
+	rm -rf outputs/demo outputs/reproduce outputs/noise

@@ -123,3 +123,30 @@ def test_manifest_records_merge_across_runs(tmp_path):
     stages.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
     records = stages.load_manifest(tmp_path / "manifest.json")["stages"]
     assert {s["name"]: s["seconds"] for s in records} == {"a": 1.0, "b": 3.0}
+
+
+def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, monkeypatch, capsys):
+    """Without the demo's checkpoints the noise sweep stops before any work, naming the files; with
+    them it runs exp 10 and the road-free model at every noise level, each against those checkpoints."""
+    root, networks, dataset = tmp_path / "r", tmp_path / "demo", tmp_path / "d.h5"
+    calls = []
+    monkeypatch.setattr(
+        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+    )
+    monkeypatch.setattr(pipeline, "print_summary", lambda path: None)
+    with pytest.raises(SystemExit, match="exp2_physics/checkpoints/last.ckpt.*make demo"):
+        pipeline.run_pipeline("noise", str(root), str(dataset), networks=str(networks))
+    assert calls == [] and not (root / "manifest.json").exists()
+    dataset.write_bytes(b"")
+    for name in ("exp2_physics", "exp9_unet"):
+        (networks / name / "checkpoints").mkdir(parents=True)
+        (networks / name / "checkpoints" / "last.ckpt").write_bytes(b"")
+    assert pipeline.run_pipeline("noise", str(root), str(dataset), networks=str(networks)) == 0
+    assert len(calls) == 2 * len(stages.NOISE_LEVELS)
+    for sigma in stages.NOISE_LEVELS:
+        exp10 = next(c for c in calls if f"hydra.run.dir={root}/exp10_noise{sigma:g}" in c)
+        assert f"sensor.sigma={sigma:g}" in exp10 and f"cnn_ckpt={networks}/exp2_physics/checkpoints/last.ckpt" in exp10
+        roadfree = next(c for c in calls if f"hydra.run.dir={root}/occupant_noise{sigma:g}" in c)
+        assert "experiment=occupant_roadfree" in roadfree and "sensor=additive" in roadfree
+    with pytest.raises(SystemExit):  # --networks belongs to the noise pipeline
+        pipeline.main(["demo", "--networks", "x", "--plan"])

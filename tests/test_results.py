@@ -100,3 +100,31 @@ def test_unknown_table_id_fails(tmp_path):
     run_dir = _run_folder(tmp_path, "x", 0.01)
     with pytest.raises(ValueError, match="no test rows for table 9.99"):
         results.compare_stage(_stage("exp", run_dir, "9.99"), results.load_thesis_tables())
+
+
+def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
+    """A noise pipeline's stages become one table ordered by noise level, numbers from summary.json;
+    a run without its summary fails naming the file."""
+    stages = []
+    for sigma, mean in ((0.05, 0.0123), (0.0, 0.0001)):
+        run_dir = _run_folder(tmp_path, f"occ{sigma}", 0.001, n_params=2)
+        summary = {
+            "n_samples": 200,
+            "status_counts": {"converged": 190, "misfit": 6, "singular": 4},
+            "m3_mean_rel_err": mean,
+            "m3_p95_rel_err": 3 * mean,
+            "m3_within_1pct": 0.5,
+            "m3_within_5pct": 0.97,
+            "m3_coverage_95": 0.951,
+            "m3_interval_median_rel_width": 0.04,
+            "seconds_solve": 10.0,
+        }
+        (run_dir / "summary.json").write_text(json.dumps(summary))
+        stages.append({**_stage(f"occupant_noise{sigma:g}", run_dir, None), "noise": sigma, "setting": "road-free, x"})
+    text, _, _ = results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
+    rows = [line for line in text.splitlines() if line.startswith("| 0 %") or line.startswith("| 5 %")]
+    assert [row.split(" | ")[0] for row in rows] == ["| 0 %", "| 5 %"]
+    assert "| road-free | 200 | 1.23 % |" in rows[1] and "| 95.1 % |" in rows[1] and "| 190 / 6 / 4 | 50 |" in rows[1]
+    (tmp_path / "occ0.0" / "summary.json").unlink()
+    with pytest.raises(FileNotFoundError, match="occ0.0/summary.json"):
+        results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)

@@ -1,4 +1,4 @@
-"""Stage-by-stage pipelines over the console scripts: `qcm-pipeline demo` and `qcm-pipeline reproduce`.
+"""Stage-by-stage pipelines over the console scripts: `qcm-pipeline demo`, `reproduce` and `noise`.
 
 Each stage is one console-script call with its own run folder. A stage whose outputs exist is
 skipped, so an interrupted pipeline resumes where it stopped (delete a run folder to redo it).
@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from dataclasses import asdict
+from pathlib import Path
 
 from hybridqcm.apps.results import print_summary
 from hybridqcm.apps.stages import BIN, PIPELINES, manifest_path, record_stage
@@ -29,7 +30,7 @@ def run_pipeline(
     **options,
 ) -> int:
     root = root or f"outputs/{name}"
-    dataset = dataset or ("data/demo.h5" if name == "demo" else "data/reference.h5")
+    dataset = dataset or ("data/reference.h5" if name == "reproduce" else "data/demo.h5")
     stages = all_stages = PIPELINES[name](root, dataset, **options)
     by_name = {s.name: s for s in all_stages}
     if only:
@@ -37,6 +38,12 @@ def run_pipeline(
         if unknown:
             raise SystemExit(f"error: unknown stage(s) {unknown}; stages: {[s.name for s in stages]}")
         stages = [s for s in stages if s.name in only]
+    missing = sorted({f for s in stages if not s.is_done() for f in s.requires if not Path(f).exists()})
+    if missing and not plan:
+        raise SystemExit(
+            f"error: {name} needs {missing}, which do not exist"
+            + (" (run `make demo` first: its dataset and networks)" if name == "noise" else "")
+        )
     total = sum(s.minutes for s in stages if not s.is_done())
     print(
         f"[qcm-pipeline] {name}: {len(stages)} stages, about {total:.0f} min of work left on 2 CPU cores; root {root}"
@@ -91,7 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         prog="qcm-pipeline", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
-        "pipeline", choices=sorted(PIPELINES), help="demo (small, ~20 min) or reproduce (reference protocol)"
+        "pipeline",
+        choices=sorted(PIPELINES),
+        help="demo (small, ~20 min), reproduce (reference protocol) or noise (the occupant mass with and without "
+        "the road at sensor noise 0-10 %%, on the demo's data and networks, ~20 min)",
     )
     parser.add_argument("--root", help="folder of the run folders and manifest (default outputs/<pipeline>)")
     parser.add_argument("--dataset", help="dataset file (default data/demo.h5 or data/reference.h5)")
@@ -103,10 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--train-time", help="demo only: time limit of each training run, DD:HH:MM:SS (default 00:00:04:00)"
     )
+    parser.add_argument(
+        "--networks", help="noise only: the pipeline root whose checkpoints it uses (default outputs/demo)"
+    )
     args = parser.parse_args(argv)
     options = {k: v for k, v in (("preset", args.preset), ("train_time", args.train_time)) if v is not None}
     if options and args.pipeline != "demo":
         parser.error("--preset and --train-time apply to the demo pipeline only")
+    if args.networks is not None:
+        if args.pipeline != "noise":
+            parser.error("--networks applies to the noise pipeline only")
+        options["networks"] = args.networks
     return run_pipeline(args.pipeline, args.root, args.dataset, args.only, args.plan, **options)
 
 

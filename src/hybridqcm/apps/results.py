@@ -1,12 +1,13 @@
 """qcm-results: our error-distribution tables beside the source study's, from pipeline run folders.
 
-    qcm-results                                   # outputs/{reproduce,demo}/manifest.json -> docs/RESULTS.md
+    qcm-results                                   # outputs/{reproduce,demo,noise}/manifest.json -> docs/RESULTS.md
     qcm-results --manifest outputs/demo/manifest.json --output /tmp/R.md
 
 Every table of the source (reference/thesis_tables.csv) that a run answers is shown row by row
 with ours beside it, and a verdict per row: we beat the source when our mean error is lower,
 our fraction within 10 % is not lower, our fraction above 25 % is not higher and our max error
-is lower. Runs without a source table (noise sweeps, the U-Net) are listed with their own tables.
+is lower. Runs without a source table (noise sweeps, the U-Net) are listed with their own tables;
+a pipeline's noise-sweep stages (the `noise` pipeline) also get one table over all its noise levels.
 Fails loudly on a missing or malformed run folder.
 """
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime as dt
+import json
 import shutil
 import sys
 from importlib import resources
@@ -24,7 +26,7 @@ from hybridqcm.apps.common import print_table
 from hybridqcm.apps.stages import PIPELINES, load_manifest
 from hybridqcm.metrics import COLUMNS, read_error_distribution
 
-DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json")
+DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json", "outputs/noise/manifest.json")
 
 
 def load_thesis_tables(path: str | Path | None = None) -> list[dict]:
@@ -114,6 +116,38 @@ def _in_pipeline_order(manifest: dict) -> list[dict]:
     return sorted(manifest["stages"], key=lambda stage: order.get(stage["name"], len(order)))
 
 
+def _noise_table(stages: list[dict]) -> str:
+    """One table over a noise sweep's estimation stages (those with a ``noise`` level), rows by noise
+    level then stage, from each run's summary.json: the occupant mass m3's errors, its 95 % interval's
+    coverage and width, the status counts and the solve time."""
+    lines = [
+        "| noise (of RMS) | method | recordings | m3 mean error | m3 p95 | m3 within 1 % | m3 within 5 % "
+        "| 95 % coverage | median width | converged / misfit / other | GN s per 1 000 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for stage in sorted(stages, key=lambda st: st["noise"]):
+        path = Path(stage["run_dir"]) / "summary.json"
+        try:
+            summary = json.loads(path.read_text())
+            counts = summary["status_counts"]
+            n = int(summary["n_samples"])
+            values = [summary[k] for k in ("m3_mean_rel_err", "m3_p95_rel_err", "m3_within_1pct", "m3_within_5pct")]
+            coverage, width = summary["m3_coverage_95"], summary["m3_interval_median_rel_width"]
+            seconds = 1000.0 * summary["seconds_solve"] / max(n, 1)
+        except FileNotFoundError:
+            raise FileNotFoundError(f"stage {stage['name']}: {path} does not exist") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"stage {stage['name']}: {path}: no m3 summary ({error!r})") from None
+        other = n - counts.get("converged", 0) - counts.get("misfit", 0)
+        lines.append(
+            f"| {_pct(stage['noise'])} | {stage['setting'].split(',')[0]} | {n} | "
+            + " | ".join(_pct(v) for v in values)
+            + f" | {_pct(coverage)} | {_pct(width)} | {counts.get('converged', 0)} / {counts.get('misfit', 0)} / "
+            f"{other} | {seconds:.0f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def _display(command: str) -> str:
     """The command as a user types it: the console script's name instead of its path in the venv."""
     head, _, rest = command.partition(" ")
@@ -139,6 +173,9 @@ def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tupl
     for manifest_path in manifests:
         manifest = load_manifest(manifest_path)
         parts += [f"## Pipeline `{manifest['pipeline']}` — dataset `{manifest.get('dataset')}`", ""]
+        swept = [stage for stage in _in_pipeline_order(manifest) if stage.get("noise") is not None]
+        if swept:
+            parts += [_noise_table(swept), ""]
         for stage in _in_pipeline_order(manifest):
             if stage["app"] == "qcm-simulate":
                 parts += [f"### {stage['name']}", "", f"`{_display(stage['command'])}`", ""]
@@ -159,8 +196,6 @@ def render(manifests: list[Path], output: Path, copy_plots: bool = True) -> tupl
             run_dir = Path(stage["run_dir"])
             metrics_path = run_dir / "test_metrics.json"
             if metrics_path.exists():
-                import json
-
                 metrics = json.loads(metrics_path.read_text())
                 if metrics.get("train_seconds"):
                     parts += [

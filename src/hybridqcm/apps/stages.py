@@ -32,6 +32,8 @@ class Stage:
     experiment: str | None = None  # thesis experiment key (exp1 ... exp10)
     setting: str = ""
     needs: list[str] = field(default_factory=list)
+    noise: float | None = None  # additive sensor noise (fraction of each channel's RMS) of a noise-sweep stage
+    requires: list[str] = field(default_factory=list)  # files made outside this pipeline (another's checkpoints)
 
     def task_overrides(self) -> list[str]:
         """The overrides the app sees; a stage that is not done clears its folder's leftovers (overwrite=true)."""
@@ -408,7 +410,54 @@ def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/refer
     return s
 
 
-PIPELINES = {"demo": demo_stages, "reproduce": reproduce_stages}
+NOISE_LEVELS = (0.0, 0.01, 0.05, 0.1)  # additive sensor noise, fraction of each channel's RMS
+
+
+def noise_stages(
+    root: str = "outputs/noise", dataset: str = "data/demo.h5", networks: str = "outputs/demo", samples: int = 300
+) -> list[Stage]:
+    """The occupant's mass with and without the road, at additive accelerometer noise 0, 1, 5, 10 %
+    of each channel's RMS on continuous mid-drive recordings (issue 12's table): road-based exp 10
+    (a3 only, road and p_u known, the demo's U-Net and CNN) beside the road-free seat model (a3 and
+    a2, no road). Uses the demo's dataset and networks (run `make demo` first); ``samples`` bounds
+    exp 10 (seconds per recording under noise), the road-free model reads every test recording."""
+    cnn_path, unet_path = (f"{networks}/{name}/checkpoints/last.ckpt" for name in ("exp2_physics", "exp9_unet"))
+    cnn, unet = f"cnn_ckpt={cnn_path}", f"unet_ckpt={unet_path}"
+    stages = []
+    for sigma in NOISE_LEVELS:
+        sensor = ["sensor=additive", f"sensor.sigma={sigma:g}"]
+        stages += [
+            Stage(
+                f"exp10_noise{sigma:g}",
+                "qcm-estimate",
+                ["experiment=exp10_hybrid", f"data.path={dataset}", f"n_samples={samples}", cnn, unet, *sensor],
+                f"{root}/exp10_noise{sigma:g}",
+                ["estimates.csv", "summary.json"],
+                1.5 if sigma == 0 else 4.0,
+                None,
+                "exp10",
+                f"road-based exp 10 (a3 only, road known), additive noise {sigma:.0%}",
+                noise=sigma,
+                requires=[cnn_path, unet_path, dataset],
+            ),
+            Stage(
+                f"occupant_noise{sigma:g}",
+                "qcm-estimate",
+                ["experiment=occupant_roadfree", f"data.path={dataset}", *sensor],
+                f"{root}/occupant_noise{sigma:g}",
+                ["estimates.csv", "summary.json"],
+                1.0,
+                None,
+                "occupant",
+                f"road-free seat model (a3, a2), additive noise {sigma:.0%}",
+                noise=sigma,
+                requires=[dataset],
+            ),
+        ]
+    return stages
+
+
+PIPELINES = {"demo": demo_stages, "reproduce": reproduce_stages, "noise": noise_stages}
 
 
 def manifest_path(root: str) -> Path:
