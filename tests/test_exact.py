@@ -16,6 +16,7 @@ from hybridqcm.estimation.exact import (
     exact_sensitivities,
     expm_taylor,
     expm_with_tangents,
+    held_input,
     spline_matrix,
 )
 from hybridqcm.estimation.sensitivity import euler_accelerations
@@ -587,3 +588,37 @@ def test_prepared_inputs_give_the_same_outputs_and_jacobian_per_chunk():
             assert _column_error(call(theta[chunk], prepared[chunk], 10, 120), from_raw) <= 1e-13
         with pytest.raises(ValueError, match="prepared for the window start=10, n_steps=120"):
             response.outputs(theta, prepared, 10, 100)
+
+
+class _TwoInputSeat(LinearModel):
+    """The seat driven by two measured inputs (the second through half the gain): a multi-input model
+    for the layouts of the held input."""
+
+    name = "seat2"
+    param_names = SeatBaseExcitation.param_names
+    state_names = SeatBaseExcitation.state_names
+    input_names = ("w1", "w2")
+    output_names = SeatBaseExcitation.output_names
+
+    def matrices(self, p):
+        A, B, C, E = SeatBaseExcitation().matrices(p)
+        return A, torch.cat([B, 0.5 * B], -1), C, torch.cat([E, 0.5 * E], -1)
+
+
+@pytest.mark.parametrize("case", ["seat", "sprung", "two_inputs"])
+def test_outputs_from_a_batch_first_held_input_equal_the_time_first_ones(case):
+    """exact_outputs reads a held input stored batch first (PreparedInputs) by its own forcing path:
+    the same outputs as from the time-first held input and as from the raw samples, every hold."""
+    model, p, w = _random_case("sprung" if case == "sprung" else "seat", 20, 150, seed=7)
+    if case == "two_inputs":
+        model = _TwoInputSeat()
+        w = torch.cat([w, torch.randn(w.shape, generator=torch.Generator().manual_seed(8), dtype=F64)], -1)
+    x0 = _x0(20, model.n_state, seed=9)
+    for hold in HOLDS:
+        held = held_input(w, hold, 4, 6, 130)
+        batch_first = held.permute(2, 1, 0).contiguous().permute(2, 1, 0)
+        assert batch_first.stride(2) != 1  # the other layout indeed
+        raw = exact_outputs(model, p, x0, w, H, hold, 4, start=6, n_steps=130)
+        for given in (held, batch_first):
+            out = exact_outputs(model, p, x0, w, H, hold, 4, start=6, n_steps=130, held=given)
+            assert _column_error(out, raw) <= 1e-13

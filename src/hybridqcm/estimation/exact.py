@@ -283,6 +283,26 @@ def _check_held(held: Tensor | None, inputs: Tensor, hold: str, substeps: int, n
         raise ValueError(f"exact: held input must be {list(shape)} (held_input of this window), got {list(held.shape)}")
 
 
+def _forcing_batch_first(lam: Tensor, held: Tensor, n_steps: int) -> Tensor:
+    """_forcing(lam, _sub_samples(held, n_steps)) for a held input stored batch first (``held`` [W, m, b]
+    a permuted view of [b, m, W] with W = M + (n_steps - 1) M + 1, e.g. PreparedInputs): per sample and
+    input channel, the sub-samples of step k are row k of the non-overlapping [n_steps - 1, M] view
+    (j = 0..M-1) plus the next row's first (j = M), so G = S Lam is one bmm of views and the
+    time-first copy is of the forcing [T-1, n, b] instead of the M-times larger held input."""
+    width, n_in, batch = held.shape
+    m_sub = (width - 1) // n_steps
+    by_sample = held.permute(2, 1, 0)  # [b, m, W]
+    lam_b = lam.permute(2, 3, 0, 1)  # [m, b, M + 1, n]
+    forcing = None
+    for c in range(n_in):
+        rows = by_sample[:, c, m_sub : m_sub + (n_steps - 1) * m_sub].unflatten(1, (n_steps - 1, m_sub))
+        last = by_sample[:, c, 2 * m_sub :: m_sub]  # s_{k, M} = s_{k+1, 0}, [b, T - 1]
+        weights = lam_b[c].contiguous()  # [b, M + 1, n]
+        term = torch.baddbmm(last[:, :, None] * weights[:, m_sub : m_sub + 1], rows, weights[:, :m_sub])
+        forcing = term if forcing is None else forcing.add_(term)
+    return forcing.permute(1, 2, 0).contiguous()  # [T-1, n, b]
+
+
 def _forcing(lam: Tensor, s: Tensor) -> Tensor:
     """G_k = sum_j Lam_j s_{k,j} as [T-1, n, b]; lam [m_sub+1, n, m, b], s from _sub_samples."""
     lam_t = lam.permute(0, 2, 1, 3).contiguous()  # [j, c, i, b]
@@ -546,7 +566,11 @@ def exact_outputs(
         phi, lam = _maps(model, params, h, hold, substeps, False)
         if held is None:
             held = _held(inputs, hold, substeps, start, T, spline_degree)
-        forcing = _forcing(lam, _sub_samples(held.to(_DTYPE), T))  # [T-1, n, b]
+        held = held.to(_DTYPE)
+        if held.stride(2) != 1 and held.stride(0) == 1:  # stored batch first (PreparedInputs)
+            forcing = _forcing_batch_first(lam, held, T)  # [T-1, n, b]
+        else:
+            forcing = _forcing(lam, _sub_samples(held, T))
     else:
         phi, forcing = None, None
     states = _primal_states(phi, forcing, x0, batch, model.n_state, T, params.device)

@@ -22,7 +22,7 @@ from torch import Tensor
 from .front import CHANNELS, HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise, estimate_variances, frequency_response
-from .response import EulerResponse, ResponseModel
+from .response import EulerResponse, PreparedInputs, ResponseModel
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus, torch_threads
 
 
@@ -223,17 +223,19 @@ class GaussNewtonRefinement(Callback):
                 prior = {"prior_mean": mean, "prior_precision": torch.where(self.known, 0.0, precision)}
             spectral = self.reweight == "spectral" and last and number > 0
             passes = self.noise_passes + 1 if spectral else 1
+            # The window's inputs as the model evaluates them, held once for all its solves and noise fits.
+            stage_road = self.response.prepare(road, offset, window) if spectral else road
             previous = None
             for number_pass in range(passes):
                 if spectral:
                     ml = number_pass == passes - 1
                     noise = self._noise_model(
-                        outputs["targets"][:, :window].double(), road, params, observed, offset, frozen=not ml
+                        outputs["targets"][:, :window].double(), stage_road, params, observed, offset, frozen=not ml
                     )
                     weights = None
                 problem = LeastSquaresProblem(
                     outputs["targets"][:, :window].double(),
-                    road,
+                    stage_road,
                     self.h,
                     scaled_road=self.pu_known,
                     observed=observed,
@@ -273,8 +275,9 @@ class GaussNewtonRefinement(Callback):
             params = torch.where(keep_input[:, None], params, result.params)
         channels = [i for i, o in enumerate(problem.observed) if o]
         if noise is not None:  # whitened losses of different attempts have different variances
+            full = problem.inputs if window == outputs["targets"].shape[1] else road
             relative = self._measured_loss(
-                {**outputs, "weights": None}, road, result.params, problem.observed, demean=True
+                {**outputs, "weights": None}, full, result.params, problem.observed, demean=True
             ) / (0.5 * outputs["targets"].double()[:, :, channels].square().sum((1, 2))).clamp_min(1e-300)
         else:
             weighted = outputs["targets"].double()
@@ -331,7 +334,8 @@ class GaussNewtonRefinement(Callback):
         # between samples (deterministic, concentrated near Nyquist), not noise: modelling it as
         # white input noise biases the weakly identified p3 of the sprung model on noise-free data
         # (docs/notes/real_recordings.md). Such samples get the output-noise model.
-        window = road[:, offset : offset + targets.shape[1]]
+        samples = road.samples if isinstance(road, PreparedInputs) else road
+        window = samples[:, offset : offset + targets.shape[1]]
         input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]
         negligible = (v_in < self.min_input_noise**2 * input_power).all(1)
         v_out = torch.where(negligible[:, None], v_alone, v_out)

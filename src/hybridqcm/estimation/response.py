@@ -159,7 +159,10 @@ class ExactResponse(ResponseModel):
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
         return theta[:, : self.n_params], (theta[:, self.n_params :] if self.with_x0 else None)
 
-    def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> PreparedInputs:
+    def prepare(self, inputs: Tensor | PreparedInputs, start: int = 0, n_steps: int | None = None) -> PreparedInputs:
+        if isinstance(inputs, PreparedInputs):  # prepared once by the caller for several solves
+            self._unpack(inputs, start, n_steps)  # the window must be the one it was prepared for
+            return inputs
         samples = _as_3d(inputs).to(torch.float64)
         n_steps = samples.shape[1] - start if n_steps is None else int(n_steps)
         held = held_input(samples, self.hold, self.substeps, start, n_steps)  # [W, m, b]

@@ -38,7 +38,7 @@ from scipy.stats import t as student_t
 from torch import Tensor
 
 from .noise import SpectralNoise
-from .response import EulerResponse, ResponseModel
+from .response import EulerResponse, PreparedInputs, ResponseModel
 
 
 class SolverStatus(IntEnum):
@@ -127,7 +127,8 @@ class LeastSquaresProblem:
     inputs    what drives the model, [batch, time_in] or [batch, time_in, n_in] (the road u in
               metres, or p_u·u when ``scaled_road``, for the default Euler model); time_in ≥
               input_offset + time: samples around the fitted window sharpen the exact model's
-              interpolation of the input near the window's edges
+              interpolation of the input near the window's edges; or those inputs already
+              prepared for this window (``model.prepare``), when several solves share it
     input_offset  which input sample the first target belongs to
     observed  which of the n_out outputs enter the residual
     known     [n_theta] bool, entries of θ held fixed at their initial value (masked out of J)
@@ -164,16 +165,19 @@ class LeastSquaresProblem:
             raise ValueError(f"targets must be [batch, time, {n_out}], got {tuple(self.targets.shape)}")
         batch, n_steps = self.targets.shape[:2]
         self.input_offset = int(self.input_offset)
+        samples = self.inputs.samples if isinstance(self.inputs, PreparedInputs) else self.inputs
         if (
-            self.inputs.ndim not in (2, 3)
-            or self.inputs.shape[0] != batch
+            samples.ndim not in (2, 3)
+            or samples.shape[0] != batch
             or self.input_offset < 0
-            or self.inputs.shape[1] < self.input_offset + n_steps
+            or samples.shape[1] < self.input_offset + n_steps
         ):
             raise ValueError(
-                f"inputs {tuple(self.inputs.shape)} must be [batch, time_in(, n_in)] with batch = {batch} "
+                f"inputs {tuple(samples.shape)} must be [batch, time_in(, n_in)] with batch = {batch} "
                 f"and time_in >= input_offset + time = {self.input_offset} + {n_steps}"
             )
+        if isinstance(self.inputs, PreparedInputs):  # prepared by the caller: for this very window
+            self.model.prepare(self.inputs, self.input_offset, n_steps)
         self.observed = tuple(bool(o) for o in self.observed)
         if len(self.observed) != n_out or not any(self.observed):
             raise ValueError(f"observed must name {n_out} channel flags with at least one True, got {self.observed}")
@@ -192,7 +196,7 @@ class LeastSquaresProblem:
         self.known = known
         if not torch.isfinite(self.targets[..., list(self.observed_index)]).all():
             raise ValueError("observed targets contain NaN/inf")
-        if not torch.isfinite(self.inputs).all():
+        if not torch.isfinite(samples).all():
             raise ValueError("inputs (road) contain NaN/inf")
         if (self.prior_mean is None) != (self.prior_precision is None):
             raise ValueError("a prior needs both prior_mean and prior_precision")
@@ -365,7 +369,8 @@ class NonlinearLeastSquares:
         self._positive = problem.model.positive[free]
         # targets [batch, time, n_obs]: the layout the recursion writes, so residuals need no permute.
         # The window's inputs as the model evaluates them repeatedly (the exact model holds them once).
-        road = problem.model.prepare(problem.inputs.to(dtype), *problem.window)
+        inputs = problem.inputs if isinstance(problem.inputs, PreparedInputs) else problem.inputs.to(dtype)
+        road = problem.model.prepare(inputs, *problem.window)
         self._weights = (
             None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
         )  # [batch, n_obs]
