@@ -70,6 +70,11 @@ def test_frequency_response_is_the_seat_transmissibility():
         s * s + p[:, :1] * s + p[:, 1:]
     ) ** 2
     assert torch.allclose(dH[:, 0, :, 0, 0], d_p1, rtol=1e-10, atol=1e-14)
+    denominator = s * s + p[:, :1] * s + p[:, 1:]
+    d_p2 = (denominator - (p[:, :1] * s + p[:, 1:])) / denominator**2
+    assert torch.allclose(dH[:, 1, :, 0, 0], d_p2, rtol=1e-10, atol=1e-14)
+    alone, none = frequency_response(SeatBaseExcitation(), p, omega)  # the path without derivatives
+    assert none is None and torch.allclose(alone, H, rtol=1e-13, atol=0)
 
 
 def _eiv_noise(b: int, T: int, sigma_in: float, sigma_out: float, seed: int = 0):

@@ -130,6 +130,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
         restart_batch=int(cfg.restarts.get("batch", 64)),
+        restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
     )
 

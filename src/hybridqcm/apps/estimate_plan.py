@@ -232,6 +232,9 @@ def validate(cfg) -> dict:
     restart_batch = cfg.restarts.get("batch", 64)
     if isinstance(restart_batch, bool) or not isinstance(restart_batch, int) or restart_batch < 1:
         raise ConfigError(f"restarts.batch must be an integer >= 1, got {restart_batch!r}")
+    far = cfg.restarts.get("far_from_start")
+    if far is not None and (isinstance(far, bool) or not isinstance(far, int | float) or not far > 0):
+        raise ConfigError(f"restarts.far_from_start must be null or a number > 0, got {far!r}")
 
     stages = []
     for i, stage in enumerate(cfg.stages):

@@ -82,13 +82,23 @@ def frequency_response(
     n, K = A.shape[-1], omega.numel()
     jw = (1j * omega.to(torch.float64)).to(_COMPLEX)
     pencil = jw[None, :, None, None] * torch.eye(n, dtype=_COMPLEX) - A[:, None]  # [b, K, n, n]
-    if not derivatives:
+    if n == 2:  # (the seat) by the adjugate, elementwise: a batched LAPACK call per 2x2 costs more
+        a, b_, c, d = (-A[:, None, i, j] for i in range(2) for j in range(2))  # [b, 1] off-diagonals
+        a, d = a + jw, d + jw  # [b, K]
+        inv_det = 1.0 / (a * d - b_ * c)
+        rows = ((d * inv_det, -b_ * inv_det), (-c * inv_det, a * inv_det))  # (j w I - A)^-1, [b, K] each
+        Bk, Ck = B[:, None], C[:, None]  # [b, 1, n, m], [b, 1, o, n]
+        X = torch.stack([r[0][..., None] * Bk[:, :, 0] + r[1][..., None] * Bk[:, :, 1] for r in rows], 2)
+        if not derivatives:
+            return Ck[..., 0:1] * X[:, :, None, 0] + Ck[..., 1:2] * X[:, :, None, 1] + E[:, None], None
+        Y = torch.stack([Ck[..., 0] * rows[0][l][..., None] + Ck[..., 1] * rows[1][l][..., None] for l in range(2)], -1)
+    elif not derivatives:
         X = torch.linalg.solve(pencil, B[:, None].expand(-1, K, -1, -1))  # [b, K, n, m]
         return C[:, None] @ X + E[:, None], None
-    # One LU for both sides: X = (j w I - A)^-1 B and Y = C (j w I - A)^-1.
-    LU, pivots = torch.linalg.lu_factor(pencil)
-    X = torch.linalg.lu_solve(LU, pivots, B[:, None].expand(-1, K, -1, -1))
-    Y = torch.linalg.lu_solve(LU, pivots, C[:, None].expand(-1, K, -1, -1), left=False)  # [b, K, o, n]
+    else:  # one LU for both sides: X = (j w I - A)^-1 B and Y = C (j w I - A)^-1
+        LU, pivots = torch.linalg.lu_factor(pencil)
+        X = torch.linalg.lu_solve(LU, pivots, B[:, None].expand(-1, K, -1, -1))
+        Y = torch.linalg.lu_solve(LU, pivots, C[:, None].expand(-1, K, -1, -1), left=False)  # [b, K, o, n]
     dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
     dH = (
         torch.einsum("bkoi,bpil,bklm->bpkom", Y, dA, X)

@@ -93,6 +93,7 @@ class GaussNewtonRefinement(Callback):
         peer_min_batch: int = 20,
         restart_batch: int = 64,
         x0_start: str = "rest",
+        restart_far: float | None = None,
     ):
         super().__init__()
         if not stages:
@@ -149,6 +150,12 @@ class GaussNewtonRefinement(Callback):
         # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
         # which a 10 % perturbation cannot undo. E.g. [0.6, 1.6, 0.4, 2.5] walks m3 over the prior.
         self.restart_mass_factors = [float(f) for f in restart_mass_factors]
+        # A fit that fits but ends with p1 or p2 more than restart_far (relative) away from a start
+        # the networks gave is retried too: under noise a one-channel loss can hold several minima of
+        # nearly equal depth, and the lowest-loss attempt wins (the same rule as above). None: off.
+        if restart_far is not None and not float(restart_far) > 0:
+            raise ValueError(f"restart_far must be None or > 0, got {restart_far!r}")
+        self.restart_far = None if restart_far is None else float(restart_far)
         self._batches: list[dict] = []
 
     def _channels(self, stage: GaussNewtonStage, module: HybridEstimator) -> tuple[bool, ...]:
@@ -290,6 +297,14 @@ class GaussNewtonRefinement(Callback):
         )
         return per_stage, result, params, relative
 
+    def _far_from_start(self, params: Tensor, init: Tensor) -> Tensor:
+        """[batch] bool: free p1 or p2 of ``params`` more than restart_far (relative, either way) from ``init``."""
+        if self.restart_far is None:
+            return torch.zeros(params.shape[0], dtype=torch.bool)
+        ratio = params[:, :2].double() / init[:, :2].double()
+        far = ~(ratio.abs().log().abs() <= math.log1p(self.restart_far))  # a non-positive ratio is far
+        return (far & ~self.known[:2]).any(1)
+
     def _theta(self, init: Tensor) -> Tensor:
         """θ0 [batch, n_theta] from p0 [batch, 10]: initial states (if estimated) start at rest."""
         extra = self.response.n_theta - self.response.n_params
@@ -372,7 +387,8 @@ class GaussNewtonRefinement(Callback):
         attempt = 0
         while attempt < self.restarts:
             failed = (result.status == SolverStatus.MISFIT) | (result.status == SolverStatus.DIVERGED)
-            retry = ((relative > self.restart_threshold) | failed).nonzero().squeeze(1)
+            retry = (relative > self.restart_threshold) | failed | self._far_from_start(params, init)
+            retry = retry.nonzero().squeeze(1)
             if retry.numel() == 0:
                 break
             # A few retried samples: run several attempts in one solver call (a small batch costs
