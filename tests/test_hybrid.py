@@ -229,3 +229,33 @@ def test_restart_attempts_for_few_samples_run_in_one_solver_call():
         assert float(((out["params"][:, :2] - p) / p).abs().max()) < 1e-6
     assert len(calls[1]) > 2 and len(calls[64]) == 2, calls  # the first fit, then one call for all attempts
     assert calls[64][1] == 6 * int((results[64]["restarts"] > 0).sum())
+
+
+def test_fits_far_from_the_networks_start_are_retried_and_keep_the_lowest_loss():
+    """restart_far: a sample whose p1 or p2 ends more than that (relative) from its start is retried,
+    one that stays near it is not; a retry never replaces a fit with a worse one (noise-free seat:
+    every sample ends at the truth whatever the trigger did)."""
+    from hybridqcm.estimation.response import base_excitation_response
+    from hybridqcm.testing import seat_recordings
+
+    b, margin = 8, 8
+    p, a2, a3 = seat_recordings(b, 200, margin, seed=4, h=H, substeps=4)
+    start = p.clone()
+    start[: b // 2] *= 0.7  # these fits end 43 % from their start, the others 10 %
+    start[b // 2 :] *= 1.1
+    outputs = {"targets": a3, "road": a2, "init": start, "index": torch.arange(b), "input_offset": margin}
+    for far, retried in ((None, []), (0.25, list(range(b // 2)))):
+        callback = GaussNewtonRefinement(
+            [GaussNewtonStage("seat", GaussNewton(SolverConfig(max_iterations=30)))],
+            h=H,
+            response=base_excitation_response("seat", H),
+            restarts=2,
+            restart_threshold=math.inf,
+            peer_factor=None,
+            restart_far=far,
+        )
+        out = callback.refine(outputs)
+        assert (out["restarts"] > 0).nonzero().squeeze(1).tolist() == retried
+        assert float(((out["params"][:, :2] - p) / p).abs().max()) < 1e-6
+    with pytest.raises(ValueError, match="restart_far must be None or > 0"):
+        GaussNewtonRefinement([GaussNewtonStage("seat", GaussNewton())], restart_far=0.0)
