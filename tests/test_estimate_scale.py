@@ -134,3 +134,29 @@ def test_merge_never_leaves_a_half_written_table(tiny_dataset, tmp_path, monkeyp
     (tmp_path / "shards" / "block-000001.done.json").unlink()
     with pytest.raises(DatasetError, match=r"block 1 \(rows 8\.\.15\) was not estimated"):
         store.merge([(0, 8), (8, 16)], 16)
+
+
+def test_cpu_ranks_are_forked_at_one_thread_and_other_accelerators_keep_their_strategy(tmp_path, monkeypatch):
+    """trainer=ddp on CPU: the configured spawn becomes a fork (no fresh interpreter per rank) whose
+    ranks run torch at one thread (GNU OpenMP is not fork-safe above that); on a GPU the configured
+    strategy is kept (CUDA cannot be forked)."""
+    from hybridqcm.apps.estimate import ForkedCPUDDP, build_trainer
+
+    cpu = build_trainer(_cfg(["trainer=ddp", "trainer.devices=2"]), [], tmp_path)
+    assert isinstance(cpu.strategy, ForkedCPUDDP) and cpu.strategy._start_method == "fork"
+    assert cpu.strategy.process_group_backend == "gloo"
+    from lightning.pytorch.strategies import DDPStrategy
+
+    monkeypatch.setattr(DDPStrategy, "setup_environment", lambda self: None)  # no process group here
+    threads = torch.get_num_threads()
+    try:
+        cpu.strategy.setup_environment()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+    cfg = _cfg(["trainer=ddp", "trainer.devices=2", "trainer.accelerator=gpu"])
+    from hybridqcm.apps import estimate
+
+    strategy = estimate.instantiate(cfg.trainer.strategy)
+    assert not isinstance(strategy, ForkedCPUDDP) and strategy._start_method == "spawn"
+    assert not estimate._resolves_to_cpu("gpu") and estimate._resolves_to_cpu("cpu")
