@@ -14,7 +14,7 @@ help:
 	@echo "make lint       - ruff check and ruff format --check over src, tests, bench"
 	@echo "make test-slow  - also the long end-to-end checks (pytest -m slow)"
 	@echo "make reproduce  - the full reference protocol, all experiments (hours; see 'make reproduce-plan')"
-	@echo "make noise      - after make demo: occupant mass with and without the road at sensor noise 0-10 % (~20 min)"
+	@echo "make noise      - after make demo: occupant mass with and without the road at sensor noise 0-10 % (~30 min)"
 	@echo "make results    - regenerate docs/RESULTS.md from the run folders"
 	@echo "make bench      - benchmarks (simulation, road, Gauss-Newton)"
 

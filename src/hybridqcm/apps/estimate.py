@@ -278,7 +278,7 @@ def run(cfg) -> dict:
     summary.update(metrics)
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).
-    summary["max_rss_mib"] = {"solve": rss_solve, "total": _max_rss_mib()}
+    summary["max_rss_mib"] = {"solve": rss_solve, "total": _max_rss_mib(), "ranks": _max_rss_mib(children=True)}
     atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
     runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(), inputs_used)
     if not cfg.get("keep_shards", False):
@@ -294,8 +294,11 @@ def _per_process_seconds(markers) -> list[float]:
     return sorted(busy.values(), reverse=True)
 
 
-def _max_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
+def _max_rss_mib(children: bool = False) -> float:
+    """Peak resident memory of this process, or of the largest of its finished child processes (the
+    ranks of a multi-process run on CPU; 0 if none), in MiB."""
+    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
+    return resource.getrusage(who).ru_maxrss / 1024  # Linux reports KiB
 
 
 def _hydra_entry(cfg) -> None:

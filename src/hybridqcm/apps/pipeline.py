@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         "pipeline",
         choices=sorted(PIPELINES),
         help="demo (small, ~20 min), reproduce (reference protocol) or noise (the occupant mass with and without "
-        "the road at sensor noise 0-10 %%, on the demo's data and networks, ~20 min)",
+        "the road at sensor noise 0-10 %%, on the demo's data and networks, ~30 min)",
     )
     parser.add_argument("--root", help="folder of the run folders and manifest (default outputs/<pipeline>)")
     parser.add_argument("--dataset", help="dataset file (default data/demo.h5 or data/reference.h5)")
