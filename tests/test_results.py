@@ -120,11 +120,21 @@ def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
             "seconds_solve": 10.0,
         }
         (run_dir / "summary.json").write_text(json.dumps(summary))
-        stages.append({**_stage(f"occupant_noise{sigma:g}", run_dir, None), "noise": sigma, "setting": "road-free, x"})
+        stages.append(
+            {
+                **_stage(f"occupant_noise{sigma:g}", run_dir, None),
+                "noise": sigma,
+                "setting": f"road-free (a3, a2), additive noise {sigma:.0%}",
+            }
+        )
     text, _, _ = results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
     rows = [line for line in text.splitlines() if line.startswith("| 0 %") or line.startswith("| 5 %")]
     assert [row.split(" | ")[0] for row in rows] == ["| 0 %", "| 5 %"]
-    assert "| road-free | 200 | 1.23 % |" in rows[1] and "| 95.1 % |" in rows[1] and "| 190 / 6 / 4 | 50 |" in rows[1]
+    assert (
+        "| road-free (a3, a2) | 200 | 1.23 % |" in rows[1]
+        and "| 95.1 % |" in rows[1]
+        and "| 190 / 6 / 4 | 50 |" in rows[1]
+    )
     (tmp_path / "occ0.0" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="occ0.0/summary.json"):
         results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)

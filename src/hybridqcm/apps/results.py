@@ -140,7 +140,7 @@ def _noise_table(stages: list[dict]) -> str:
             raise ValueError(f"stage {stage['name']}: {path}: no m3 summary ({error!r})") from None
         other = n - counts.get("converged", 0) - counts.get("misfit", 0)
         lines.append(
-            f"| {_pct(stage['noise'])} | {stage['setting'].split(',')[0]} | {n} | "
+            f"| {_pct(stage['noise'])} | {stage['setting'].rsplit(', additive noise', 1)[0]} | {n} | "
             + " | ".join(_pct(v) for v in values)
             + f" | {_pct(coverage)} | {_pct(width)} | {counts.get('converged', 0)} / {counts.get('misfit', 0)} / "
             f"{other} | {seconds:.0f} |"
