@@ -128,6 +128,7 @@ def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
             }
         )
     text, _, _ = results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
+    assert "No table of the source study is answered by these runs." in text and "Rows beaten" not in text
     rows = [line for line in text.splitlines() if line.startswith("| 0 %") or line.startswith("| 5 %")]
     assert [row.split(" | ")[0] for row in rows] == ["| 0 %", "| 5 %"]
     assert (
