@@ -141,6 +141,31 @@ def test_streaming_distinct_samples_per_worker_and_epoch():
     assert torch.unique(torch.cat([a, b]), dim=0).shape[0] == 32
 
 
+def test_streaming_replay_reuses_the_previous_fresh_half_with_new_noise():
+    """replay=0.5: the simulator makes half a batch per step; the other half are the previous step's
+    fresh samples (same parameters, same clean signals) under fresh augmentation noise."""
+    kwargs = dict(window=40, batch_size=8, samples_per_epoch=32, val_samples=4, seed=3, train_additive_max=0.1)
+    dm = StreamingDataModule(replay=0.5, **kwargs)
+    dm.setup("fit")
+    calls = []
+    simulator = dm.data_train.simulator
+    dm.data_train.simulator = lambda n, g: calls.append(n) or simulator(n, g)
+    batches = list(dm.data_train)
+    assert calls == [8, 4, 4, 4] and all(b["params"].shape[0] == 8 for b in batches)
+    for prev, cur in zip(batches, batches[1:]):
+        fresh_prev = prev["params"] if prev is batches[0] else prev["params"][:4]
+        for row in range(4, 8):  # each replayed sample is one of the previous step's fresh ones
+            match = (fresh_prev == cur["params"][row]).all(1).nonzero()
+            assert match.numel() == 1
+            first_use = prev["x"][int(match[0])]  # fresh rows come first in a batch
+            assert not torch.allclose(cur["x"][row], first_use)  # new noise on the same clean signal
+            assert torch.allclose(cur["x"][row], first_use, atol=0.5 * float(first_use.abs().max()))
+    assert torch.unique(torch.cat([b["params"] for b in batches]), dim=0).shape[0] == 8 + 3 * 4
+    for bad in (0.75, -0.1, "half"):  # above 0.5 the replayed part would outgrow the previous fresh part
+        with pytest.raises(ValueError, match=r"data.replay must be a number in \[0, 0.5\], got"):
+            StreamingDataModule(replay=bad, **kwargs)
+
+
 def test_streaming_ranks_shard(monkeypatch):
     dm = StreamingDataModule(window=20, batch_size=4, samples_per_epoch=16, val_samples=4, seed=2)
     dm.setup("fit")

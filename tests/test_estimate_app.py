@@ -77,7 +77,7 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
         assert float(r["m3_low"]) <= float(r["m3"]) <= float(r["m3_high"])
     table = _rows(tmp_path / "error_distribution.csv")
     assert [r["param"] for r in table] == [f"p{i}" for i in range(1, 11)]
-    assert (tmp_path / "error_distribution.md").exists()
+    assert "sensor noise: none" in (tmp_path / "error_distribution.md").read_text().splitlines()[0]
     assert [r["param"] for r in _rows(tmp_path / "calibration.csv")][-1] == "m3"
     assert (tmp_path / "plots" / "sorted_p3.png").exists() and (tmp_path / "plots" / "sorted_m3.png").exists()
     assert list((tmp_path / "tb").glob("events.out.tfevents.*"))
@@ -89,6 +89,17 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["all_within_1pct"] >= 0.9  # noise-free: GN recovers all ten parameters
     assert "within 1 %" in proc.stdout
+
+
+def test_noise_label_names_both_noise_sources():
+    from hybridqcm.apps.estimate_report import noise_label
+    from hybridqcm.data.sensor import build_sensor
+
+    assert noise_label(0.0, build_sensor(None)) == "none"
+    assert noise_label(0.05, build_sensor(None)) == "source multiplicative σ = 0.05"
+    additive = build_sensor({"kind": "additive", "sigma": 0.01})
+    assert noise_label(0.0, additive) == "additive noise 1 % of channel RMS"
+    assert noise_label(0.02, additive) == "source multiplicative σ = 0.02; additive noise 1 % of channel RMS"
 
 
 def test_exp10_hybrid_with_noise_and_denoiser(tiny_dataset, checkpoints, tmp_path):

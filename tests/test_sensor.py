@@ -93,6 +93,27 @@ def test_bad_sensor_is_one_line(spec, message):
     assert message in str(error.value) and "\n" not in str(error.value)
 
 
+@pytest.mark.parametrize(
+    "spec, words",
+    [
+        ({"kind": "none"}, "none"),
+        ({"kind": "additive", "sigma": 0.05}, "additive noise 5 % of channel RMS"),
+        ({"kind": "multiplicative", "sigma": 0.05}, "multiplicative noise 5 %"),
+        (
+            {"kind": "additive", "sigma": [0.02, 0.02, 0.05], "relative": False, "bias": 0.01},
+            "additive noise (a3, a2, a1) = 0.02 m/s², 0.02 m/s², 0.05 m/s², bias 0.01 m/s²",
+        ),
+        (
+            {"kind": "additive", "sigma_range": [0.01, 0.1], "quantisation": 0.002},
+            "additive noise 1 % to 10 % of channel RMS (log-uniform per sample), quantisation 0.002 m/s²",
+        ),
+    ],
+)
+def test_describe_names_kind_level_and_unit(spec, words):
+    """The words a report title carries: a relative 5 % is of the RMS, absolute levels are m/s²."""
+    assert build_sensor(spec).describe() == words
+
+
 def test_augmentation_level_is_drawn_per_sample():
     x = torch.ones(64, 2, 400)
     y = additive_augmentation(x, ["a3", "pu_u"], 0.1, torch.Generator().manual_seed(0))

@@ -56,6 +56,7 @@ from hybridqcm.apps.estimate_report import (
     estimates_header,
     log_stage_losses,
     merge_stage_stats,
+    noise_label,
     print_report,
     write_metrics,
 )
@@ -274,8 +275,12 @@ def run(cfg) -> dict:
         "seconds_blocks_per_process": _per_process_seconds(markers),
         "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
     }
-    metrics, table_rows = write_metrics(cfg, columns, columns.get("true"), plan["known"], run_dir, plan["n_steps"])
+    noise = noise_label(cfg.noise_sigma, plan["sensor"])
+    metrics, table_rows = write_metrics(
+        cfg, columns, columns.get("true"), plan["known"], run_dir, plan["n_steps"], noise=noise
+    )
     summary.update(metrics)
+    summary["noise"] = noise
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).
     summary["max_rss_mib"] = {"solve": rss_solve, "total": _max_rss_mib(), "ranks": _max_rss_mib(children=True)}

@@ -158,6 +158,15 @@ def merge_stage_stats(blocks: Sequence[Mapping], stage_names: Sequence[str]) -> 
     return stage_loss, stage_status
 
 
+def noise_label(noise_sigma: float, sensor) -> str:
+    """The noise the estimator saw, in words: the sensor model and/or the source's multiplicative
+    `noise_sigma` (SPEC §5); 'none' when neither is set."""
+    parts = [f"source multiplicative σ = {float(noise_sigma):g}"] if float(noise_sigma) > 0 else []
+    if sensor is not None and sensor.active:
+        parts.append(sensor.describe())
+    return "; ".join(parts) or "none"
+
+
 def coverage_95(estimate: torch.Tensor, truth: torch.Tensor, std: torch.Tensor, failed: torch.Tensor) -> float:
     """Fraction of samples [M] whose truth lies in estimate ± 1.96 std; failed or non-finite ones count as not covered."""
     ok = ~failed & torch.isfinite(estimate) & torch.isfinite(std)
@@ -172,8 +181,9 @@ def write_metrics(
     known: Sequence[int],
     run_dir: Path,
     n_steps: int | None = None,
+    noise: str = "none",
 ) -> tuple[dict, list | None]:
-    """Status counts, and with the truth [M, 10]: error distribution, calibration.csv, m3 metrics,
+    """`noise` describes the noise on the data for the table's title (`noise_label`). Status counts, and with the truth [M, 10]: error distribution, calibration.csv, m3 metrics,
     sorted plots and the TensorBoard table. Returns (summary entries, error-table rows or None)."""
     params, std, status_codes = columns["params"], columns["std"], columns["status"]
     n, n_params = params.shape
@@ -191,7 +201,8 @@ def write_metrics(
     true = true[:, :n_params]
     m3, m3_std, m3_low, m3_high = m3_interval(params, std, K3)
     table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
-    title = f"{cfg.experiment_name}: {n} samples, N = {cfg.n_steps if n_steps is None else n_steps}, noise σ = {cfg.noise_sigma}"
+    window = cfg.n_steps if n_steps is None else n_steps
+    title = f"{cfg.experiment_name}: {n} samples, N = {window}, sensor noise: {noise}"
     write_error_distribution(table_rows, run_dir, title=title)
     # A diverged or non-finite sample counts as failed / not covered, never as a success.
     failed = ~torch.isfinite(params).all(1) | (status_codes == int(SolverStatus.DIVERGED))

@@ -424,6 +424,11 @@ class SimulatedStream(IterableDataset):
     DataLoader's per-iterator base seed inside workers (it changes every epoch) or a counter of
     iterations when there are no workers. One pass yields `batches_per_epoch` batches in total,
     split across ranks and workers.
+
+    `replay` = r in [0, 0.5]: each batch is (1 - r) fresh samples plus r of the previous batch's fresh
+    samples with new sensor and augmentation noise, so every clean sample is used in two consecutive
+    steps and the simulator runs on (1 - r) of a batch per step (at r = 0.5, half). The first batch
+    of a pass is all fresh.
     """
 
     def __init__(
@@ -436,7 +441,11 @@ class SimulatedStream(IterableDataset):
         seed: int,
         sensor: SensorModel | None = None,
         augment_max: float = 0.0,
+        replay: float = 0.0,
     ) -> None:
+        if not 0.0 <= float(replay) <= 0.5:
+            raise ValueError(f"data.replay must be in [0, 0.5], got {replay}")
+        self.replay = float(replay)
         self.simulator, self.spec = simulator, spec
         self.sensor = sensor if sensor is not None and sensor.active else None
         self.augment_max = float(augment_max)
@@ -469,9 +478,24 @@ class SimulatedStream(IterableDataset):
         seed, shards, shard = self.stream_seed()
         generator = torch.Generator().manual_seed(seed)
         n_batches = len(range(shard, self.batches_per_epoch, shards))
+        n_replay = min(int(round(self.replay * self.batch_size)), self.batch_size // 2)
+        previous: dict[str, torch.Tensor] | None = None
         for _ in range(n_batches):
-            arrays = self.simulator(self.batch_size, generator)
-            batch = self.spec.build(arrays, torch.full((self.batch_size,), -1, dtype=torch.long))
+            if previous is None or n_replay == 0:
+                fresh = self.spec.build(
+                    self.simulator(self.batch_size, generator), torch.full((self.batch_size,), -1, dtype=torch.long)
+                )
+                batch = fresh
+            else:
+                n_fresh = self.batch_size - n_replay
+                fresh = self.spec.build(
+                    self.simulator(n_fresh, generator), torch.full((n_fresh,), -1, dtype=torch.long)
+                )
+                # the replayed part: the previous step's fresh samples, clean (noise is added below)
+                pick = torch.randperm(previous["x"].shape[0], generator=generator)[:n_replay]
+                batch = {k: torch.cat([fresh[k], previous[k][pick]]) for k in fresh}
+            previous = fresh
+            batch = dict(batch)
             batch["x"] = apply_noise(batch["x"], self.noise_sigma, generator)
             if self.sensor is not None:  # fresh, seeded noise: random sample ids from the stream's generator
                 ids = torch.randint(0, 2**62, (self.batch_size,), generator=generator)
@@ -522,6 +546,20 @@ class StreamSimulator:
             float(speed_kmh) * KMH,
             integrator,
         )
+        self._basis: torch.Tensor | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_basis": None}  # a worker rebuilds the 8 MB time basis itself
+
+    def basis(self) -> torch.Tensor | None:
+        """The continuous simulator's time basis [2 W, n_steps], built once (it is the same for every batch)."""
+        if self.physics != "continuous":
+            return None
+        if self._basis is None:
+            from hybridqcm.physics.continuous import time_basis
+
+            self._basis = time_basis(self.road.omega * self.speed_mps, self.n_steps, self.h)
+        return self._basis
 
     def __call__(self, n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         from hybridqcm.data.simulate import simulate_samples
@@ -540,6 +578,7 @@ class StreamSimulator:
             self.integrator,
             self.physics,
             self.warmup_s,
+            basis=self.basis(),
         )
         arrays["profile_id"] = arrays.pop("profile")
         return arrays
@@ -571,9 +610,14 @@ class StreamingDataModule(_BaseDataModule):
         path: str | None = None,
         test_split: str = "test",
         limit_test: int | None = None,
+        replay: float = 0.0,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        # above 0.5 the previous step's fresh part would be smaller than the replayed part
+        if not (isinstance(replay, (int, float)) and 0.0 <= float(replay) <= 0.5):
+            raise ValueError(f"StreamingDataModule: data.replay must be a number in [0, 0.5], got {replay!r}")
+        self.replay = float(replay)
         self.simulator = StreamSimulator(
             prior, road_classes, self.window, h, speed_kmh, integrator, physics=physics, warmup_s=warmup_s
         )
@@ -653,6 +697,7 @@ class StreamingDataModule(_BaseDataModule):
                 self.seed,
                 sensor=self.sensor,
                 augment_max=self.train_additive_max,
+                replay=self.replay,
             )
         if "test" in stages and self.data_test is None:
             if self.path:

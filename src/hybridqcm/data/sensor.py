@@ -94,6 +94,32 @@ class SensorModel:
     def _checked(self) -> SensorModel:
         return self if hasattr(self, "_sigma") else self.validate()
 
+    def describe(self) -> str:
+        """One line for report titles, e.g. 'additive noise 5 % of channel RMS' or 'none'."""
+        self._checked()
+        if not self.active:
+            return "none"
+
+        def amount(values: Sequence[float], percent: bool) -> str:
+            shown = [f"{100 * v:g} %" if percent else f"{v:g} m/s²" for v in values]
+            return shown[0] if len(set(shown)) == 1 else "(a3, a2, a1) = " + ", ".join(shown)
+
+        # multiplicative sigma is always a fraction of the signal itself; the rest follows `relative`
+        percent = self.relative or self.kind == "multiplicative"
+        of_rms = " of channel RMS" if self.relative and self.kind == "additive" else ""
+        if self._range is not None:
+            low, high = (amount([v], percent) for v in self._range)
+            level = f"{low} to {high}"
+        else:
+            level = amount(self._sigma, percent)
+        per_sample = " (log-uniform per sample)" if self._range is not None else ""
+        parts = [f"{self.kind} noise {level}{of_rms}{per_sample}"]
+        if any(self._bias):
+            parts.append(f"bias {amount(self._bias, self.relative)}{' of channel RMS' if self.relative else ''}")
+        if float(self.quantisation) > 0:
+            parts.append(f"quantisation {float(self.quantisation):g} m/s²")
+        return ", ".join(parts)
+
     def _noise(self, index: Tensor, n_steps: int, salt: int) -> Tensor:
         """eta [b, T, 3] float64, sample i's from its own generator seeded by (seed, salt, i)."""
         out = torch.empty(index.shape[0], n_steps, 3, dtype=torch.float64)
