@@ -174,11 +174,14 @@ def simulate(
     return accel, road, t0, cls
 
 
-def add_sensor(accel: np.ndarray, rng: np.random.Generator, noise: float, bias: float) -> np.ndarray:
-    """Additive white noise of `noise` x each channel's RMS over the window, plus a constant bias of
-    `bias` x that RMS with a random sign per channel and recording."""
+def add_sensor(
+    accel: np.ndarray, rng: np.random.Generator, noise: float, bias: float, noise_abs: float = 0.0
+) -> np.ndarray:
+    """Additive white noise of `noise` x each channel's RMS over the window plus `noise_abs` m/s² (a
+    MEMS floor, the same on every channel), and a constant bias of `bias` x the RMS with a random sign
+    per channel and recording."""
     rms = np.sqrt(np.mean(accel**2, axis=1, keepdims=True))
-    out = accel + noise * rms * rng.standard_normal(accel.shape)
+    out = accel + np.hypot(noise * rms, noise_abs) * rng.standard_normal(accel.shape)
     return out + bias * rms * rng.choice([-1.0, 1.0], size=rms.shape)
 
 
@@ -195,7 +198,7 @@ def make(args) -> None:
         warmup=tuple(args.warmup),
         sub=args.sub,
     )
-    accel = add_sensor(accel, rng, args.noise, args.bias)
+    accel = add_sensor(accel, rng, args.noise, args.bias, args.noise_abs)
     out = Path(args.out)
     if out.exists():
         sys.exit(f"{out}: exists; choose another --out")
@@ -275,6 +278,7 @@ def main(argv=None) -> None:
     mk.add_argument("--classes", nargs="+", default=["A", "B", "C"])
     mk.add_argument("--warmup", type=float, nargs=2, default=[2.0, 20.0])
     mk.add_argument("--noise", type=float, default=0.0, help="additive white noise, fraction of channel RMS")
+    mk.add_argument("--noise-abs", type=float, default=0.0, help="additive white noise floor [m/s²], every channel")
     mk.add_argument("--bias", type=float, default=0.0, help="constant offset, fraction of channel RMS")
     mk.add_argument("--seat-rel", type=float, default=0.0, help="relative spread of the seat's C3, K3")
     mk.add_argument("--c1-max", type=float, default=0.0, help="tyre damper C1 ~ U(0, this) [Ns/m]")
