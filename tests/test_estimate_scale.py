@@ -92,6 +92,7 @@ def test_restart_skips_finished_blocks_and_refuses_foreign_shards(tiny_dataset, 
     overrides = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=20", "batch_size=8", "keep_shards=true"]
     first = run(_cfg(overrides))
     assert first["blocks"] == 3 and first["blocks_resumed"] == 0
+    assert first["predict_devices"] == ["cpu"]  # the default trainer=cpu
     reference = (tmp_path / "estimates.csv").read_bytes()
     shards = tmp_path / "shards"
     kept = (shards / "block-000000.csv").stat().st_mtime_ns

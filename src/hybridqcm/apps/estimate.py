@@ -274,6 +274,7 @@ def run(cfg) -> dict:
         # per process: seconds spent solving blocks (the rest of seconds_solve is start-up and reading)
         "seconds_blocks_per_process": _per_process_seconds(markers),
         "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
+        "predict_devices": sorted({m["device"] for m in markers if m.get("device")}),  # the networks' device(s)
     }
     noise = noise_label(cfg.noise_sigma, plan["sensor"])
     metrics, table_rows = write_metrics(

@@ -111,6 +111,7 @@ class ShardStore:
         columns,
         stats,
         seconds: tuple[float, float] = (float("nan"), float("nan")),
+        device: str | None = None,
     ) -> None:
         atomic_write_csv(self.path(block, ".csv"), header, estimates)
         atomic_write_csv(self.path(block, ".status.csv"), status_header, status)
@@ -124,6 +125,7 @@ class ShardStore:
             "cpu_seconds": seconds[1],
             "fingerprint": self.fingerprint,
             "pid": os.getpid(),
+            "device": device,  # where the predict step (the networks) ran, e.g. cuda:0
         }
         atomic_write_text(self.path(block, ".done.json"), json.dumps(record) + "\n")
 
@@ -229,6 +231,7 @@ class ShardWriter(BasePredictionWriter):
             columns,
             self.stage_stats(record),
             (time.perf_counter() - t0, time.process_time() - c0),
+            str(pl_module.device),
         )
 
 
