@@ -146,6 +146,21 @@ def test_callback_runs_in_test_loop_and_cnn_initialises(checkpoints, batch):
     assert callback.collect().result.params.shape == (12, 10)
 
 
+def test_networks_run_without_tf32_convolutions_and_the_setting_is_restored(checkpoints, batch, monkeypatch):
+    """On a GPU, cuDNN's default TF32 convolutions would move the CNN's start ~1e-4 from the CPU's."""
+    module = HybridEstimator(cnn_ckpt=str(checkpoints["cnn"]), observed=["a3", "a2", "a1"], n_steps=100, h=H)
+    seen, estimate = [], type(module.cnn).estimate
+
+    def recording(self, a3, a2):
+        seen.append(torch.backends.cudnn.allow_tf32)
+        return estimate(self, a3, a2)
+
+    monkeypatch.setattr(type(module.cnn), "estimate", recording)
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    module.prepare({k: batch[k] for k in ("accel", "road", "pu", "init", "index")})
+    assert seen == [False] and torch.backends.cudnn.allow_tf32 is True
+
+
 def test_checkpoint_kind_errors(checkpoints, tmp_path):
     with pytest.raises(CheckpointKindError, match="cnn_ckpt=.*CompletionUNet.*cnn needs"):
         HybridEstimator(cnn_ckpt=str(checkpoints["unet"]))

@@ -10,8 +10,9 @@ callback of :mod:`hybridqcm.estimation.refinement` solves.
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 
 import torch
 from lightning.pytorch import LightningModule
@@ -103,7 +104,7 @@ def equation_error_params(
     batch, n_steps, _ = accel.shape
     vel = torch.zeros_like(accel)
     disp = torch.zeros_like(accel)
-    v = torch.zeros(batch, 3, dtype=torch.float64)
+    v = torch.zeros(batch, 3, dtype=torch.float64, device=accel.device)
     q = torch.zeros_like(v)
     for k in range(n_steps):  # v_k, q_k as recorded at step k (same convention as the generator)
         vel[:, k], disp[:, k] = v, q
@@ -137,6 +138,17 @@ def equation_error_params(
         ok = torch.isfinite(solution).all(1) & (solution > 0).all(1)
         p[:, cols] = torch.where(ok[:, None], solution, p[:, cols])
     return p
+
+
+@contextlib.contextmanager
+def full_fp32_convolutions() -> Iterator[None]:
+    """cuDNN convolutions in full float32 inside the block; torch's default lets them use TF32."""
+    before = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32 = before
 
 
 # ----------------------------------------------------------------------------------------------
@@ -224,13 +236,20 @@ class HybridEstimator(LightningModule):
         return tuple((c in self.observed) or (self.completes and c in ("a2", "a1")) for c in CHANNELS)
 
     # -- the network part -----------------------------------------------------------------------
-    @torch.no_grad()
     def prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        """The batch's GN problem (class docstring). The networks run in full float32 on a GPU too:
+        TF32 convolutions moved their outputs ~1e-4 from the CPU's on an H100, and GN's path (restarts,
+        noise model, intervals) with them; float32 made it ~2e-7 (docs/notes/scaling.md)."""
+        with full_fp32_convolutions():
+            return self._prepare(batch)
+
+    @torch.no_grad()
+    def _prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
         accel = batch["accel"].double().clone()
         road = (
             batch["road"].double()
             if batch.get("road") is not None
-            else torch.zeros(accel.shape[:2], dtype=torch.float64)
+            else torch.zeros(accel.shape[:2], dtype=torch.float64, device=accel.device)
         )
         pu = batch["pu"].double()
         init = batch["init"].double().clone()
