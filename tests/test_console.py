@@ -134,6 +134,7 @@ assert len(ours()) == 1 and lightning_console() == [], (ours(), lightning_consol
 from lightning.pytorch.utilities.rank_zero import rank_zero_info
 rank_zero_info("kept: GPU available")
 rank_zero_info("Tip: try installing litlogger")
+logging.getLogger("lightning.pytorch.accelerators.cuda").info("LOCAL_RANK: 0 - CUDA_VISIBLE_DEVICES: [0]")
 """
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -124,7 +124,12 @@ _NOISE_WARNINGS = (
     # SimulatedStream shards its samples with get_worker_info(), so its __len__ is exact.
     r".*Your `IterableDataset` has `__len__` defined",
 )
-_NOISE_LOGS = ("litlogger", "Trainer already configured with model summary callbacks")
+_NOISE_LOGS = (
+    "litlogger",
+    "Trainer already configured with model summary callbacks",
+    # on a GPU, logged at every stage's setup (fit, then test): repeats what "GPU available" says
+    "- CUDA_VISIBLE_DEVICES: [",
+)
 _LIGHTNING_LOGGERS = ("lightning", "lightning.pytorch", "lightning.fabric", "pytorch_lightning", "lightning_fabric")
 
 
@@ -149,7 +154,11 @@ def quiet_third_party() -> None:
                     logger.removeHandler(handler)
             logger.propagate = True
     noise = _DropMessages(*_NOISE_LOGS)
-    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+    for name in (
+        "lightning.pytorch.utilities.rank_zero",
+        "lightning.fabric.utilities.rank_zero",
+        "lightning.pytorch.accelerators.cuda",
+    ):
         logger = logging.getLogger(name)
         if not any(isinstance(f, _DropMessages) for f in logger.filters):
             logger.addFilter(noise)
