@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -131,6 +132,7 @@ def test_physics_run_artefacts(trained):
         assert (out / name).exists(), name
     summary = json.loads((out / "test_metrics.json").read_text())
     assert summary["n_test"] == 32 and summary["train_seconds"] > 0 and "test/p1/mean_rel_err" in summary["metrics"]
+    assert summary["device"] == ("cuda:0" if torch.cuda.is_available() else "cpu")  # trainer.accelerator=auto
     assert list((out / "tensorboard").glob("events.out.tfevents.*"))
 
 

@@ -279,7 +279,7 @@ def train(cfg) -> dict[str, float]:
             else None,
             "data_path": getattr(datamodule, "path", None) and str(datamodule.path),
             "n_test": int(len(datamodule.data_test)) if datamodule.data_test is not None else None,
-            "device": str(model.device),
+            "device": str(tester.strategy.root_device),  # not model.device: test() leaves the model on the CPU
             "metrics": test_metrics,
         }
         atomic_write_text(out_dir / "test_metrics.json", json.dumps(summary, indent=2, default=str) + "\n")
