@@ -1,14 +1,17 @@
-"""qcm-estimate at scale: recordings per second on 1 and 2 processes, and peak memory vs file size.
+"""qcm-estimate at scale: recordings per second on 1 and 2 processes (and a GPU), and peak memory vs file size.
 
-    python bench/bench_estimate_scale.py throughput [--n 64] [--experiment exp10|occupant_roadfree]
+    python bench/bench_estimate_scale.py throughput [--n 64] [--experiment exp10|occupant_roadfree] [OVERRIDE ...]
     python bench/bench_estimate_scale.py memory [--sizes 17000 170000] [--cheap]
 
-throughput: the same recordings estimated by one process and by `trainer=ddp trainer.devices=2`
-(4 blocks, so each rank solves 2), one after the other; prints recordings/s of the GN solve
-(the busiest process's time on its blocks), of the predict call (with the ranks' start-up) and
-of the whole command, side by side, and the ratios.
-exp10 needs the demo's checkpoints (the physics CNN and the U-Net, /work/main/outputs/demo);
-without them use --experiment occupant_roadfree (no networks).
+throughput: the same recordings estimated by one process, by `trainer=ddp trainer.devices=2`
+(4 blocks, so each rank solves 2) and, where CUDA is available, by one process with
+`trainer.accelerator=gpu` (the networks on the GPU, GN on the CPU), one after the other; prints
+recordings/s of the GN solve (the busiest process's time on its blocks), of the predict call (with
+the ranks' start-up) and of the whole command, side by side, the ratios to one process, and how far
+each run's estimates are from the one-process run's (they should agree: same blocks, same seeds).
+exp10 needs the checkpoints of a physics CNN and a U-Net (default: the demo's, outputs/demo; or
+--cnn/--unet); without them use --experiment occupant_roadfree (no networks). Further arguments are
+Hydra overrides for every run (e.g. n_steps=max).
 
 memory: a file of max(sizes) recordings made by tiling the test split of data/cont_small.h5 (a valid
 schema file: the source's root attributes, accel/road/params) into data/bench_scale_N.h5, then one
@@ -21,6 +24,7 @@ Results and commands: docs/notes/scaling.md.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -29,11 +33,12 @@ import time
 from pathlib import Path
 
 import h5py
+import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = Path("/work/main/data/cont_small.h5")
-DEMO = Path("/work/main/outputs/demo")
-BIN = Path(sys.executable).parent
+SOURCE = ROOT / "data" / "cont_small.h5"
+DEMO = ROOT / "outputs" / "demo"
 
 
 def make_big_file(n: int, source: Path = SOURCE, split: str = "test") -> Path:
@@ -68,9 +73,10 @@ def estimate(overrides: list[str], run_dir: Path, threads: int | None = None) ->
         "import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
     )
-    command = [sys.executable, "-c", probe, str(BIN / "qcm-estimate"), *overrides, f"hydra.run.dir={run_dir}"]
+    app = [sys.executable, "-m", "hybridqcm.apps.estimate"]  # also where the console scripts are not installed
+    command = [sys.executable, "-c", probe, *app, *overrides, f"hydra.run.dir={run_dir}"]
     command += ["progress=false", "plots=false", "tensorboard=false", "overwrite=true"]
-    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")])))
     if threads:  # torch threads per process (Lightning gives spawned ranks cores / ranks unless set)
         env["OMP_NUM_THREADS"] = str(threads)
     t0 = time.perf_counter()
@@ -82,33 +88,60 @@ def estimate(overrides: list[str], run_dir: Path, threads: int | None = None) ->
     return wall, json.loads((run_dir / "summary.json").read_text()), rss // 1024
 
 
-def experiment_overrides(name: str) -> list[str]:
+def experiment_overrides(name: str, cnn: Path | None = None, unet: Path | None = None) -> list[str]:
     if name == "exp10":
-        cnn, unet = DEMO / "exp2_physics/checkpoints/last.ckpt", DEMO / "exp9_unet/checkpoints/last.ckpt"
+        cnn = cnn or DEMO / "exp2_physics/checkpoints/last.ckpt"
+        unet = unet or DEMO / "exp9_unet/checkpoints/last.ckpt"
         if not (cnn.exists() and unet.exists()):
             sys.exit(f"exp10 needs {cnn} and {unet}; use --experiment occupant_roadfree")
         return ["experiment=exp10_hybrid", f"cnn_ckpt={cnn}", f"unet_ckpt={unet}"]
     return [f"experiment={name}"]
 
 
+def read_estimates(path: Path) -> tuple[list[str], list[str], np.ndarray]:
+    """(statuses, names of the numeric columns, the numeric columns) of an estimates.csv."""
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    status = [r.pop("status") for r in rows]
+    return status, list(rows[0]) if rows else [], np.array([[float(v) for v in r.values()] for r in rows])
+
+
 def throughput(args) -> None:
-    base = [*experiment_overrides(args.experiment), f"data.path={SOURCE}", f"n_samples={args.n}"]
-    base.append(f"batch_size={max(1, args.n // 4)}")
-    rows, cpu = {}, {}
-    for name, extra in (("1 process", []), ("2 processes", ["trainer=ddp", "trainer.devices=2"])):
-        wall, summary, _ = estimate(
-            [*base, *extra], ROOT / "outputs" / "bench_scale" / name.replace(" ", "_"), args.threads
-        )
+    source = args.data or SOURCE
+    base = [*experiment_overrides(args.experiment, args.cnn, args.unet), f"data.path={source}", f"n_samples={args.n}"]
+    base += [f"batch_size={args.batch_size or max(1, args.n // 4)}", *args.overrides]
+    runs = {"1 process": [], "2 processes": ["trainer=ddp", "trainer.devices=2"]}
+    if torch.cuda.is_available():  # a GPU column only where there is one
+        runs[f"GPU ({torch.cuda.get_device_name(0)})"] = ["trainer.accelerator=gpu"]
+    threads = f"{args.threads} torch thread(s) per process" if args.threads else "default torch threads"
+    print(f"{args.experiment}, {args.n} recordings of {source.name}, {os.cpu_count()} cores, {threads}")
+    labels = {name: f"ratio {name.split(' (')[0]}/1" for name in runs if name != "1 process"}
+    width = max(map(len, [*runs, *labels.values()]))
+    print(f"{'':{width}} {'rec/s (GN)':>11} {'rec/s (predict)':>16} {'rec/s (command)':>16}", flush=True)
+    rows, cpu, estimates = {}, {}, {}
+    for name, extra in runs.items():  # each row as soon as it is measured: a run cut short keeps the rest
+        run_dir = ROOT / "outputs" / "bench_scale" / name.split(" (")[0].replace(" ", "_")
+        wall, summary, _ = estimate([*base, *extra], run_dir, args.threads)
         busiest = max(summary["seconds_blocks_per_process"])  # the slowest rank's GN time
         rows[name] = (args.n / busiest, args.n / summary["seconds_solve"], args.n / wall)
         cpu[name] = summary["cpu_seconds_blocks"] / args.n
-    threads = f"{args.threads} torch thread(s) per process" if args.threads else "default torch threads"
-    print(f"{args.experiment}, {args.n} recordings of {SOURCE.name}, {os.cpu_count()} cores, {threads}")
-    print(f"{'':12} {'rec/s (GN)':>11} {'rec/s (predict)':>16} {'rec/s (command)':>16}")
-    for name, (gn, solve, total) in rows.items():
-        print(f"{name:12} {gn:11.3f} {solve:16.3f} {total:16.3f}")
-    one, two = rows["1 process"], rows["2 processes"]
-    print(f"{'ratio 2/1':12} {two[0] / one[0]:11.2f} {two[1] / one[1]:16.2f} {two[2] / one[2]:16.2f}")
+        estimates[name] = read_estimates(run_dir / "estimates.csv")
+        print(f"{name:{width}} {rows[name][0]:11.3f} {rows[name][1]:16.3f} {rows[name][2]:16.3f}", flush=True)
+    one = rows["1 process"]
+    for name, label in labels.items():
+        other = rows[name]
+        print(f"{label:{width}} {other[0] / one[0]:11.2f} {other[1] / one[1]:16.2f} {other[2] / one[2]:16.2f}")
+    status_one, columns, numbers_one = estimates["1 process"]
+    # intervals (std_*, m3_low/high) apart: on noise-free data they sit at the rounding floor
+    interval = np.array([c.startswith("std_") or c in ("m3_std", "m3_low", "m3_high") for c in columns], dtype=bool)
+    for name, (status, _, numbers) in estimates.items():
+        if name != "1 process" and numbers.size:  # the runs must estimate the same thing for their rates to compare
+            rel = np.abs(numbers - numbers_one) / np.maximum(np.abs(numbers_one), 1e-300)
+            changed = sum(a != b for a, b in zip(status, status_one))
+            print(
+                f"{name} vs 1 process: max relative difference of the estimates {np.nanmax(rel[:, ~interval]):.2e}, "
+                f"of the intervals {np.nanmax(rel[:, interval], initial=0.0):.2e}; statuses differing {changed}"
+            )
     # CPU seconds per recording in the GN blocks: equal for 1 and 2 processes means the ranks add no
     # work, i.e. 2 dedicated cores give ~2x GN throughput (what a shared machine cannot show in wall time).
     print("GN CPU s/recording: " + ", ".join(f"{k} {v:.4f}" for k, v in cpu.items()))
@@ -139,7 +172,12 @@ def main() -> None:
     t = sub.add_parser("throughput")
     t.add_argument("--n", type=int, default=64)
     t.add_argument("--experiment", default="exp10")
-    t.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS for both runs (e.g. 1)")
+    t.add_argument("--threads", type=int, default=None, help="OMP_NUM_THREADS for every run (e.g. 1)")
+    t.add_argument("--data", type=Path, default=None, help=f"dataset (default {SOURCE})")
+    t.add_argument("--cnn", type=Path, default=None, help="exp10: physics CNN checkpoint (default: the demo's)")
+    t.add_argument("--unet", type=Path, default=None, help="exp10: U-Net checkpoint (default: the demo's)")
+    t.add_argument("--batch-size", type=int, default=None, help="recordings per block (default n / 4)")
+    t.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     m = sub.add_parser("memory")
     m.add_argument("--sizes", type=int, nargs="+", default=[17000, 170000])
     m.add_argument("--experiment", default="occupant_roadfree")
