@@ -8,6 +8,7 @@ import sys
 import h5py
 import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.common import CONFIG_DIR
@@ -205,8 +206,33 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.far_from_start=-0.5"]))
     with pytest.raises(ConfigError, match=r"solver\.decrement_tol must be null or a finite number >= 0, got -1"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "solver.decrement_tol=-1"]))
+    with pytest.raises(ConfigError, match=r"vehicle_prior\.rel_std=-0\.3: must be null or a finite number > 0"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "vehicle_prior.rel_std=-0.3"]))
+    with pytest.raises(ConfigError, match=r"vehicle_prior\.params: 'p11' is not a parameter name"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "vehicle_prior.params=[p3,p11]"]))
     with pytest.raises(DatasetError, match="no 'params'.*known_source=reference"):
         validate(_cfg(["experiment=exp7_known_p3p5", f"data.path={files['no_params']}", "init.cnn=false"]))
+
+
+def test_vehicle_prior_is_the_reference_vehicle_on_the_listed_unknowns(tiny_dataset):
+    """Mean p_ref and std rel_std x p_ref on the listed parameters the model has; known ones and p1, p2
+    (not listed) carry no prior; the seat model has none of the default list; off with rel_std=null."""
+    from hybridqcm.apps.estimate import build_refinement
+    from hybridqcm.physics import reference_params
+
+    base = ["experiment=exp10_hybrid", f"data.path={tiny_dataset}", "init.cnn=false", "dynamics=exact"]
+    cfg = _cfg(base)
+    refinement = build_refinement(cfg, validate(cfg))
+    mean, precision = refinement.param_prior
+    p_ref = reference_params()
+    listed = torch.tensor([False, False, False, True, False, True, True, True, True, True])  # p3, p5 known
+    torch.testing.assert_close(mean[:10], torch.where(listed, p_ref, 0.0))
+    torch.testing.assert_close(precision[:10], torch.where(listed, (0.3 * p_ref) ** -2, 0.0))
+    assert (precision[10:] == 0).all()  # never on the initial state
+    off = _cfg([*base, "vehicle_prior.rel_std=null"])
+    assert build_refinement(off, validate(off)).param_prior is None
+    seat = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "dynamics=exact"])
+    assert build_refinement(seat, validate(seat)).param_prior is None
 
 
 def test_cnn_window_longer_than_file(files, checkpoints):

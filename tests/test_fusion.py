@@ -289,3 +289,70 @@ def test_warm_start_takes_the_source_networks_means(tmp_path):
     assert torch.allclose(model.predict_params(x), source.predict_params(x))
     with pytest.raises(RuntimeError, match="not applied"):
         GaussianEstimator(net=TINY_NET, window=64, init_from=str(path)).on_fit_start()
+
+
+# -- the vehicle prior in the refinement -------------------------------------------------------------
+def test_parameter_prior_only_in_the_spectral_stage_and_combined_by_precision():
+    """GaussNewtonRefinement._prior: the vehicle prior appears only where the loss is in noise units
+    (a spectral pass) and for samples with real noise, never on known parameters or x0; where the
+    networks' p1, p2 prior covers the same entry, the two combine as Gaussians do (precisions add, means
+    weighted by them)."""
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.response import base_excitation_response
+
+    response = base_excitation_response("sprung", 0.01, "unknown", "spline", 4)  # p1..p6 and 4 states
+    mean = torch.tensor([10.0, 1000.0, 0.3, 2.0, 45.0, 70.0], dtype=torch.float64)
+    std = torch.tensor([1.0, math.inf, 0.1, 0.5, 5.0, 7.0], dtype=torch.float64)
+    known = torch.tensor([False, False, False, False, True, False])
+    stages = [GaussNewtonStage("gn", build_solver("gauss_newton"))]
+    refinement = GaussNewtonRefinement(stages, known=known, response=response, param_prior=(mean, std))
+    params = torch.zeros(3, response.n_theta, dtype=torch.float64)
+    assert refinement._prior({}, params, last=True, noisy=None) == {}
+    noisy = torch.ones(3, dtype=torch.bool)
+    prior = refinement._prior({}, params, last=True, noisy=noisy)
+    expected = torch.tensor([1.0, 0.0, 100.0, 4.0, 0.0, 1 / 49, 0, 0, 0, 0], dtype=torch.float64)
+    torch.testing.assert_close(prior["prior_precision"], expected.expand(3, -1))
+    torch.testing.assert_close(prior["prior_mean"][0, :4], torch.tensor([10.0, 0.0, 0.3, 2.0], dtype=torch.float64))
+    outputs = {"prior_p12": torch.tensor([[12.0, 900.0]] * 3), "prior_p12_std": torch.tensor([[2.0, 30.0]] * 3)}
+    both = refinement._prior(outputs, params, last=True, noisy=noisy)
+    # p1: precisions 1 and 1/4 -> 1.25, mean (10 + 12/4) / 1.25; p2: the network's alone
+    torch.testing.assert_close(both["prior_precision"][0, :2], torch.tensor([1.25, 1 / 900], dtype=torch.float64))
+    torch.testing.assert_close(both["prior_mean"][0, :2], torch.tensor([13.0 / 1.25, 900.0], dtype=torch.float64))
+    only_network = refinement._prior(outputs, params, last=True, noisy=None)
+    torch.testing.assert_close(only_network["prior_mean"][0, :2], torch.tensor([12.0, 900.0], dtype=torch.float64))
+    quiet = refinement._prior({}, params, last=True, noisy=torch.tensor([True, False, True]))
+    assert (quiet["prior_precision"][1] == 0).all()
+    torch.testing.assert_close(quiet["prior_precision"][0], expected)
+    with pytest.raises(ValueError, match="param_prior must be"):
+        GaussNewtonRefinement(stages, response=response, param_prior=(mean, -std))
+
+
+def test_noise_floor_tells_sensor_noise_from_misfit_and_model_error():
+    """_noise_floor on the seat model (a2 drives a3, 100 Hz, 300 samples): noise-free data at the true p
+    (the hold's model error) and at p1, p2 30 % off (a misfit at the seat's resonance) have no floor;
+    white noise of 0.5 % of a3's RMS has one. The truth is the exact model's own output, the driving
+    signal a sum of sines below 12 Hz."""
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.response import base_excitation_response
+
+    response = base_excitation_response("seat", 0.01, "unknown", "spline", 4)
+    g = torch.Generator().manual_seed(3)
+    t = torch.arange(320, dtype=torch.float64) * 0.01
+    freqs = 0.5 + 11.5 * torch.rand(4, 12, 1, generator=g, dtype=torch.float64)
+    phases = 6.28 * torch.rand(4, 12, 1, generator=g, dtype=torch.float64)
+    a2 = torch.sin(2 * math.pi * freqs * t + phases).sum(1)  # [4, 320]
+    truth = torch.tensor([[7.7, 1237.0, 0.01, -0.001]], dtype=torch.float64).expand(4, -1).clone()
+    a3 = response.outputs(truth, a2, 4, 300)  # [4, 300, 1]
+    refinement = GaussNewtonRefinement(
+        [GaussNewtonStage("gn", build_solver("gauss_newton"))],
+        response=response,
+        param_prior=(torch.tensor([7.7, 1237.0]), torch.tensor([math.inf, math.inf])),
+    )
+    observed = (True,)
+    assert not refinement._noise_floor(a3, a2, truth, observed, 4).any()
+    off = truth.clone()
+    off[:, :2] *= 1.3
+    assert not refinement._noise_floor(a3, a2, off, observed, 4).any()
+    rms = a3.square().mean(1, keepdim=True).sqrt()
+    noisy = a3 + 0.005 * rms * torch.randn(a3.shape, generator=g, dtype=torch.float64)
+    assert refinement._noise_floor(noisy, a2, truth, observed, 4).all()

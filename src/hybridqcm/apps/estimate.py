@@ -67,6 +67,7 @@ from hybridqcm.estimation.front import HybridEstimator
 from hybridqcm.estimation.refinement import GaussNewtonStage
 from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
 from hybridqcm.estimation.solver import build_solver
+from hybridqcm.physics.parameters import PhysicalConstants
 
 
 def build_module(cfg, plan) -> HybridEstimator:
@@ -113,6 +114,14 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         )
     if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
         threshold = math.inf
+    param_prior = None
+    if plan["vehicle_prior"] is not None:  # around the reference vehicle (vehicle:), on the model's own p
+        names = response.theta_names[: response.n_params]
+        p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
+        mean = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
+        listed = torch.tensor([n in plan["vehicle_prior"]["params"] for n in names])
+        if bool(listed.any()):
+            param_prior = (mean, torch.where(listed, plan["vehicle_prior"]["rel_std"] * mean, math.inf))
     reweight = str(cfg.residual_weighting)
     if reweight == "auto":
         reweight = "spectral" if plan["model"] == "exact" else False
@@ -135,6 +144,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         restart_batch=int(cfg.restarts.get("batch", 64)),
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
+        param_prior=param_prior,
     )
 
 

@@ -106,6 +106,19 @@ def interval_settings(cfg) -> dict:
     return {"covariance": covariance, "covariance_band": band, "covariance_dof": student_t}
 
 
+def vehicle_prior_settings(cfg) -> dict | None:
+    """The ``vehicle_prior`` group: {"params": [names], "rel_std": float}, or None when it is off."""
+    prior = cfg.get("vehicle_prior")
+    if prior is None or prior.get("rel_std") is None or not list(prior.get("params") or []):
+        return None
+    rel = prior.get("rel_std")
+    if isinstance(rel, bool) or not isinstance(rel, int | float) or not (math.isfinite(rel) and rel > 0):
+        raise ConfigError(f"vehicle_prior.rel_std={rel!r}: must be null or a finite number > 0")
+    names = [str(n) for n in prior.params]
+    _param_index(names, "vehicle_prior.params")
+    return {"params": names, "rel_std": float(rel)}
+
+
 def check_positive_params(path: Path, split: str, params, n: int) -> None:
     """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
     from hybridqcm.data.hdf5 import DatasetError
@@ -430,6 +443,7 @@ def validate(cfg) -> dict:
         "model": model,
         "initial_state": initial_state,
         "x0_start": x0_start,
+        "vehicle_prior": vehicle_prior_settings(cfg),
         "base_excitation": base,
         "n_params": n_params,
         "sensor": sensor,

@@ -189,6 +189,7 @@ def demo_stages(
             "hybrid GN U-Net completion CNN init (exact model, x0 estimated)",
             cnn="exp2_physics",
             unet="exp9_unet",
+            extra=["n_steps=100"],  # the source's N, beside its table (the experiment's default is max)
         ),
         _estimate(
             "occupant_roadfree",
@@ -352,6 +353,7 @@ def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/refer
             "hybrid GN U-Net completion CNN init",
             cnn="train_exp2_physics",
             unet="train_exp9_unet",
+            extra=["n_steps=100"],
         ),
     ]
     for sigma in (0.01, 0.05, 0.1):
@@ -390,7 +392,7 @@ def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/refer
                 f"hybrid, noise {sigma}",
                 cnn="train_exp2_physics",
                 unet="train_exp9_unet",
-                extra=[f"noise_sigma={sigma}"],
+                extra=[f"noise_sigma={sigma}", "n_steps=100"],
             ),
             _estimate(
                 f"exp10_cae_noise{sigma}",
@@ -404,7 +406,7 @@ def reproduce_stages(root: str = "outputs/reproduce", dataset: str = "data/refer
                 cnn="train_exp2_physics",
                 unet="train_exp9_unet",
                 cae="train_exp4_denoiser",
-                extra=[f"noise_sigma={sigma}"],
+                extra=[f"noise_sigma={sigma}", "n_steps=100"],
             ),
         ]
     return s

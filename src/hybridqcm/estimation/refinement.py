@@ -94,6 +94,7 @@ class GaussNewtonRefinement(Callback):
         restart_batch: int = 64,
         x0_start: str = "rest",
         restart_far: float | None = None,
+        param_prior: tuple[Tensor, Tensor] | None = None,
     ):
         super().__init__()
         if not stages:
@@ -156,6 +157,18 @@ class GaussNewtonRefinement(Callback):
         if restart_far is not None and not float(restart_far) > 0:
             raise ValueError(f"restart_far must be None or > 0, got {restart_far!r}")
         self.restart_far = None if restart_far is None else float(restart_far)
+        # (mean [n_params], std [n_params]) of a Gaussian prior on p (std inf: none on that entry), used
+        # where the loss is in units of the noise (a spectral pass: its whitened residual makes the MAP a
+        # posterior; in raw m/s² a prior's weight would depend on the signal's scale), on recordings with a
+        # sensor noise floor (_noise_floor).
+        self.param_prior = None
+        if param_prior is not None:
+            mean, std = (torch.as_tensor(t, dtype=torch.float64) for t in param_prior)
+            if mean.shape != (n_params,) or std.shape != (n_params,) or not bool((std > 0).all()):
+                raise ValueError(f"param_prior must be (mean, std > 0), each [{n_params}]")
+            pad = torch.zeros(self.response.n_theta - n_params, dtype=torch.float64)
+            precision = torch.where(known_p, 0.0, std.pow(-2))
+            self.param_prior = (torch.cat([torch.where(precision > 0, mean, 0.0), pad]), torch.cat([precision, pad]))
         self._batches: list[dict] = []
 
     def _channels(self, stage: GaussNewtonStage, module: HybridEstimator) -> tuple[bool, ...]:
@@ -221,14 +234,8 @@ class GaussNewtonRefinement(Callback):
                 if stage.n_steps is None
                 else min(int(stage.n_steps), outputs["targets"].shape[1])
             )
-            prior = {}
-            if "prior_p12" in outputs and number == len(stages) - 1:
-                mean = torch.zeros_like(params)
-                precision = torch.zeros_like(params)
-                mean[:, :2] = outputs["prior_p12"].double()
-                precision[:, :2] = outputs["prior_p12_std"].double().clamp_min(1e-12) ** -2
-                prior = {"prior_mean": mean, "prior_precision": torch.where(self.known, 0.0, precision)}
             spectral = self.reweight == "spectral" and last and number > 0
+            prior = self._prior(outputs, params, last, None)
             passes = self.noise_passes + 1 if spectral else 1
             # The window's inputs as the model evaluates them, held once for all its solves and noise fits.
             stage_road = self.response.prepare(road, offset, window) if spectral else road
@@ -240,6 +247,14 @@ class GaussNewtonRefinement(Callback):
                         outputs["targets"][:, :window].double(), stage_road, params, observed, offset, frozen=not ml
                     )
                     weights = None
+                    # Judged again at every pass's start: a first pass that began at a poor fit may have
+                    # taken the misfit for noise; the next one sees the noise floor (or none) it left.
+                    noisy = None
+                    if self.param_prior is not None:
+                        noisy = self._noise_floor(
+                            outputs["targets"][:, :window].double(), stage_road, params, observed, offset
+                        )
+                    prior = self._prior(outputs, params, last, noisy)
                 problem = LeastSquaresProblem(
                     outputs["targets"][:, :window].double(),
                     stage_road,
@@ -296,6 +311,45 @@ class GaussNewtonRefinement(Callback):
             result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative
         )
         return per_stage, result, params, relative
+
+    def _noise_floor(self, targets: Tensor, inputs, params: Tensor, observed, offset: int) -> Tensor:
+        """[batch] bool: the first observed output (a3 where measured: the one the vehicle filters most)
+        has a noise floor above ``min_input_noise`` of its RMS, measured on the residual at ``params`` in
+        the upper half of its spectrum (a quarter of the sampling rate to Nyquist). An accelerometer's
+        noise is white and fills that band; the seat's response to the road has next to nothing there,
+        so neither a poor fit's misfit (at the resonances; the wheel's, driven by the road up to its
+        band edge, would leak there) nor the hold's model error (1e-5 to 1e-4 of the RMS) reads as noise."""
+        channel = [i for i, o in enumerate(observed) if o][0]
+        predicted = self.response.outputs(params.double(), inputs, offset, targets.shape[1])
+        residual = predicted[:, :, channel] - targets[:, :, channel]
+        residual = torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
+        # Hann taper: a misfit at the resonances must not leak into the band through the window's edges.
+        taper = torch.hann_window(targets.shape[1], periodic=False, dtype=torch.float64)
+        spectrum = torch.fft.rfft(residual * taper, dim=1).abs().square()  # white noise: E = σ² Σ taper²
+        floor = spectrum[:, spectrum.shape[1] // 2 :].mean(1) / taper.square().sum()
+        power = targets[:, :, channel].square().mean(1).clamp_min(1e-300)
+        return floor > self.min_input_noise**2 * power
+
+    def _prior(self, outputs, params: Tensor, last: bool, noisy: Tensor | None) -> dict:
+        """The stage's Gaussian prior on θ as LeastSquaresProblem's prior_mean, prior_precision ({} for
+        none): the networks' p1, p2 in the last stage, and ``param_prior`` in a spectral pass (``noisy``
+        [batch] given: its loss is in units of the noise, which makes the MAP a posterior) for the
+        recordings with a sensor noise floor (``_noise_floor``); where both cover a parameter they combine
+        by precision."""
+        mean = torch.zeros_like(params)
+        precision = torch.zeros_like(params)
+        if noisy is not None and self.param_prior is not None:
+            mean += self.param_prior[0]
+            precision += torch.where(noisy[:, None], self.param_prior[1], 0.0)
+        if "prior_p12" in outputs and last:
+            p12 = outputs["prior_p12"].double()
+            lam = torch.where(self.known[:2], 0.0, outputs["prior_p12_std"].double().clamp_min(1e-12) ** -2)
+            total = precision[:, :2] + lam
+            mean[:, :2] = torch.where(total > 0, (precision[:, :2] * mean[:, :2] + lam * p12) / total, 0.0)
+            precision[:, :2] = total
+        if not bool((precision > 0).any()):
+            return {}
+        return {"prior_mean": mean, "prior_precision": precision}
 
     def _far_from_start(self, params: Tensor, init: Tensor) -> Tensor:
         """[batch] bool: free p1 or p2 of ``params`` more than restart_far (relative, either way) from ``init``."""
