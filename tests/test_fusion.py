@@ -349,10 +349,14 @@ def test_noise_floor_tells_sensor_noise_from_misfit_and_model_error():
         param_prior=(torch.tensor([7.7, 1237.0]), torch.tensor([math.inf, math.inf])),
     )
     observed = (True,)
-    assert not refinement._noise_floor(a3, a2, truth, observed, 4).any()
+
+    def floor(targets, params):
+        return refinement._noise_floor(refinement._residual(targets, a2, params, observed, 4), targets, observed)
+
+    assert not floor(a3, truth).any()
     off = truth.clone()
     off[:, :2] *= 1.3
-    assert not refinement._noise_floor(a3, a2, off, observed, 4).any()
+    assert not floor(a3, off).any()
     rms = a3.square().mean(1, keepdim=True).sqrt()
     noisy = a3 + 0.005 * rms * torch.randn(a3.shape, generator=g, dtype=torch.float64)
-    assert refinement._noise_floor(noisy, a2, truth, observed, 4).all()
+    assert floor(noisy, truth).all()

@@ -243,17 +243,13 @@ class GaussNewtonRefinement(Callback):
             for number_pass in range(passes):
                 if spectral:
                     ml = number_pass == passes - 1
-                    noise = self._noise_model(
-                        outputs["targets"][:, :window].double(), stage_road, params, observed, offset, frozen=not ml
-                    )
+                    targets = outputs["targets"][:, :window].double()
+                    residual = self._residual(targets, stage_road, params, observed, offset)
+                    noise = self._noise_model(targets, stage_road, params, observed, offset, not ml, residual)
                     weights = None
                     # Judged again at every pass's start: a first pass that began at a poor fit may have
                     # taken the misfit for noise; the next one sees the noise floor (or none) it left.
-                    noisy = None
-                    if self.param_prior is not None:
-                        noisy = self._noise_floor(
-                            outputs["targets"][:, :window].double(), stage_road, params, observed, offset
-                        )
+                    noisy = None if self.param_prior is None else self._noise_floor(residual, targets, observed)
                     prior = self._prior(outputs, params, last, noisy)
                 problem = LeastSquaresProblem(
                     outputs["targets"][:, :window].double(),
@@ -312,20 +308,24 @@ class GaussNewtonRefinement(Callback):
         )
         return per_stage, result, params, relative
 
-    def _noise_floor(self, targets: Tensor, inputs, params: Tensor, observed, offset: int) -> Tensor:
+    def _residual(self, targets: Tensor, inputs, params: Tensor, observed, offset: int) -> Tensor:
+        """Prediction minus data on the observed channels, [b, T, n_observed] (non-finite entries 0)."""
+        channels = [i for i, o in enumerate(observed) if o]
+        predicted = self.response.outputs(params.double(), inputs, offset, targets.shape[1])
+        residual = predicted[:, :, channels] - targets[:, :, channels]
+        return torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
+
+    def _noise_floor(self, residual: Tensor, targets: Tensor, observed) -> Tensor:
         """[batch] bool: the first observed output (a3 where measured: the one the vehicle filters most)
-        has a noise floor above ``min_input_noise`` of its RMS, measured on the residual at ``params`` in
-        the upper half of its spectrum (a quarter of the sampling rate to Nyquist). An accelerometer's
+        has a noise floor above ``min_input_noise`` of its RMS, measured on its ``residual`` (_residual)
+        in the upper half of the spectrum (a quarter of the sampling rate to Nyquist). An accelerometer's
         noise is white and fills that band; the seat's response to the road has next to nothing there,
         so neither a poor fit's misfit (at the resonances; the wheel's, driven by the road up to its
         band edge, would leak there) nor the hold's model error (1e-5 to 1e-4 of the RMS) reads as noise."""
         channel = [i for i, o in enumerate(observed) if o][0]
-        predicted = self.response.outputs(params.double(), inputs, offset, targets.shape[1])
-        residual = predicted[:, :, channel] - targets[:, :, channel]
-        residual = torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
         # Hann taper: a misfit at the resonances must not leak into the band through the window's edges.
-        taper = torch.hann_window(targets.shape[1], periodic=False, dtype=torch.float64)
-        spectrum = torch.fft.rfft(residual * taper, dim=1).abs().square()  # white noise: E = σ² Σ taper²
+        taper = torch.hann_window(residual.shape[1], periodic=False, dtype=torch.float64)
+        spectrum = torch.fft.rfft(residual[:, :, 0] * taper, dim=1).abs().square()  # white: E = σ² Σ taper²
         floor = spectrum[:, spectrum.shape[1] // 2 :].mean(1) / taper.square().sum()
         power = targets[:, :, channel].square().mean(1).clamp_min(1e-300)
         return floor > self.min_input_noise**2 * power
@@ -381,15 +381,21 @@ class GaussNewtonRefinement(Callback):
         return weights
 
     def _noise_model(
-        self, targets: Tensor, road: Tensor, params: Tensor, observed, offset: int = 0, frozen: bool = False
+        self,
+        targets: Tensor,
+        road: Tensor,
+        params: Tensor,
+        observed,
+        offset: int = 0,
+        frozen: bool = False,
+        residual: Tensor | None = None,
     ) -> SpectralNoise:
-        """The spectral noise model (estimation/noise.py) with variances fitted to the residual at ``params``:
-        output noise per observed channel, and for a base-excitation model its driving inputs' noise
-        (``frozen``: its spectrum held at ``params``)."""
+        """The spectral noise model (estimation/noise.py) with variances fitted to the residual at ``params``
+        (``residual``: that of _residual, when the caller has it): output noise per observed channel, and for
+        a base-excitation model its driving inputs' noise (``frozen``: its spectrum held at ``params``)."""
         channels = [i for i, o in enumerate(observed) if o]
-        predicted = self.response.outputs(params.double(), road, offset, targets.shape[1])
-        residual = predicted[:, :, channels] - targets[:, :, channels]
-        residual = torch.where(torch.isfinite(residual), residual, torch.zeros_like(residual))
+        if residual is None:
+            residual = self._residual(targets, road, params, observed, offset)
         reference = targets[:, :, channels].square().mean(1)
         v_alone, _ = estimate_variances(residual, None, 0, reference)  # the residual's power, output noise only
         linear = getattr(self.response, "model", None)
