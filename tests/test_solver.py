@@ -203,24 +203,43 @@ def test_wrong_model_is_misfit_not_converged():
     assert evaluated.sum() >= 20 and (right.whiteness[evaluated] < 1).all()
 
 
+def _linear_model(design):
+    """y = J θ with J fixed [T, 1, n]: a known-solution test problem (no input, no initial state)."""
+    from hybridqcm.estimation.response import ResponseModel
+
+    class Linear(ResponseModel):
+        theta_names, output_names, n_params = ("a", "b", "c"), ("y",), 0
+
+        def outputs(self, theta, inputs, start=0, n_steps=None):
+            return torch.einsum("ton,bn->bto", design, theta)
+
+        def sensitivities(self, theta, inputs, start=0, n_steps=None):
+            jac = design.expand(theta.shape[0], *design.shape)
+            return torch.cat([self.outputs(theta, inputs).unsqueeze(-1), jac], -1)
+
+    return Linear()
+
+
+def test_a_fit_worse_than_zero_is_misfit_even_when_its_residual_is_white():
+    """A residual larger than the data (white here: the model's columns are white noise) explains less
+    than predicting zero: misfit, not converged. The least-squares fit of the same data is converged."""
+    g = torch.Generator().manual_seed(1)
+    design = torch.randn(200, 1, 3, generator=g, dtype=torch.float64)
+    truth = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    data = torch.einsum("ton,bn->bto", design, truth) + 0.1 * torch.randn(4, 200, 1, generator=g, dtype=torch.float64)
+    problem = LeastSquaresProblem(
+        data, torch.zeros(4, 200, dtype=torch.float64), H, observed=(True,), model=_linear_model(design)
+    )
+    far = GaussNewton(SolverConfig(max_iterations=0)).solve(problem, truth + 10.0)
+    assert (far.relative_residual > 1).all() and (far.whiteness < 1).all()
+    assert (far.status == SolverStatus.MISFIT).all()
+    fit = GaussNewton(SolverConfig(max_iterations=5)).solve(problem, truth + 10.0)
+    assert (fit.status == SolverStatus.CONVERGED).all() and (fit.relative_residual < 0.2).all()
+
+
 def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
     """x0 enters the outputs linearly: with p known, the MAP estimate of x0 under a Gaussian prior and
     its Laplace covariance are the closed-form ridge solution (JᵀJ/σ² + Λ)⁻¹(JᵀY/σ² + Λμ)."""
-    from hybridqcm.estimation.response import ResponseModel
-
-    class Linear(ResponseModel):  # y = J θ, J fixed [T, 1, n]: a known-solution test problem
-        theta_names, output_names, n_params = ("a", "b", "c"), ("y",), 0
-
-        def __init__(self, design):
-            self.design = design
-
-        def outputs(self, theta, inputs, start=0, n_steps=None):
-            return torch.einsum("ton,bn->bto", self.design, theta)
-
-        def sensitivities(self, theta, inputs, start=0, n_steps=None):
-            jac = self.design.expand(theta.shape[0], *self.design.shape)
-            return torch.cat([self.outputs(theta, inputs).unsqueeze(-1), jac], -1)
-
     g = torch.Generator().manual_seed(0)
     design = torch.randn(40, 1, 3, generator=g, dtype=torch.float64)
     truth = torch.randn(5, 3, generator=g, dtype=torch.float64)
@@ -234,7 +253,7 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
         H,
         observed=(True,),
         weights=weights,
-        model=Linear(design),
+        model=_linear_model(design),
         prior_mean=mean,
         prior_precision=precision,
     )
@@ -252,5 +271,10 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
         assert torch.allclose(result.std[b], posterior.diagonal().sqrt(), rtol=1e-9)
     with pytest.raises(ValueError, match="prior"):
         LeastSquaresProblem(
-            data, torch.zeros(5, 40, dtype=torch.float64), H, observed=(True,), model=Linear(design), prior_mean=mean
+            data,
+            torch.zeros(5, 40, dtype=torch.float64),
+            H,
+            observed=(True,),
+            model=_linear_model(design),
+            prior_mean=mean,
         )

@@ -18,7 +18,9 @@ Honest status: a least-squares fit always ends somewhere, so "the iteration stop
 (Ljung-Box statistic over the first ``misfit_lags`` lags, per observed channel): a model that fits
 leaves residuals that look like sensor noise, a wrong model or a local minimum leaves structure.
 A sample whose residual is structured *and* larger than ``misfit_floor`` of the channel's RMS is
-`misfit`, whatever the iteration said; no noise level needs to be known. Serially correlated
+`misfit`, whatever the iteration said; no noise level needs to be known. So is one whose residual is
+larger than the channel itself, white or not: such a fit explains less than predicting zero (a noise
+model fitted to that residual whitens it, so whiteness alone cannot tell). Serially correlated
 residuals also widen the standard deviations by the AR(1) factor (1 + ρ)/(1 − ρ), the usual
 effective-sample-size correction, where ρ is their lag-1 autocorrelation.
 """
@@ -759,7 +761,7 @@ class NonlinearLeastSquares:
                     rho1 = rho
             q *= n_steps * (n_steps + 2)
             structured = (q > threshold) & (relative > cfg.misfit_floor)
-            misfits.append(structured.any(1))
+            misfits.append((structured | (relative > 1.0)).any(1))
             rel.append(relative.amax(1))
             white.append((q / threshold).amax(1) if lags > 0 else torch.zeros(chunk.numel(), dtype=q.dtype))
             # AR(1) effective-sample-size factor where the lag-1 correlation is significant.
