@@ -145,7 +145,8 @@ def simulate(
     u = np.stack([iso_road(n_fine + 1, speed_mps * dt, int(c), rng) for c in cls])
     du = np.diff(u, axis=1) / dt  # slope on each fine interval; the hold uses it at both ends
     u = u[:, :n_fine]
-    mats = [_foh(*_state_space(v, i), dt) for i in range(n_veh)]
+    systems = [_state_space(v, i) for i in range(n_veh)]
+    mats = [_foh(A, B, dt) for A, B in systems]
     Ad = np.stack([m[0] for m in mats])
     G0 = np.stack([m[1] for m in mats])
     G1 = np.stack([m[2] for m in mats])
@@ -154,9 +155,8 @@ def simulate(
     x = np.zeros((n_veh, 6))
     accel = np.empty((n_veh, steps, 3))
     road = np.empty((n_veh, steps))
-    As = [_state_space(v, i) for i in range(n_veh)]
-    Ac = np.stack([a[0][3:] for a in As])  # [n, 3, 6] accelerations from the state
-    Bc = np.stack([a[1][3:] for a in As])  # [n, 3, 2] and from (u, du/dt)
+    Ac = np.stack([A[3:] for A, _ in systems])  # [n, 3, 6] accelerations from the state
+    Bc = np.stack([B[3:] for _, B in systems])  # [n, 3, 2] and from (u, du/dt)
     rows = np.arange(n_veh)
     for j in range(n_fine):
         k = (j - start) // sub
@@ -235,7 +235,8 @@ def score(args) -> None:
     import h5py
 
     run = Path(args.run)
-    rows = list(csv.DictReader(open(run / "estimates.csv")))
+    with open(run / "estimates.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
     summary = json.loads((run / "summary.json").read_text())
     data = Path(args.data or summary.get("data", {}).get("path", ""))
     with h5py.File(data, "r") as f:

@@ -70,8 +70,8 @@ def _estimate(run_dir, *overrides):
     cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", *overrides, f"hydra.run.dir={run_dir}", "progress=false"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = list(csv.DictReader(open(run_dir / "estimates.csv")))
-    return rows
+    with open(run_dir / "estimates.csv", newline="") as handle:
+        return list(csv.DictReader(handle))
 
 
 def _truth(path):
