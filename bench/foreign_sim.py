@@ -186,6 +186,24 @@ def add_sensor(
 
 
 def make(args) -> None:
+    for key, value, ok in (
+        ("--n", args.n, args.n >= 1),
+        ("--steps", args.steps, args.steps >= 2),
+        ("--h", args.h, args.h > 0),
+        ("--sub", args.sub, args.sub >= 1),
+        ("--speed-kmh", args.speed_kmh, args.speed_kmh > 0),
+        ("--noise", args.noise, args.noise >= 0),
+        ("--noise-abs", args.noise_abs, args.noise_abs >= 0),
+        ("--bias", args.bias, args.bias >= 0),
+        ("--warmup", args.warmup, 0 <= args.warmup[0] <= args.warmup[1]),
+    ):
+        if not ok:
+            sys.exit(f"foreign_sim make: {key} = {value} is out of range")
+    if any(c not in ISO_CLASSES for c in args.classes):
+        sys.exit(f"foreign_sim make: --classes {args.classes}: each one of {list(ISO_CLASSES)}")
+    out = Path(args.out)
+    if out.exists():
+        sys.exit(f"{out}: exists; choose another --out")
     rng = np.random.default_rng(args.seed)
     v = draw_vehicles(args.n, rng, seat_rel=args.seat_rel, c1_max=args.c1_max)
     accel, road, t0, cls = simulate(
@@ -199,21 +217,19 @@ def make(args) -> None:
         sub=args.sub,
     )
     accel = add_sensor(accel, rng, args.noise, args.bias, args.noise_abs)
-    out = Path(args.out)
-    if out.exists():
-        sys.exit(f"{out}: exists; choose another --out")
     out.parent.mkdir(parents=True, exist_ok=True)
     params = parameters(v)
+    tmp = out.with_name(out.name + ".partial")  # renamed into place complete: no half-written file looks valid
     if out.suffix == ".csv":
         t = np.arange(args.steps) * args.h
         table = np.column_stack([t, accel[0], road[0]])
-        np.savetxt(out, table, delimiter=",", header="t,a3,a2,a1,road", comments="", fmt="%.10g")
         truth = {"params": params[0].tolist(), "m3": float(v["m3"][0]), "K3": float(v["K3"][0]), "h": args.h}
         out.with_suffix(".json").write_text(json.dumps(truth, indent=1))
+        np.savetxt(tmp, table, delimiter=",", header="t,a3,a2,a1,road", comments="", fmt="%.10g")
+        tmp.rename(out)
     else:
         import h5py
 
-        tmp = out.with_suffix(".partial")
         with h5py.File(tmp, "w") as f:
             f.attrs["schema"] = "hybridqcm.dataset/2"
             f.attrs["h"] = args.h
