@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.common import CONFIG_DIR
 from hybridqcm.apps.estimate import run, validate
-from hybridqcm.apps.estimate_inputs import build_inputs
+from hybridqcm.apps.estimate_inputs import block_rows, build_inputs
 from hybridqcm.apps.estimate_shards import ShardStore
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
@@ -50,6 +50,23 @@ def test_normal_stream_slices_are_torch_randn_bit_for_bit(total):
     assert np.array_equal(stream.take(1, min(total, 4)), reference[1:4])  # a step back rewinds
 
 
+@pytest.mark.parametrize(
+    "n, size", [(17000, 4096), (170000, 4096), (24, 8), (16, 8), (5, 8), (4097, 4096), (3, 1), (1, 1)]
+)
+def test_blocks_cover_every_row_once_and_split_equally_over_power_of_two_processes(n, size):
+    blocks = block_rows(n, size)
+    rows = [r for a, b in blocks for r in range(a, b)]
+    assert rows == list(range(n))  # contiguous, in order, each row once
+    sizes = [b - a for a, b in blocks]
+    assert max(sizes) <= size and max(sizes) - min(sizes) <= 1
+    for world in (1, 2, 4, 8):  # rank r takes blocks r, r + world, ... (Lightning's predict sampler)
+        if len(blocks) % world == 0:
+            shares = [sum(sizes[r::world]) for r in range(world)]
+            assert max(shares) - min(shares) <= len(blocks) // world
+    if n == 17000:
+        assert [sum(sizes[r::2]) for r in range(2)] == [8500, 8500]  # was 8 808 / 8 192 in blocks of 4 096
+
+
 def test_blocks_read_the_same_inputs_as_one_in_memory_draw(tiny_dataset):
     cfg = _cfg(
         ["experiment=exp5_random_init", f"data.path={tiny_dataset}", "n_samples=37", "noise_sigma=0.05", "seed=3"]
@@ -70,7 +87,7 @@ def test_blocks_read_the_same_inputs_as_one_in_memory_draw(tiny_dataset):
 
 
 def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path):
-    """24 recordings in 3 blocks of 8: rank 0 solves blocks 0 and 2, rank 1 block 1 (spawn, gloo)."""
+    """24 recordings in 4 blocks of 6: rank 0 solves blocks 0 and 2, rank 1 blocks 1 and 3 (gloo)."""
     common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=24", "batch_size=8"]
     runs = {}
     for name, extra in {"one": [], "two": ["trainer=ddp", "trainer.devices=2"]}.items():
@@ -91,13 +108,13 @@ def test_restart_skips_finished_blocks_and_refuses_foreign_shards(tiny_dataset, 
     monkeypatch.chdir(tmp_path)
     overrides = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=20", "batch_size=8", "keep_shards=true"]
     first = run(_cfg(overrides))
-    assert first["blocks"] == 3 and first["blocks_resumed"] == 0
+    assert first["blocks"] == 4 and first["blocks_resumed"] == 0  # 4 blocks of 5
     assert first["predict_devices"] == ["cpu"]  # the default trainer=cpu
     reference = (tmp_path / "estimates.csv").read_bytes()
     shards = tmp_path / "shards"
     kept = (shards / "block-000000.csv").stat().st_mtime_ns
 
-    def interrupt():  # what a run killed after blocks 0 and 2 leaves: shards, no merged outputs
+    def interrupt():  # what a run killed after blocks 0, 2 and 3 leaves: shards, no merged outputs
         for name in ("estimates.csv", "status.csv", "summary.json", "calibration.csv", "error_distribution.csv"):
             (tmp_path / name).unlink(missing_ok=True)
         (tmp_path / "error_distribution.md").unlink(missing_ok=True)
@@ -106,7 +123,7 @@ def test_restart_skips_finished_blocks_and_refuses_foreign_shards(tiny_dataset, 
     interrupt()
     (shards / "block-000001.done.json").unlink()
     second = run(_cfg(overrides))
-    assert second["blocks_resumed"] == 2
+    assert second["blocks_resumed"] == 3
     assert (shards / "block-000000.csv").stat().st_mtime_ns == kept  # not solved again
     assert (tmp_path / "estimates.csv").read_bytes() == reference
 
