@@ -360,3 +360,61 @@ def test_noise_floor_tells_sensor_noise_from_misfit_and_model_error():
     rms = a3.square().mean(1, keepdim=True).sqrt()
     noisy = a3 + 0.005 * rms * torch.randn(a3.shape, generator=g, dtype=torch.float64)
     assert floor(noisy, truth).all()
+
+
+def test_noise_model_is_refitted_where_the_fit_moved_far_from_its_start():
+    """exp 10's setting (a3 only, road and p_u known, x0 unknown, 5 % white noise, vehicle prior on
+    p4, p6..p10): the last stage starts from a 30-sample continuation fit, whose residual over the
+    whole window is mostly misfit. The noise variance fitted there is orders of magnitude too large,
+    the data then weigh nothing against the prior, and the whitened loss ends far below its white-noise
+    value ½ (T - 1). With the refits every sample's loss is within a factor 2 of it, the residual's
+    power at the estimate is the true noise variance, and the samples that were re-fitted move closer
+    to the truth (the data are the exact model's own output, so p is the truth)."""
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.response import quarter_car_response
+    from hybridqcm.physics import reference_params
+    from hybridqcm.testing import synthetic_samples
+
+    b, T, margin, sigma = 24, 400, 8, 0.05
+    drive = synthetic_samples(b, T + 2 * margin, seed=7)
+    p = drive["params"]
+    response = quarter_car_response("exact", 0.01, True, "unknown", "spline", 16)
+    road = (p[:, 9] - p[:, 8])[:, None] * drive["road"]
+    clean = response.outputs(torch.cat([p, drive["vel"][:, margin], drive["disp"][:, margin]], 1), road, margin, T)
+    g = torch.Generator().manual_seed(1)
+    rms = clean.square().mean(1, keepdim=True).sqrt()
+    noisy = clean + sigma * rms * torch.randn(clean.shape, generator=g, dtype=torch.float64)
+    known = torch.zeros(10, dtype=torch.bool)
+    known[[2, 4]] = True  # p3, p5 as in exp 10
+    ref = reference_params().double()
+    prior = (ref, torch.where(torch.arange(10) >= 2, 0.3 * ref, math.inf))
+    init = p * (1 + 0.05 * torch.randn(b, 10, generator=g, dtype=torch.float64))
+    outputs = {"targets": noisy, "road": drive["road"], "pu": p[:, 9] - p[:, 8], "init": init}
+    outputs.update(index=torch.arange(b), input_offset=margin)
+    finals = {}
+    for refits in (0, 2):
+        stages = [
+            GaussNewtonStage("w30", build_solver("gauss_newton", max_iterations=10), "observed", 30),
+            GaussNewtonStage("a3", build_solver("gauss_newton", max_iterations=60), "observed"),
+        ]
+        refinement = GaussNewtonRefinement(
+            stages, known=known, pu_known=True, response=response, reweight="spectral", noise_refits=refits,
+            peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares",
+        )  # fmt: skip
+        finals[refits] = refinement.refine(outputs)["final"]
+    precision = torch.where(known, 0.0, prior[1].pow(-2))  # the vehicle prior, free parameters only
+
+    def data_loss(f):  # the whitened data misfit: the solver's loss less the prior's term
+        return f.loss - 0.5 * (precision * (f.params[:, :10] - prior[0]).square()).sum(1)
+
+    ratio = {k: data_loss(f) / (0.5 * (T - 1)) for k, f in finals.items()}
+    stale = ~((ratio[0] > 0.5) & (ratio[0] < 2))
+    assert int(stale.sum()) >= 1  # the case exists without the refits
+    assert bool(((ratio[2] > 0.5) & (ratio[2] < 2)).all()), ratio[2]
+    fitted = finals[2].params
+    residual = response.outputs(fitted, road, margin, T)[:, :, 0] - noisy[:, :, 0]
+    power = (residual - residual.mean(1, keepdim=True)).square().mean(1)
+    assert torch.allclose(power / (sigma * rms[:, 0, 0]).square(), torch.ones(b, dtype=torch.float64), atol=0.25)
+    error = {k: (f.params[:, 1] / p[:, 1] - 1).abs() for k, f in finals.items()}
+    assert bool((error[2][stale] < error[0][stale]).all()), (error[0][stale], error[2][stale])
+    assert bool((error[2][~stale] == error[0][~stale]).all())  # the others are untouched

@@ -274,3 +274,53 @@ def test_fits_far_from_the_networks_start_are_retried_and_keep_the_lowest_loss()
         assert float(((out["params"][:, :2] - p) / p).abs().max()) < 1e-6
     with pytest.raises(ValueError, match="restart_far must be None or > 0"):
         GaussNewtonRefinement([GaussNewtonStage("seat", GaussNewton())], restart_far=0.0)
+
+
+def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit():
+    """Attempts that all fit (converged) are ranked by -log posterior with the noise variance profiled
+    out, ½ n log(residual power) + ½ λ (θ - μ)², not by the misfit alone. Sample 0: the restart has a
+    residual 0.04 % smaller (½ 500 log 0.9996 = -0.1) but sits 8 prior standard deviations out (+32):
+    the first fit is kept. Sample 1: a residual 10 % smaller (-26) at 3 standard deviations (+4.5): the
+    restart is taken. Without a noise model the smaller misfit wins, as before."""
+    from types import SimpleNamespace
+
+    from hybridqcm.estimation.solver import SolverResult
+
+    mean = torch.tensor([[10.0, 1000.0], [10.0, 1000.0]], dtype=torch.float64)
+    precision = torch.tensor([[1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)  # std 1 on p1, none on p2
+    problem = SimpleNamespace(prior_mean=mean, prior_precision=precision)
+    first = (torch.tensor([[10.0, 1000.0], [10.0, 1000.0]]), torch.tensor([1e-3, 1e-3]))
+    restart = (torch.tensor([[18.0, 2000.0], [13.0, 1500.0]]), torch.tensor([0.9996e-3, 0.9e-3]))
+    for n_terms, kept in ((500, [True, False]), (None, [False, False])):
+        attempts = iter([first, restart])
+
+        def run_stages(outputs, init, module, restart=False, x0_at_rest=None, _n=n_terms, _a=attempts):
+            params, relative = (t.double() for t in next(_a))
+            b = params.shape[0]
+            result = SolverResult(
+                params=params.clone(),
+                status=torch.full((b,), int(SolverStatus.CONVERGED)),
+                iterations=torch.ones(b, dtype=torch.int64),
+                loss=relative.clone(),
+                loss_history=relative[None].clone(),
+                std=torch.ones_like(params),
+                covariance=torch.eye(2, dtype=torch.float64).expand(b, 2, 2).clone(),
+                singular_values=torch.ones_like(params),
+                residual_variance=relative.clone(),
+                relative_residual=relative.sqrt(),
+                whiteness=torch.zeros(b, dtype=torch.float64),
+            )
+            score = GaussNewtonRefinement._attempt_score(relative, _n, problem, params)
+            return {}, result, params.clone(), relative.clone(), score
+
+        callback = GaussNewtonRefinement(
+            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=1, restart_threshold=0.0, peer_factor=None
+        )
+        callback._run_stages = run_stages
+        out = callback.refine({"init": torch.ones(2, 10, dtype=torch.float64), "index": torch.arange(2)})
+        for i, keep in enumerate(kept):
+            expected = first[0][i] if keep else restart[0][i]
+            assert torch.equal(out["params"][i], expected.double()), (n_terms, i, out["params"][i])
+    assert float(GaussNewtonRefinement._attempt_score(torch.tensor([1e-3]), 500, problem, mean[:1] + 2)[0]) == (
+        pytest.approx(250 * math.log(1e-3) + 2.0)
+    )

@@ -25,6 +25,10 @@ from .noise import SpectralNoise, estimate_variances, frequency_response
 from .response import EulerResponse, PreparedInputs, ResponseModel
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus, torch_threads
 
+# A noise model is consistent with a fit when the whitened loss is within this factor of its expectation
+# (white noise of 500 samples leaves it within a few per cent; a misfit's variance is off by orders).
+_NOISE_CONSISTENCY = 2.0
+
 
 @dataclass
 class GaussNewtonStage:
@@ -95,6 +99,7 @@ class GaussNewtonRefinement(Callback):
         x0_start: str = "rest",
         restart_far: float | None = None,
         param_prior: tuple[Tensor, Tensor] | None = None,
+        noise_refits: int = 2,
     ):
         super().__init__()
         if not stages:
@@ -128,6 +133,15 @@ class GaussNewtonRefinement(Callback):
             raise ValueError(f"reweight={reweight!r}: choose false, true/'channels' or 'spectral'")
         self.reweight = "channels" if reweight is True else reweight
         self.noise_passes = max(1, int(noise_passes))
+        # Each pass fits the noise variances to the residual at its start. Where that start was far from
+        # the data (the window continuation's short-window fit seen over the whole window), the variance
+        # is the misfit's, up to 10^5 times the noise: the data then weigh next to nothing against a prior
+        # and the intervals are as wide. A sample whose whitened loss at the end of the stage is not what
+        # its noise model predicts (within a factor _NOISE_CONSISTENCY) gets up to ``noise_refits`` more
+        # maximum-likelihood passes with the variances fitted again at its estimate (_refit_noise).
+        if int(noise_refits) < 0:
+            raise ValueError(f"noise_refits must be >= 0, got {noise_refits!r}")
+        self.noise_refits = int(noise_refits)
         self.ml_guard = None if ml_guard is None else float(ml_guard)
         self.min_input_noise = float(min_input_noise)  # relative to the input's RMS (see _noise_model)
         self.peer_factor = None if peer_factor is None else float(peer_factor)
@@ -193,7 +207,7 @@ class GaussNewtonRefinement(Callback):
         """All stages from ``init`` (restarts skip guarded stages: they start from the networks'
         guess directly, in case the completed channels were what misled the first attempt);
         ``x0_at_rest`` [batch] bool: rows whose initial state starts at rest whatever x0_start says.
-        Returns (per-stage results, last result, params, relative loss)."""
+        Returns (per-stage results, last result, params, relative loss, score: lower is the better attempt)."""
         params = self._theta(init)
         road = outputs["road"].double()
         if self.pu_known and self.quarter_car:
@@ -280,6 +294,8 @@ class GaussNewtonRefinement(Callback):
                 if spectral:  # the next pass re-fits the variances at this estimate
                     previous = result
                     params = torch.where((result.status == SolverStatus.DIVERGED)[:, None], params, result.params)
+            if spectral and self.noise_refits:
+                self._refit_noise(outputs, stage, stage_road, params, observed, offset, window, last, problem, result)
             per_stage[stage.name] = result
             # A stage that diverged keeps its input for the next stage rather than garbage.
             keep_input = result.status == SolverStatus.DIVERGED
@@ -306,7 +322,85 @@ class GaussNewtonRefinement(Callback):
         relative = torch.where(
             result.status == SolverStatus.DIVERGED, torch.full_like(relative, float("inf")), relative
         )
-        return per_stage, result, params, relative
+        n_terms = outputs["targets"].shape[1] * len(channels) if noise is not None else None
+        return per_stage, result, params, relative, self._attempt_score(relative, n_terms, problem, result.params)
+
+    @staticmethod
+    def _attempt_score(relative: Tensor, n_terms: int | None, problem, params: Tensor) -> Tensor:
+        """[batch] what the last stage minimised, comparable across attempts (lower is better). With the
+        noise variance profiled out (each attempt fitted its own), -log posterior = ½ n log(residual
+        power) + ½ Σ λ (θ - μ)² of ``problem``'s prior, n = ``n_terms`` residual terms: a vehicle far
+        outside the prior that matches the data only as well as the noise allows must not win by a
+        hair of misfit. ``n_terms`` None (no noise model): log of the relative loss, the same order."""
+        score = relative.clamp_min(1e-300).log()
+        if n_terms is None:
+            return score
+        score = 0.5 * n_terms * score
+        if getattr(problem, "prior_mean", None) is not None:
+            deviation = params.double() - problem.prior_mean
+            score = score + 0.5 * (problem.prior_precision * deviation.square()).sum(1)
+        return score
+
+    def _noise_consistent(self, problem: LeastSquaresProblem, result: SolverResult, n_steps: int) -> Tensor:
+        """[batch] bool: the whitened data loss at ``result`` (its loss less the prior's term) is within a
+        factor _NOISE_CONSISTENCY of what white noise of the fitted variances gives, ½ n_out (T - 1)
+        (the Parseval weights of T samples without DC sum to T - 1; the few fitted parameters take
+        less than a factor 2 off it for any window a spectral stage runs on)."""
+        loss = result.loss.double()
+        if problem.prior_mean is not None:
+            loss = loss - 0.5 * (problem.prior_precision * (result.params.double() - problem.prior_mean).square()).sum(
+                1
+            )
+        ratio = loss / (0.5 * sum(problem.observed) * (n_steps - 1))
+        return (ratio > 1.0 / _NOISE_CONSISTENCY) & (ratio < _NOISE_CONSISTENCY)
+
+    def _refit_noise(
+        self,
+        outputs,
+        stage: GaussNewtonStage,
+        inputs,
+        params: Tensor,
+        observed,
+        offset: int,
+        window: int,
+        last: bool,
+        problem: LeastSquaresProblem,
+        result: SolverResult,
+    ) -> None:
+        """In place (``result``, ``params``): the stage's samples whose noise model disagrees with their
+        residual (_noise_consistent) get maximum-likelihood passes with the variances fitted again at
+        their estimate, up to ``noise_refits`` times; a pass that diverges keeps the previous fit."""
+        consistent = self._noise_consistent(problem, result, window)
+        for _ in range(self.noise_refits):
+            redo = (~consistent & (result.status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
+            if redo.numel() == 0:
+                return
+            sub = {
+                k: (v[redo] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == params.shape[0] else v)
+                for k, v in outputs.items()
+            }
+            targets = outputs["targets"][redo, :window].double()
+            sub_inputs, start = inputs[redo], params[redo]
+            residual = self._residual(targets, sub_inputs, start, observed, offset)
+            noisy = None if self.param_prior is None else self._noise_floor(residual, targets, observed)
+            sub_problem = LeastSquaresProblem(
+                targets,
+                sub_inputs,
+                self.h,
+                scaled_road=self.pu_known,
+                observed=observed,
+                known=self.known,
+                weights=None,
+                model=self.response,
+                input_offset=offset,
+                noise=self._noise_model(targets, sub_inputs, start, observed, offset, False, residual),
+                **self._prior(sub, start, last, noisy),
+            )
+            refit = stage.solver.solve(sub_problem, start)
+            take = refit.status != SolverStatus.DIVERGED
+            _take(result, refit, take, redo[take])
+            params[redo[take]] = refit.params[take]
+            consistent[redo] = ~take | self._noise_consistent(sub_problem, refit, window)
 
     def _residual(self, targets: Tensor, inputs, params: Tensor, observed, offset: int) -> Tensor:
         """Prediction minus data on the observed channels, [b, T, n_observed] (non-finite entries 0)."""
@@ -441,7 +535,7 @@ class GaussNewtonRefinement(Callback):
 
     def _refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
         init = outputs["init"].double()
-        per_stage, result, params, relative = self._run_stages(outputs, init, module)
+        per_stage, result, params, relative, score = self._run_stages(outputs, init, module)
         restarted = torch.zeros(init.shape[0], dtype=torch.int64)
         typical = self._flag_outliers(result)
         attempt = 0
@@ -471,11 +565,11 @@ class GaussNewtonRefinement(Callback):
             at_rest = torch.tensor(
                 [self.x0_start == "alternate" and number % 2 == 0 for number in range(attempt, attempt + group)]
             ).repeat_interleave(retry.numel())
-            _, sub_result, sub_params, sub_relative = self._run_stages(
+            _, sub_result, sub_params, sub_relative, sub_score = self._run_stages(
                 sub, torch.cat(starts), module, restart=True, x0_at_rest=at_rest
             )
             # In attempt order: an attempt replaces a sample's current fit if it fits (not misfit or
-            # diverged) where the current does not, or fits as well and has the lower loss; a lower
+            # diverged) where the current does not, or fits as well and has the lower score; a lower
             # loss at a misfit is a structured residual, not a better fit. Candidates are judged by
             # the same peer test as the first fits.
             self._flag_outliers(sub_result, typical)
@@ -486,12 +580,13 @@ class GaussNewtonRefinement(Callback):
                 current = result.status[retry]
                 current_fits = current.ne(SolverStatus.MISFIT) & current.ne(SolverStatus.DIVERGED)
                 better = (fits[part] & ~current_fits) | (
-                    (fits[part] == current_fits) & (sub_relative[part] < relative[retry])
+                    (fits[part] == current_fits) & (sub_score[part] < score[retry])
                 )
                 mask[part] = better
                 take = retry[better]
                 params[take] = sub_params[part][better]
                 relative[take] = sub_relative[part][better]
+                score[take] = sub_score[part][better]
                 _take(result, sub_result, mask, take)
             restarted[retry] += group
             self._flag_outliers(result, typical)
