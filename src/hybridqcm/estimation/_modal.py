@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -57,7 +58,27 @@ _CDTYPE = torch.complex128
 # (2e-10 at 5.7e3), other pairs far less (< 1e-12 up to 1.4e6 for the quarter car).
 _LIMIT = 1e5
 _LIMIT_REAL = 1e3
+# The outputs alone divide by no eigenvalue difference: their rounding grows like cond(V) eps
+# (measured, seat near critical damping: 1.3e-12 relative at cond 1.6e4, 1.2e-13 at 1.8e3;
+# exactly critical, cond 1e16: wrong), so modal_outputs keeps the samples with cond(V) up to this.
+_LIMIT_OUTPUTS = 1e4
 _SERIES_TERMS = 18  # phi_3(z) by its series for |z| <= 1: remainder < 1/21! < 2e-19 relative
+
+
+def _bmm(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
+    """a [b, r, k] @ b [b, k, c] (float64) per sample, into ``out`` [b, r, c] if given (any strides
+    with unit column stride). On the CPU through numpy's matmul: OpenBLAS per sample is 2-4x faster
+    than torch.bmm for these shapes ([100, 32] @ [32, 51] per sample: 4.2 ms vs 8.9 ms for 512
+    samples, 1 thread; below OpenBLAS's threading threshold, so on the calling thread), and it reads
+    and writes strided rows (leading dimension = row stride) with no copy, which lets the time-first
+    basis be used batch first as it is."""
+    if a.device.type != "cpu":
+        return torch.bmm(a, b) if out is None else out.copy_(torch.bmm(a, b))
+    with np.errstate(all="ignore"):  # non-finite samples are flagged by the caller, as with torch
+        if out is None:
+            return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
+        np.matmul(a.numpy(), b.numpy(), out=out.numpy())
+    return out
 
 
 def _phi123(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -102,6 +123,49 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
     return ell, dell
 
 
+def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A [b, n, n] = V diag(lambda) V^-1 from the balanced D^-1 A D (scale [b, n] = D):
+    -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
+    balanced eigenvectors, ok [b]: finite, and the complex eigenvalues in conjugate pairs)."""
+    ratio = scale[:, None, :] / scale[:, :, None]
+    lam, Vb = torch.linalg.eig(A * ratio)
+    Vb_inv = torch.linalg.inv(Vb)
+    V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
+    cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)
+    ok = torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
+    return lam, V, V_inv, cond, ok
+
+
+def _slots(lam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The modes propagated, K per sample: -> (mode of each slot [b, K], its lambda [b, K], weight
+    omega [b, K] float64).
+
+    Real form. sum_i c_i z_i = sum_i omega_i Re(c_i z_i) (omega = 2 for the member of a pair with
+    Im lambda > 0, 0 for its partner, 1 for a real eigenvalue, whose z is real), and
+    Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
+    n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
+    Slots: the kept modes first, padded to the chunk's largest n_first with zero weight."""
+    n = lam.shape[1]
+    upper, real = lam.imag > 0, lam.imag == 0
+    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
+    n_first = n - upper.sum(1)
+    n_slot = int(n_first.max())
+    slot = order[:, :n_slot]  # [b, K] mode of each slot
+    lam_s = torch.gather(lam, 1, slot)
+    omega = torch.where(lam_s.imag > 0, 2.0, 1.0).to(torch.float64)
+    omega = omega * (torch.arange(n_slot, device=lam.device) < n_first[:, None])
+    return slot, lam_s, omega
+
+
+def _held_rows(fine: Tensor, T: int) -> Tensor:
+    """fine [b, m, M + (T - 1) M + 1] (M leading zeros) -> [b, T, (c, j)] (a copy): row k holds
+    s_{k-1, 0..M} of every input channel (row 0: the padding, zeros)."""
+    batch, m, width = fine.shape
+    m_sub = (width - 1) // T
+    sb, sc, st = fine.stride()
+    return fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st)).reshape(batch, T, m * (m_sub + 1))
+
+
 def modal_sensitivities(
     matrices: tuple[Tensor, Tensor, Tensor, Tensor],
     derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
@@ -129,19 +193,12 @@ def modal_sensitivities(
     n_col = 1 + n_params + (n if with_x0 else 0)
     dev = A.device
 
-    # eigen-decomposition of the balanced matrix; V = D Vb, V^-1 = Vb^-1 D^-1
-    ratio = scale[:, None, :] / scale[:, :, None]
-    lam, Vb = torch.linalg.eig(A * ratio)
-    Vb_inv = torch.linalg.inv(Vb)
-    V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
+    lam, V, V_inv, cond, ok = _eigen(A, scale)
     diff = lam[:, :, None] - lam[:, None, :]  # [b, i, l] lambda_i - lambda_l
     eye = torch.eye(n, dtype=torch.bool, device=dev)
     both_real = (lam.imag == 0)[:, :, None] & (lam.imag == 0)[:, None, :]
-    cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)  # 1-norm condition number
     spread = (cond * lam.abs().amax(-1))[:, None, None] / diff.abs().masked_fill(eye, math.inf)  # [b, i, l]
-    limit = torch.where(both_real, _LIMIT_REAL, _LIMIT)
-    ok = torch.isfinite(cond) & (spread <= limit).all(-1).all(-1)
-    ok &= (lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1)
+    ok &= (spread <= torch.where(both_real, _LIMIT_REAL, _LIMIT)).all(-1).all(-1)
 
     # complex coefficients [b, kind, mode, o, col]; kinds in the order of the recursion's channels:
     # (e, f) then (psi_c, chi_c) for every input channel c
@@ -177,19 +234,9 @@ def modal_sensitivities(
         g_t[:, None, :, :, None] * (dlam[:, :, :, None] * beta[:, None]).permute(0, 3, 2, 1)[:, :, :, None]
     )
 
-    # Real form. sum_i c_i z_i = sum_i omega_i Re(c_i z_i) (omega = 2 for the member of a pair with
-    # Im lambda > 0, 0 for its partner, 1 for a real eigenvalue, whose z is real), and
-    # Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
-    # n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
-    # Slots: the kept modes first, padded to the chunk's largest n_first with zero weight.
-    upper, real = lam.imag > 0, lam.imag == 0
-    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
-    n_first = n - upper.sum(1)
-    n_slot = int(n_first.max())
-    slot = order[:, :n_slot]  # [b, K] mode of each slot
-    lam_s = torch.gather(lam, 1, slot)
-    omega = torch.where(lam_s.imag > 0, 2.0, 1.0).to(torch.float64)
-    omega = omega * (torch.arange(n_slot, device=dev) < n_first[:, None])
+    # real form (_slots): the kept modes' coefficients, conjugated and weighted
+    slot, lam_s, omega = _slots(lam)
+    n_slot = slot.shape[1]
     index = slot.view(batch, 1, 1, n_slot, 1, 1).expand(-1, m + 1, 2, -1, o, n_col)
     picked = torch.gather(coef, 3, index).conj().mul_(omega.view(batch, 1, 1, n_slot, 1, 1))
     n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
@@ -201,18 +248,20 @@ def modal_sensitivities(
     # The basis by one scalar recursion per slot: Z [T, b, 1 + m, 2, K] complex (time first: 5x
     # faster steps than batch first), channel 0 = (e, f) (start (1, 0), no
     # forcing), 1 + c = (psi_c, chi_c); in each, (z, dz/dlambda) obey z_{k+1} = mu z_k + F_k,
-    # dz_{k+1} = mu dz_k + h z_{k+1} + (F'_k - h F_k). F_k for all k is one bmm (batch first, row
-    # k + 1; row 0, from the padding, is overwritten by the start), moved in and out of the loop's
-    # layout by permuted copies.
+    # dz_{k+1} = mu dz_k + h z_{k+1} + (F'_k - h F_k). F_k for all k is one product per sample
+    # (row k + 1; row 0, from the padding, is overwritten by the start) written straight into the
+    # time-first buffer, and the final product reads the buffer batch first as it is; the input
+    # samples w are columns of the same buffer (padded to an even width: Z is a complex view).
     ell, dell = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
     weights = torch.zeros(batch, m, m_sub + 1, 1 + m, 2, n_slot, 2, dtype=torch.float64, device=dev)
     for c in range(m):  # [b, (c, j), (channel, kind, slot, re/im)]
         weights[:, c, :, 1 + c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
-    # fine [b, m, M + L] starts with M zeros: row k of `held` is s_{k-1, 0..M} (row 0: padding)
-    sb, sc, st = fine.stride()
-    held = fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st))
-    forcing = torch.bmm(held.reshape(batch, T, m * (m_sub + 1)), weights.view(batch, m * (m_sub + 1), n_real))
-    Z = torch.view_as_complex(forcing.view(batch, T, 1 + m, 2, n_slot, 2)).transpose(0, 1).contiguous()
+    width = n_real + m + m % 2
+    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)  # [k, b, (Z | w | 0)]
+    buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
+    buffer[:, :, n_real + m :] = 0
+    _bmm(_held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1))
+    Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, 1 + m, 2, n_slot, 2))
     Z[0] = 0
     Z[0, :, 0, 0] = 1
     mu = torch.exp(lam_s * h)[:, None, None, :]  # [b, 1, 1, K]
@@ -220,7 +269,66 @@ def modal_sensitivities(
         nxt = Z[k + 1]
         nxt.addcmul_(Z[k], mu)
         nxt[:, :, 1].add_(nxt[:, :, 0], alpha=h)
-    basis = torch.view_as_real(Z.transpose(0, 1).contiguous()).view(batch, T, n_real)
-    out = torch.bmm(basis, coef_z)
-    out.baddbmm_(window, coef_w.view(batch, m, o * n_col))
+    coef_all = torch.cat([coef_z, coef_w.view(batch, m, o * n_col)], 1)
+    coef_all = torch.nn.functional.pad(coef_all, (0, 0, 0, width - n_real - m))
+    out = _bmm(buffer.transpose(0, 1), coef_all)
     return out.view(batch, T, o, n_col), ok
+
+
+def modal_outputs(
+    matrices: tuple[Tensor, Tensor, Tensor, Tensor],
+    scale: Tensor,
+    x0: Tensor | None,
+    fine: Tensor,
+    window: Tensor,
+    h: float,
+    hold: str,
+) -> tuple[Tensor, Tensor]:
+    """-> (y [b, T, o] as exact_outputs, ok [b] bool): modal_sensitivities' column 0 alone,
+
+        y_k = gamma (e_k xi0 + sum_c beta_c psi_{k,c}) + E w_k,
+
+    so only e and psi are propagated (no derivatives, one complex multiply-add per step). The
+    arguments and ``ok`` as in modal_sensitivities."""
+    A, B, C, E = matrices
+    batch, n, m = B.shape
+    o, T = C.shape[1], window.shape[1]
+    m_sub = (fine.shape[2] - 1) // T
+    dev = A.device
+    lam, V, V_inv, cond, ok = _eigen(A, scale)
+    ok &= cond <= _LIMIT_OUTPUTS
+    slot, lam_s, omega = _slots(lam)
+    n_slot = slot.shape[1]
+    # complex coefficients [b, channel, slot, o]: channel 0 = e (only with x0), 1 + c = psi_c
+    first = 0 if x0 is not None else 1
+    gamma = torch.gather(C.to(_CDTYPE) @ V, 2, slot[:, None].expand(-1, o, -1)).transpose(1, 2)  # [b, K, o]
+    V_inv_s = torch.gather(V_inv, 1, slot[:, :, None].expand(-1, -1, n))  # [b, K, n]
+    drive = [] if x0 is None else [V_inv_s @ x0.to(_CDTYPE)[..., None]]  # xi0 of the kept modes, [b, K, 1]
+    drive = torch.cat(drive + [V_inv_s @ B.to(_CDTYPE)], 2).transpose(1, 2)  # [b, channel, K]
+    coef = (drive[..., None] * gamma[:, None]).conj() * omega[:, None, :, None]
+    n_ch = 1 + m - first
+    n_real = 2 * n_slot * n_ch
+    width = n_real + m + m % 2  # Z is a complex view of the buffer: an even row width
+    coef_all = torch.zeros(batch, width, o, dtype=torch.float64, device=dev)
+    coef_all[:, :n_real] = torch.view_as_real(coef).transpose(-1, -2).reshape(batch, n_real, o)
+    coef_all[:, n_real : n_real + m] = E.transpose(1, 2)
+    ok &= torch.isfinite(coef_all.sum((1, 2)))
+
+    # psi by the recursion of modal_sensitivities (without chi), e = mu^k by the same recursion
+    # started at 1 without forcing; the buffer [T, b, (Z | w | 0)] as there
+    ell, _ = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
+    weights = torch.zeros(batch, m, m_sub + 1, n_ch, n_slot, 2, dtype=torch.float64, device=dev)
+    for c in range(m):  # [b, (c, j), (channel, slot, re/im)]
+        weights[:, c, :, 1 + c - first] = torch.view_as_real(ell).transpose(0, 1)
+    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)
+    buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
+    buffer[:, :, n_real + m :] = 0
+    _bmm(_held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1))
+    Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, n_ch, n_slot, 2))
+    Z[0] = 0
+    if x0 is not None:
+        Z[0, :, 0] = 1
+    mu = torch.exp(lam_s * h)[:, None, :]  # [b, 1, K]
+    for k in range(T - 1):
+        Z[k + 1].addcmul_(Z[k], mu)
+    return _bmm(buffer.transpose(0, 1), coef_all), ok

@@ -66,15 +66,25 @@ from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel
 
-from ._modal import modal_sensitivities
+from ._modal import _bmm, modal_outputs, modal_sensitivities
 
 HOLDS = ("spline", "foh", "zoh")
 METHODS = ("modal", "recursion")
+OUTPUT_METHODS = ("auto",) + METHODS
 SPLINE_DEGREES = (3, 5)
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
 _TAYLOR_THETA = 0.25
 _TAYLOR_DEGREE = 11
+# The modal path's fallback takes _stacked_sensitivities up to this many samples (one block-diagonal
+# GEMM per step, 7 ms for 5 quarter cars, 12 ms for 16), the batch-innermost recursion above (about
+# 19 ms for any small batch, 24 ms for 64; the GEMMs grow as b^2).
+_STACKED_MAX = 16
+# exact_outputs(method="auto") takes the modal path up to this many samples and the recursion above:
+# the modal path costs fewer ops (1.6 vs 3.1 ms for 16 quarter cars, 16 sub-steps, T = 100), but
+# its eigen-decompositions (~10 us per sample) make it the slower one from about 190 samples on
+# (8.5 vs 6.8 ms for 384).
+_MODAL_OUTPUTS_MAX = 160
 
 
 # ----------------------------------------------------------------------------- validation
@@ -298,7 +308,7 @@ def _forcing_batch_first(lam: Tensor, held: Tensor, n_steps: int) -> Tensor:
         rows = by_sample[:, c, m_sub : m_sub + (n_steps - 1) * m_sub].unflatten(1, (n_steps - 1, m_sub))
         last = by_sample[:, c, 2 * m_sub :: m_sub]  # s_{k, M} = s_{k+1, 0}, [b, T - 1]
         weights = lam_b[c].contiguous()  # [b, M + 1, n]
-        term = torch.baddbmm(last[:, :, None] * weights[:, m_sub : m_sub + 1], rows, weights[:, :m_sub])
+        term = _bmm(rows, weights[:, :m_sub]).addcmul_(last[:, :, None], weights[:, m_sub : m_sub + 1])
         forcing = term if forcing is None else forcing.add_(term)
     return forcing.permute(1, 2, 0).contiguous()  # [T-1, n, b]
 
@@ -549,6 +559,7 @@ def exact_outputs(
     n_steps: int | None = None,
     spline_degree: int = 5,
     held: Tensor | None = None,
+    method: str = "auto",
 ) -> Tensor:
     """params [b, P], x0 [b, n] (None = rest), inputs [b, T_in, m] -> y [b, n_steps, o] (float64).
 
@@ -556,17 +567,46 @@ def exact_outputs(
     x0 is the state at sample ``start`` in the model's state coordinates. The spline hold
     interpolates all T_in samples, so samples outside the window (margins) make the held input
     near the window's edges as accurate as inside it. ``held``: held_input of the same inputs and
-    window, if the caller has it (the same result, without recomputing it).
+    window, if the caller has it (the same result, without recomputing it). ``method``: "modal"
+    (as in exact_sensitivities: a few hundred ops per call where the recursion takes about a
+    thousand, which is what a line search's small batches cost), "recursion", or "auto" (default:
+    whichever is faster for the batch size, _MODAL_OUTPUTS_MAX); they agree to round-off.
     """
+    if method not in OUTPUT_METHODS:
+        raise ValueError(f"exact: unknown method {method!r}; choose one of {OUTPUT_METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
     _check_held(held, inputs, hold, substeps, T)
+    if T > 1:
+        held = _held(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    if method == "auto":
+        method = "modal" if params.shape[0] <= _MODAL_OUTPUTS_MAX else "recursion"
+    if method == "recursion" or T == 1:
+        return _recursion_outputs(model, params, x0, inputs, h, hold, substeps, start, T, held)
+    A, B, C, E = model.matrices(params)
+    out, ok = modal_outputs((A, B, C, E), _balance(A), x0, held.permute(2, 1, 0), inputs[:, start : start + T], h, hold)
+    if not bool(ok.all()):
+        bad = (~ok).nonzero()[:, 0]
+        out[bad] = _recursion_outputs(
+            model,
+            params[bad],
+            None if x0 is None else x0[bad],
+            inputs[bad],
+            h,
+            hold,
+            substeps,
+            start,
+            T,
+            held[..., bad],
+        )
+    return out
+
+
+def _recursion_outputs(model, params, x0, inputs, h, hold, substeps, start, T, held) -> Tensor:
+    """exact_outputs by the step recursion (validated float64 arguments, held from _held; None for T = 1)."""
     batch = inputs.shape[0]
     _, _, C, E = model.matrices(params)
     if T > 1:
         phi, lam = _maps(model, params, h, hold, substeps, False)
-        if held is None:
-            held = _held(inputs, hold, substeps, start, T, spline_degree)
-        held = held.to(_DTYPE)
         if held.stride(2) != 1 and held.stride(0) == 1:  # stored batch first (PreparedInputs)
             forcing = _forcing_batch_first(lam, held, T)  # [T-1, n, b]
         else:
@@ -626,7 +666,8 @@ def exact_sensitivities(
     )
     if not bool(ok.all()):
         bad = (~ok).nonzero()[:, 0]
-        out[bad] = _recursion_sensitivities(
+        fallback = _stacked_sensitivities if bad.numel() <= _STACKED_MAX else _recursion_sensitivities
+        out[bad] = fallback(
             model,
             params[bad],
             None if x0 is None else x0[bad],
@@ -639,6 +680,58 @@ def exact_sensitivities(
             T,
             held[..., bad],
         )
+    return out
+
+
+def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
+    """exact_sensitivities by the same step recursion as _recursion_sensitivities, for a few samples
+    (the modal path's fallback, up to _STACKED_MAX). The state and its tangents are one matrix per
+    sample, X_k = [x_k | dx_k/dp | dx_k/dx0] [n, 1 + P (+ n)], and a step is
+
+        X_{k+1} = Phi X_k + [G_k | dPhi_j x_k + dG_k | 0],   G_k = sum_j Lam_j s_{k,j},
+
+    with G and dG for all k from one product before the loop and the batch's Phi and dPhi as
+    block-diagonal matrices: 3 ops per step instead of ~50, which is what a handful of samples
+    costs (their arithmetic is negligible; it grows as b^2)."""
+    batch, n, n_params, m = params.shape[0], model.n_state, model.n_params, model.n_input
+    _, _, C, E = model.matrices(params)
+    _, _, dC, dE = model.matrix_derivatives(params)
+    n_col = 1 + n_params + (n if with_x0 else 0)
+    X = torch.zeros(T, batch, n, n_col, dtype=_DTYPE, device=params.device)  # [k, b, i, column]
+    if x0 is not None:
+        X[0, :, :, 0] = x0
+    if with_x0:
+        X[0, :, :, 1 + n_params :] = torch.eye(n, dtype=_DTYPE, device=params.device)
+    if T > 1:
+        phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # batch innermost
+        m_sub = lam.shape[0] - 1
+        # s [b, T-1, (j, c)] and the weights [b, (j, c), (i, q)] of G (q = 0) and dG_p (q = 1 + p)
+        s = _sub_samples(held, T).permute(3, 2, 0, 1).reshape(batch, T - 1, (m_sub + 1) * m)
+        weights = torch.cat([lam[:, :, None], dlam], 2)  # [j, i, q, c, b]
+        weights = weights.permute(4, 0, 3, 1, 2).reshape(batch, (m_sub + 1) * m, n * (1 + n_params))
+        forcing = torch.bmm(s, weights).view(batch, T - 1, n * (1 + n_params), 1).transpose(0, 1).contiguous()
+        # the batch as one block-diagonal matrix: one small GEMM per step (bmm over a few tiny
+        # matrices loops over them in Python-level ops), affordable while b n is small
+        eye_b = torch.eye(batch, dtype=_DTYPE, device=params.device)
+        phi_bd = (eye_b[:, None, :, None] * phi.permute(2, 0, 1)[:, :, None]).reshape(batch * n, batch * n)
+        dphi_q = torch.zeros(batch, n, 1 + n_params, n, dtype=_DTYPE, device=params.device)  # q = 0: zero
+        dphi_q[:, :, 1:] = dphi.permute(3, 0, 1, 2)
+        dphi_bd = (dphi_q[:, :, :, None] * eye_b[:, None, None, :, None]).reshape(batch * n * (1 + n_params), -1)
+        rows = X.view(T, batch * n, n_col)
+        forcing = forcing.view(T - 1, batch * n * (1 + n_params), 1)
+        for k in range(T - 1):
+            torch.mm(phi_bd, rows[k], out=rows[k + 1])
+            rows[k + 1, :, : 1 + n_params] += torch.addmm(forcing[k], dphi_bd, rows[k, :, :1]).view(
+                batch * n, 1 + n_params
+            )
+    # y_k = C x_k + E w_k, dy_k/dp = C dx_k + dC x_k + dE w_k, dy_k/dx0 = C dx_k/dx0: all k at once
+    states = X.transpose(0, 1)  # [b, T, n, column]
+    window = inputs[:, start : start + T]  # [b, T, m]
+    out = torch.matmul(C[:, None], states)  # [b, T, o, column]
+    out[..., 0] += torch.einsum("bom,btm->bto", E, window)
+    out[..., 1 : 1 + n_params] += torch.einsum("bpon,btn->btop", dC, states[..., 0]) + torch.einsum(
+        "bpom,btm->btop", dE, window
+    )
     return out
 
 
