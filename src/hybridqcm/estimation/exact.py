@@ -66,7 +66,7 @@ from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel
 
-from ._modal import _bmm, modal_outputs, modal_sensitivities
+from ._modal import _matmul, modal_outputs, modal_sensitivities
 
 HOLDS = ("spline", "foh", "zoh")
 METHODS = ("modal", "recursion")
@@ -308,7 +308,7 @@ def _forcing_batch_first(lam: Tensor, held: Tensor, n_steps: int) -> Tensor:
         rows = by_sample[:, c, m_sub : m_sub + (n_steps - 1) * m_sub].unflatten(1, (n_steps - 1, m_sub))
         last = by_sample[:, c, 2 * m_sub :: m_sub]  # s_{k, M} = s_{k+1, 0}, [b, T - 1]
         weights = lam_b[c].contiguous()  # [b, M + 1, n]
-        term = _bmm(rows, weights[:, :m_sub]).addcmul_(last[:, :, None], weights[:, m_sub : m_sub + 1])
+        term = _matmul(rows, weights[:, :m_sub]).addcmul_(last[:, :, None], weights[:, m_sub : m_sub + 1])
         forcing = term if forcing is None else forcing.add_(term)
     return forcing.permute(1, 2, 0).contiguous()  # [T-1, n, b]
 
