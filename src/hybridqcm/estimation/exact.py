@@ -76,10 +76,10 @@ _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
 _TAYLOR_THETA = 0.25
 _TAYLOR_DEGREE = 11
-# The modal path's fallback takes _stacked_sensitivities up to this many samples (one block-diagonal
-# GEMM per step, 7 ms for 5 quarter cars, 12 ms for 16), the batch-innermost recursion above (about
-# 19 ms for any small batch, 24 ms for 64; the GEMMs grow as b^2).
-_STACKED_MAX = 16
+# The modal path's fallback takes _stacked_sensitivities up to this many samples (per-sample
+# products, ~1 ms + 0.3 ms per quarter car at 16 sub-steps, T = 100), the batch-innermost recursion
+# above (~19 ms for any small batch).
+_STACKED_MAX = 32
 # exact_outputs(method="auto") takes the modal path up to this many samples and the recursion above:
 # the modal path costs fewer ops (1.6 vs 3.1 ms for 16 quarter cars, 16 sub-steps, T = 100), but
 # its eigen-decompositions (~10 us per sample) make it the slower one from about 190 samples on
@@ -683,6 +683,49 @@ def exact_sensitivities(
     return out
 
 
+def _maps_batch_first(model, p: Tensor, h: float, hold: str, substeps: int):
+    """discrete_maps(..., tangents=True) for a few samples, batch first: (Phi [b, n, n],
+    Lam [b, M+1, n, m], dPhi [b, P, n, n], dLam [b, P, M+1, n, m]). The Van Loan exponential and its
+    Fréchet derivatives are the blocks of exp([[M, dM_j], [0, M]]) (torch.linalg.matrix_exp, one
+    call for all j), the sub-steps are folded as in _maps with per-sample products (_matmul): a few
+    dozen ops instead of the ~400 of the batch-innermost _maps, which only pay off for large
+    batches."""
+    A, B, _, _ = model.matrices(p)
+    dA, dB, _, _ = model.matrix_derivatives(p)
+    batch, n_params = p.shape
+    n, m = model.n_state, model.n_input
+    m_sub = substeps if hold == "spline" else 1
+    tau = h / m_sub
+    N = n + 2 * m
+    block = torch.zeros(batch, n_params, 2 * N, 2 * N, dtype=_DTYPE, device=p.device)
+    M = _van_loan(A, B, tau).permute(2, 0, 1)  # [b, N, N]
+    block[..., :N, :N] = block[..., N:, N:] = M[:, None]
+    block[..., :n, N : N + n] = dA * tau
+    block[..., :n, N + n : N + n + m] = dB * tau
+    d = _balance(block.view(-1, 2 * N, 2 * N)).view(batch, n_params, 1, 2 * N)  # as in _expm_inner
+    ratio = d / d.transpose(2, 3)  # exp(D^-1 X D) = D^-1 exp(X) D, D powers of two: exact
+    F = torch.linalg.matrix_exp(block * ratio) / ratio
+    phi, F1, F2 = F[:, 0, :n, :n], F[:, 0, :n, n : n + m], F[:, 0, :n, n + m : N]
+    dphi, dF1, dF2 = F[..., :n, N : N + n], F[..., :n, N + n : N + n + m], F[..., :n, N + n + m :]
+    g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
+    dg0, dg1 = (dF1, torch.zeros_like(dF2)) if hold == "zoh" else (dF1 - dF2, dF2)
+    if m_sub == 1:
+        return phi, torch.stack([g0, g1], 1), dphi, torch.stack([dg0, dg1], 2)
+    # as _maps: Lam_m = g1, Lam_j = phi^(m-1-j) c (c = g0 + phi g1), Lam_0 = phi^(m-1) g0, Phi = phi^m
+    phi, dphi = phi.contiguous(), dphi.contiguous()
+    c = _matmul(phi, g1.contiguous()) + g0
+    dc = _matmul(dphi, g1[:, None].contiguous()) + _matmul(phi[:, None], dg1.contiguous()) + dg0
+    W, dW = torch.cat([c, g0, phi], 2), torch.cat([dc, dg0, dphi], 3)
+    lam, dlam = [None] * (m_sub + 1), [None] * (m_sub + 1)
+    lam[m_sub], lam[m_sub - 1], dlam[m_sub], dlam[m_sub - 1] = g1, c, dg1, dc
+    for i in range(1, m_sub):
+        W, dW = _matmul(phi, W), _matmul(dphi, W[:, None]) + _matmul(phi[:, None], dW)
+        if i < m_sub - 1:
+            lam[m_sub - 1 - i], dlam[m_sub - 1 - i] = W[..., :m], dW[..., :m]
+    lam[0], dlam[0] = W[..., m : 2 * m], dW[..., m : 2 * m]
+    return W[..., 2 * m :], torch.stack(lam, 1), dW[..., 2 * m :], torch.stack(dlam, 2)
+
+
 def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
     """exact_sensitivities by the same step recursion as _recursion_sensitivities, for a few samples
     (the modal path's fallback, up to _STACKED_MAX). The state and its tangents are one matrix per
@@ -690,9 +733,9 @@ def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0
 
         X_{k+1} = Phi X_k + [G_k | dPhi_j x_k + dG_k | 0],   G_k = sum_j Lam_j s_{k,j},
 
-    with G and dG for all k from one product before the loop and the batch's Phi and dPhi as
-    block-diagonal matrices: 3 ops per step instead of ~50, which is what a handful of samples
-    costs (their arithmetic is negligible; it grows as b^2)."""
+    with G and dG for all k from one product before the loop and the maps from
+    _maps_batch_first: 3 ops per step instead of ~50, which is what a handful of samples costs
+    (their arithmetic is negligible)."""
     batch, n, n_params, m = params.shape[0], model.n_state, model.n_params, model.n_input
     _, _, C, E = model.matrices(params)
     _, _, dC, dE = model.matrix_derivatives(params)
@@ -703,31 +746,26 @@ def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0
     if with_x0:
         X[0, :, :, 1 + n_params :] = torch.eye(n, dtype=_DTYPE, device=params.device)
     if T > 1:
-        phi, lam, dphi, dlam = _maps(model, params, h, hold, substeps, True)  # batch innermost
-        m_sub = lam.shape[0] - 1
+        phi, lam, dphi, dlam = _maps_batch_first(model, params, h, hold, substeps)
+        m_sub = lam.shape[1] - 1
         # s [b, T-1, (j, c)] and the weights [b, (j, c), (i, q)] of G (q = 0) and dG_p (q = 1 + p)
         s = _sub_samples(held, T).permute(3, 2, 0, 1).reshape(batch, T - 1, (m_sub + 1) * m)
-        weights = torch.cat([lam[:, :, None], dlam], 2)  # [j, i, q, c, b]
-        weights = weights.permute(4, 0, 3, 1, 2).reshape(batch, (m_sub + 1) * m, n * (1 + n_params))
-        forcing = torch.bmm(s, weights).view(batch, T - 1, n * (1 + n_params), 1).transpose(0, 1).contiguous()
-        # the batch as one block-diagonal matrix: one small GEMM per step (bmm over a few tiny
-        # matrices loops over them in Python-level ops), affordable while b n is small
-        eye_b = torch.eye(batch, dtype=_DTYPE, device=params.device)
-        phi_bd = (eye_b[:, None, :, None] * phi.permute(2, 0, 1)[:, :, None]).reshape(batch * n, batch * n)
-        dphi_q = torch.zeros(batch, n, 1 + n_params, n, dtype=_DTYPE, device=params.device)  # q = 0: zero
-        dphi_q[:, :, 1:] = dphi.permute(3, 0, 1, 2)
-        dphi_bd = (dphi_q[:, :, :, None] * eye_b[:, None, None, :, None]).reshape(batch * n * (1 + n_params), -1)
-        rows = X.view(T, batch * n, n_col)
-        forcing = forcing.view(T - 1, batch * n * (1 + n_params), 1)
-        for k in range(T - 1):
-            torch.mm(phi_bd, rows[k], out=rows[k + 1])
-            rows[k + 1, :, : 1 + n_params] += torch.addmm(forcing[k], dphi_bd, rows[k, :, :1]).view(
-                batch * n, 1 + n_params
+        weights = torch.cat([lam[:, None], dlam], 1)  # [b, q, j, i, c]
+        weights = weights.permute(0, 2, 4, 3, 1).reshape(batch, (m_sub + 1) * m, n * (1 + n_params))
+        forcing = _matmul(s, weights).view(batch, T - 1, n * (1 + n_params), 1).transpose(0, 1).contiguous()
+        # dPhi as [b, (i, q), l] with zero rows for q = 0: dPhi x_k lands in the tangent columns
+        dphi_q = torch.zeros(batch, n, 1 + n_params, n, dtype=_DTYPE, device=params.device)
+        dphi_q[:, :, 1:] = dphi.transpose(1, 2)
+        dphi_q = dphi_q.view(batch, n * (1 + n_params), n)
+        for k in range(T - 1):  # torch.bmm: for a few samples its per-call cost is the lowest (3 us)
+            torch.bmm(phi, X[k], out=X[k + 1])
+            X[k + 1, ..., : 1 + n_params] += torch.baddbmm(forcing[k], dphi_q, X[k, ..., :1]).view(
+                batch, n, 1 + n_params
             )
     # y_k = C x_k + E w_k, dy_k/dp = C dx_k + dC x_k + dE w_k, dy_k/dx0 = C dx_k/dx0: all k at once
     states = X.transpose(0, 1)  # [b, T, n, column]
     window = inputs[:, start : start + T]  # [b, T, m]
-    out = torch.matmul(C[:, None], states)  # [b, T, o, column]
+    out = torch.einsum("bon,btnc->btoc", C, states)  # [b, T, o, column]
     out[..., 0] += torch.einsum("bom,btm->bto", E, window)
     out[..., 1 : 1 + n_params] += torch.einsum("bpon,btn->btop", dC, states[..., 0]) + torch.einsum(
         "bpom,btm->btop", dE, window
