@@ -47,9 +47,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import Tensor
+
+from ._blas import batched_matmul as _matmul
 
 _CDTYPE = torch.complex128
 # cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
@@ -63,23 +64,6 @@ _LIMIT_REAL = 1e3
 # exactly critical, cond 1e16: wrong), so modal_outputs keeps the samples with cond(V) up to this.
 _LIMIT_OUTPUTS = 1e4
 _SERIES_TERMS = 18  # phi_3(z) by its series for |z| <= 1: remainder < 1/21! < 2e-19 relative
-
-
-def _matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
-    """a @ b (batched, broadcast, float64 or complex128), into ``out`` if given (any strides with a
-    unit column stride). On the CPU through numpy's matmul: OpenBLAS per sample is 2-4x faster than
-    torch's batched products for these small shapes ([100, 32] @ [32, 51] per sample: 4.2 ms vs 8.9
-    ms for 512 samples; [6, 6] @ [6, 6] complex for 512 x 10: 0.6 vs 1.9 ms; 1 thread, and below
-    OpenBLAS's threading threshold, so on the calling thread), and it reads and writes strided rows
-    (leading dimension = row stride) with no copy, which lets the time-first basis be used batch
-    first as it is."""
-    if a.device.type != "cpu":
-        return torch.matmul(a, b) if out is None else out.copy_(torch.matmul(a, b))
-    with np.errstate(all="ignore"):  # non-finite samples are flagged by the caller, as with torch
-        if out is None:
-            return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
-        np.matmul(a.numpy(), b.numpy(), out=out.numpy())
-    return out
 
 
 def _phi123(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -66,7 +66,8 @@ from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel
 
-from ._modal import _matmul, modal_outputs, modal_sensitivities
+from ._blas import batched_matmul as _matmul
+from ._modal import modal_outputs, modal_sensitivities
 
 HOLDS = ("spline", "foh", "zoh")
 METHODS = ("modal", "recursion")
