@@ -44,8 +44,10 @@ Sensitivities. Outputs are linear in x0, so dy_k/dx0 = H_k = C Phi^k (H_{k+1} = 
 dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLambda_j s_{k,j} and dy_k = C dx_k + dC x_k + dE w_k.
 exact_sensitivities evaluates these by default in modal coordinates (estimation._modal: per
 sample A = V diag(lambda) V^-1, every column a combination of a few scalar sequences per mode, one
-bmm per chunk); the step recursion below (method="recursion") is the reference and the fallback
-for samples with nearly repeated eigenvalues.
+small product per sample); the step recursion below (method="recursion") is the reference, and
+the fallback for samples with nearly repeated eigenvalues (for up to _STACKED_MAX of them the same
+recursion batch first, _stacked_sensitivities). exact_outputs has the same two methods and picks
+the faster one for the batch size (method="auto").
 
 Layout. Every per-sample quantity is held batch innermost (matrices [r, c, b], tangents
 [r, P, c, b]) and every per-sample product is written as broadcast multiply-adds over contiguous
