@@ -616,6 +616,26 @@ def test_stacked_fallback_matches_the_step_recursion(case, hold):
         assert _column_error(new, old) <= 1e-12, (with_x0, start, n_steps)
 
 
+def test_batched_matmul_matches_torch():
+    """The numpy (OpenBLAS) products of the estimation layers: broadcast, transposed, conjugated and
+    negated operands, and a strided output, as torch.matmul computes them."""
+    from hybridqcm.estimation._blas import batched_matmul
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(5, 1, 4, 6, generator=g, dtype=F64)
+    b = torch.randn(5, 3, 6, 2, generator=g, dtype=F64)
+    torch.testing.assert_close(batched_matmul(a, b), a @ b, rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(batched_matmul(b.transpose(-1, -2), b), b.transpose(-1, -2) @ b, rtol=1e-14, atol=1e-14)
+    z = torch.randn(5, 4, 4, generator=g, dtype=torch.complex128)
+    for view in (z.conj(), -z.conj(), z.transpose(1, 2)):
+        torch.testing.assert_close(batched_matmul(view, z), view @ z, rtol=1e-14, atol=1e-14)
+    buffer = torch.zeros(7, 5, 9, dtype=F64)  # time first; the product written batch first into columns 1..3
+    c, d = torch.randn(5, 7, 6, generator=g, dtype=F64), torch.randn(5, 6, 3, generator=g, dtype=F64)
+    batched_matmul(c, d, out=buffer[:, :, 1:4].transpose(0, 1))
+    torch.testing.assert_close(buffer[:, :, 1:4].transpose(0, 1), c @ d, rtol=1e-14, atol=1e-14)
+    assert not buffer[:, :, 0].any() and not buffer[:, :, 4:].any()
+
+
 def test_unknown_method_raises(samples):
     model, p, w = _model_case("quarter", samples)
     with pytest.raises(ValueError, match="unknown method 'fast'"):

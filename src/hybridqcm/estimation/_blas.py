@@ -19,8 +19,10 @@ def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
     require grad: torch.matmul."""
     if a.device.type != "cpu" or a.requires_grad or b.requires_grad:
         return torch.matmul(a, b) if out is None else out.copy_(torch.matmul(a, b))
+    # torch's conjugate and negative views are lazy: numpy must see the plain values
+    a, b = a.resolve_conj().resolve_neg().numpy(), b.resolve_conj().resolve_neg().numpy()
     with np.errstate(all="ignore"):  # non-finite samples are flagged by the caller, as with torch
         if out is None:
-            return torch.from_numpy(np.matmul(a.numpy(), b.numpy()))
-        np.matmul(a.numpy(), b.numpy(), out=out.numpy())
+            return torch.from_numpy(np.matmul(a, b))
+        np.matmul(a, b, out=out.numpy())
     return out
