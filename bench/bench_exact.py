@@ -17,7 +17,8 @@ euler_sensitivities ([b, T, 3, 11]) / euler_accelerations and the ratios.
 
 times instead one Gauss-Newton iteration of the solver (all samples active, x0 unknown, inputs
 with --margin samples on each side of the window) with the Euler model and the exact model by
-each method.
+each method of the Jacobian pass (the line search's exact_outputs runs its default, method="auto",
+in both).
 
     ... bench/bench_exact.py --accuracy
 

@@ -564,10 +564,84 @@ def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
     assert bool(ok.all()) == (abs(delta) > 1e-3)
 
 
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
+def test_modal_outputs_match_the_step_recursion(case, hold):
+    model, p, w = _random_case(case, 48, 130, seed=12)
+    x0 = _x0(48, model.n_state, seed=5)
+    for x, start, n_steps in [(x0, 9, 100), (None, 0, 130), (x0, 20, 7), (None, 0, 2), (x0, 3, 1)]:
+        kwargs = dict(hold=hold, substeps=5, start=start, n_steps=n_steps)
+        old = exact_outputs(model, p, x, w, H, method="recursion", **kwargs)
+        for method in ("modal", "auto"):
+            new = exact_outputs(model, p, x, w, H, method=method, **kwargs)
+            assert new.shape == old.shape
+            assert _column_error(new, old) <= 1e-10, (method, start, n_steps)
+
+
+@pytest.mark.parametrize("delta", [0.0, 1e-8, -1e-8, 1e-6, 1e-2])
+def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta):
+    """Seat damped near critically (as above): the outputs alone stay accurate much closer to the
+    double eigenvalue than the sensitivities, down to cond(V) = 1e4 (delta ~ 1e-7)."""
+    from hybridqcm.estimation._modal import modal_outputs
+    from hybridqcm.estimation.exact import _balance
+
+    model = SeatBaseExcitation()
+    p2 = torch.tensor([400.0, 150.0], dtype=F64)
+    p = torch.stack([2 * p2.sqrt() * (1 + delta), p2], 1)
+    w = torch.randn(2, 120, 1, generator=torch.Generator().manual_seed(1), dtype=F64)
+    x0 = _x0(2, 2, seed=4)
+    old = exact_outputs(model, p, x0, w, H, method="recursion", start=8, n_steps=100)
+    new = exact_outputs(model, p, x0, w, H, method="modal", start=8, n_steps=100)
+    assert torch.isfinite(new).all() and _column_error(new, old) <= 1e-10
+    A, B, C, E = model.matrices(p)
+    fine = held_input(w, "spline", 4, 8, 100).permute(2, 1, 0)
+    _, ok = modal_outputs((A, B, C, E), _balance(A), x0, fine, w[:, 8:108], H, "spline")
+    assert bool(ok.all()) == (abs(delta) > 1e-7)
+
+
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
+def test_stacked_fallback_matches_the_step_recursion(case, hold):
+    """The modal path's fallback for a few samples (one block-diagonal product per step) is the
+    batch-innermost step recursion in another order of operations."""
+    from hybridqcm.estimation.exact import _recursion_sensitivities, _stacked_sensitivities
+
+    model, p, w = _random_case(case, 9, 60, seed=13)
+    x0 = _x0(9, model.n_state, seed=6)
+    for x, with_x0, start, n_steps in [(x0, True, 5, 50), (None, False, 0, 60), (x0, True, 7, 2), (None, True, 2, 1)]:
+        held = held_input(w, hold, 3, start, n_steps)
+        args = (model, p, x, w, H, hold, 3, with_x0, start, n_steps, held)
+        old, new = _recursion_sensitivities(*args), _stacked_sensitivities(*args)
+        assert new.shape == old.shape
+        assert _column_error(new, old) <= 1e-12, (with_x0, start, n_steps)
+
+
+def test_batched_matmul_matches_torch():
+    """The numpy (OpenBLAS) products of the estimation layers: broadcast, transposed, conjugated and
+    negated operands, and a strided output, as torch.matmul computes them."""
+    from hybridqcm.estimation._blas import batched_matmul
+
+    g = torch.Generator().manual_seed(3)
+    a = torch.randn(5, 1, 4, 6, generator=g, dtype=F64)
+    b = torch.randn(5, 3, 6, 2, generator=g, dtype=F64)
+    torch.testing.assert_close(batched_matmul(a, b), a @ b, rtol=1e-14, atol=1e-14)
+    torch.testing.assert_close(batched_matmul(b.transpose(-1, -2), b), b.transpose(-1, -2) @ b, rtol=1e-14, atol=1e-14)
+    z = torch.randn(5, 4, 4, generator=g, dtype=torch.complex128)
+    for view in (z.conj(), -z.conj(), z.transpose(1, 2)):
+        torch.testing.assert_close(batched_matmul(view, z), view @ z, rtol=1e-14, atol=1e-14)
+    buffer = torch.zeros(7, 5, 9, dtype=F64)  # time first; the product written batch first into columns 1..3
+    c, d = torch.randn(5, 7, 6, generator=g, dtype=F64), torch.randn(5, 6, 3, generator=g, dtype=F64)
+    batched_matmul(c, d, out=buffer[:, :, 1:4].transpose(0, 1))
+    torch.testing.assert_close(buffer[:, :, 1:4].transpose(0, 1), c @ d, rtol=1e-14, atol=1e-14)
+    assert not buffer[:, :, 0].any() and not buffer[:, :, 4:].any()
+
+
 def test_unknown_method_raises(samples):
     model, p, w = _model_case("quarter", samples)
     with pytest.raises(ValueError, match="unknown method 'fast'"):
         exact_sensitivities(model, p, None, w, H, method="fast")
+    with pytest.raises(ValueError, match="unknown method 'fast'"):
+        exact_outputs(model, p, None, w, H, method="fast")
 
 
 def test_prepared_inputs_give_the_same_outputs_and_jacobian_per_chunk():

@@ -50,6 +50,8 @@ import math
 import torch
 from torch import Tensor
 
+from ._blas import batched_matmul as _matmul
+
 _CDTYPE = torch.complex128
 # cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
 # Measured differences from the recursion (docs/notes/estimation.md): two nearly equal real
@@ -57,6 +59,10 @@ _CDTYPE = torch.complex128
 # (2e-10 at 5.7e3), other pairs far less (< 1e-12 up to 1.4e6 for the quarter car).
 _LIMIT = 1e5
 _LIMIT_REAL = 1e3
+# The outputs alone divide by no eigenvalue difference: their rounding grows like cond(V) eps
+# (measured, seat near critical damping: 1.3e-12 relative at cond 1.6e4, 1.2e-13 at 1.8e3;
+# exactly critical, cond 1e16: wrong), so modal_outputs keeps the samples with cond(V) up to this.
+_LIMIT_OUTPUTS = 1e4
 _SERIES_TERMS = 18  # phi_3(z) by its series for |z| <= 1: remainder < 1/21! < 2e-19 relative
 
 
@@ -102,6 +108,51 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
     return ell, dell
 
 
+def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A [b, n, n] = V diag(lambda) V^-1 from the balanced D^-1 A D (scale [b, n] = D):
+    -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
+    balanced eigenvectors, ok [b]: finite, and the complex eigenvalues in conjugate pairs)."""
+    ratio = scale[:, None, :] / scale[:, :, None]
+    lam, Vb = torch.linalg.eig(A * ratio)
+    Vb_inv = torch.linalg.inv(Vb)
+    V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
+    cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)
+    ok = torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
+    return lam, V, V_inv, cond, ok
+
+
+def _modes(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """_eigen with the modes reordered so that the K propagated ones come first:
+    -> (lambda [b, n], V, V^-1 [b, n, n], cond [b], ok [b], omega [b, K] float64).
+
+    Real form. sum_i c_i z_i = sum_i omega_i Re(c_i z_i) (omega = 2 for the member of a pair with
+    Im lambda > 0, 0 for its partner, 1 for a real eigenvalue, whose z is real), and
+    Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
+    n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
+    Slots: the kept modes first, padded to the chunk's largest n_first (K) with zero weight."""
+    lam, V, V_inv, cond, ok = _eigen(A, scale)
+    n = lam.shape[1]
+    upper, real = lam.imag > 0, lam.imag == 0
+    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
+    n_first = n - upper.sum(1)
+    n_slot = int(n_first.max())
+    lam = torch.gather(lam, 1, order)
+    V = torch.gather(V, 2, order[:, None, :].expand(-1, n, -1))
+    V_inv = torch.gather(V_inv, 1, order[:, :, None].expand(-1, -1, n))
+    omega = torch.where(lam[:, :n_slot].imag > 0, 2.0, 1.0).to(torch.float64)
+    omega = omega * (torch.arange(n_slot, device=lam.device) < n_first[:, None])
+    return lam, V, V_inv, cond, ok, omega
+
+
+def _held_rows(fine: Tensor, T: int) -> Tensor:
+    """fine [b, m, M + (T - 1) M + 1] (M leading zeros) -> [b, T, (c, j)] (a copy): row k holds
+    s_{k-1, 0..M} of every input channel (row 0: the padding, zeros)."""
+    batch, m, width = fine.shape
+    m_sub = (width - 1) // T
+    sb, sc, st = fine.stride()
+    return fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st)).reshape(batch, T, m * (m_sub + 1))
+
+
 def modal_sensitivities(
     matrices: tuple[Tensor, Tensor, Tensor, Tensor],
     derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
@@ -129,98 +180,155 @@ def modal_sensitivities(
     n_col = 1 + n_params + (n if with_x0 else 0)
     dev = A.device
 
-    # eigen-decomposition of the balanced matrix; V = D Vb, V^-1 = Vb^-1 D^-1
-    ratio = scale[:, None, :] / scale[:, :, None]
-    lam, Vb = torch.linalg.eig(A * ratio)
-    Vb_inv = torch.linalg.inv(Vb)
-    V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
+    lam, V, V_inv, cond, ok, omega = _modes(A, scale)
+    n_slot = omega.shape[1]  # K: the modes 0..K-1 are propagated
     diff = lam[:, :, None] - lam[:, None, :]  # [b, i, l] lambda_i - lambda_l
     eye = torch.eye(n, dtype=torch.bool, device=dev)
     both_real = (lam.imag == 0)[:, :, None] & (lam.imag == 0)[:, None, :]
-    cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)  # 1-norm condition number
     spread = (cond * lam.abs().amax(-1))[:, None, None] / diff.abs().masked_fill(eye, math.inf)  # [b, i, l]
-    limit = torch.where(both_real, _LIMIT_REAL, _LIMIT)
-    ok = torch.isfinite(cond) & (spread <= limit).all(-1).all(-1)
-    ok &= (lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1)
+    ok &= (spread <= torch.where(both_real, _LIMIT_REAL, _LIMIT)).all(-1).all(-1)
 
-    # complex coefficients [b, kind, mode, o, col]; kinds in the order of the recursion's channels:
-    # (e, f) then (psi_c, chi_c) for every input channel c
-    beta = V_inv @ B.to(_CDTYPE)  # [b, n, m]
-    gamma = C.to(_CDTYPE) @ V  # [b, o, n]
-    if dA.stride(0) == 0:  # the same dA for every sample: dA V as one product for the batch
+    # K_j = V^-1 dA_j V, S_j, and per kept mode l < K: beta''_j (rows l of S), Gam_j = gamma S_j +
+    # dC_j V (columns l), eta_j(0) = -S_j xi0
+    beta = _matmul(V_inv, B.to(_CDTYPE))  # [b, n, m]
+    gamma = _matmul(C.to(_CDTYPE), V)  # [b, o, n]
+    shared = dA.stride(0) == 0 and dB.stride(0) == 0 and dC.stride(0) == 0  # linear model: one dA for all
+    if shared:
         dAV = torch.einsum("pil,bls->bpis", dA[0].to(_CDTYPE), V)
     else:
-        dAV = dA.to(_CDTYPE) @ V[:, None]
-    K = V_inv[:, None] @ dAV  # [b, P, n, n] = V^-1 dA_j V
-    dlam = torch.diagonal(K, dim1=-2, dim2=-1)  # [b, P, n] d lambda / d p
+        dAV = _matmul(dA.to(_CDTYPE), V[:, None])
+    K = _matmul(V_inv[:, None], dAV)  # [b, P, n, n] = V^-1 dA_j V
+    dlam = torch.diagonal(K, dim1=-2, dim2=-1)[..., :n_slot]  # [b, P, K] d lambda / d p
     S = -(K / diff[:, None].masked_fill(eye, 1.0)).masked_fill(eye, 0.0)
-    beta2 = V_inv[:, None] @ dB.to(_CDTYPE) - S @ beta[:, None]  # [b, P, n, m]
-    Gam = gamma[:, None] @ S + dC.to(_CDTYPE) @ V[:, None]  # [b, P, o, n]
-    coef = torch.zeros(batch, m + 1, 2, n, o, n_col, dtype=_CDTYPE, device=dev)
-    g_t = gamma.transpose(1, 2)  # [b, l, o]
-    if x0 is not None:
-        xi0 = (V_inv @ x0.to(_CDTYPE)[..., None])[..., 0]  # [b, n]
-        eta0 = -(S @ xi0[:, None, :, None])[..., 0]  # [b, P, n]
-        coef[:, 0, 0, ..., 0] = g_t * xi0[:, :, None]
-        coef[:, 0, 0, ..., 1 : 1 + n_params] = (
-            g_t[..., None] * eta0.permute(0, 2, 1)[:, :, None] + Gam.permute(0, 3, 2, 1) * xi0[:, :, None, None]
-        )
-        coef[:, 0, 1, ..., 1 : 1 + n_params] = g_t[..., None] * (dlam * xi0[:, None]).permute(0, 2, 1)[:, :, None]
-    if with_x0:
-        coef[:, 0, 0, ..., 1 + n_params :] = g_t[..., None] * V_inv[:, :, None, :]
-    cpsi = coef[:, 1:, 0]  # [b, c, l, o, col]
-    cpsi[..., 0] = beta.transpose(1, 2)[..., None] * g_t[:, None]
-    cpsi[..., 1 : 1 + n_params] = g_t[:, None, :, :, None] * beta2.permute(0, 3, 2, 1)[:, :, :, None] + (
-        Gam.permute(0, 3, 2, 1)[:, None] * beta.transpose(1, 2)[..., None, None]
-    )
-    coef[:, 1:, 1, ..., 1 : 1 + n_params] = (
-        g_t[:, None, :, :, None] * (dlam[:, :, :, None] * beta[:, None]).permute(0, 3, 2, 1)[:, :, :, None]
-    )
+    S_kept = S[:, :, :n_slot]  # [b, P, K, n]
+    if shared:
+        beta2 = torch.einsum("bil,plc->bpic", V_inv[:, :n_slot], dB[0].to(_CDTYPE))
+        Gam = torch.einsum("pon,bnl->bpol", dC[0].to(_CDTYPE), V[:, :, :n_slot])
+    else:
+        beta2 = _matmul(V_inv[:, None, :n_slot], dB.to(_CDTYPE))
+        Gam = _matmul(dC.to(_CDTYPE), V[:, None, :, :n_slot])
+    beta2 = beta2 - _matmul(S_kept, beta[:, None])  # [b, P, K, m]
+    Gam = Gam + _matmul(gamma[:, None], S[..., :n_slot])  # [b, P, o, K]
 
-    # Real form. sum_i c_i z_i = sum_i omega_i Re(c_i z_i) (omega = 2 for the member of a pair with
-    # Im lambda > 0, 0 for its partner, 1 for a real eigenvalue, whose z is real), and
-    # Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
-    # n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
-    # Slots: the kept modes first, padded to the chunk's largest n_first with zero weight.
-    upper, real = lam.imag > 0, lam.imag == 0
-    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
-    n_first = n - upper.sum(1)
-    n_slot = int(n_first.max())
-    slot = order[:, :n_slot]  # [b, K] mode of each slot
-    lam_s = torch.gather(lam, 1, slot)
-    omega = torch.where(lam_s.imag > 0, 2.0, 1.0).to(torch.float64)
-    omega = omega * (torch.arange(n_slot, device=dev) < n_first[:, None])
-    index = slot.view(batch, 1, 1, n_slot, 1, 1).expand(-1, m + 1, 2, -1, o, n_col)
-    picked = torch.gather(coef, 3, index).conj().mul_(omega.view(batch, 1, 1, n_slot, 1, 1))
+    # Coefficients [b, channel, kind, slot, o, col], channels (e, f) then (psi_c, chi_c): every one
+    # is gamma_l R[channel, kind, l, col] plus, in the p columns of kind 0, Gam_j,l Q[channel, l]
+    # (the Sylvester term), so R and Q are built per slot and multiplied out once; the real form's
+    # conjugate and weight omega go into the factors.
+    R = torch.zeros(batch, 1 + m, 2, n_slot, n_col, dtype=_CDTYPE, device=dev)
+    Q = torch.zeros(batch, 1 + m, n_slot, dtype=_CDTYPE, device=dev)
+    beta_t = beta[:, :n_slot].transpose(1, 2)  # [b, c, K]
+    if x0 is not None:
+        xi0 = _matmul(V_inv, x0.to(_CDTYPE)[..., None])  # [b, n, 1]
+        R[:, 0, 0, :, 0] = Q[:, 0] = xi0[:, :n_slot, 0]
+        R[:, 0, 0, :, 1 : 1 + n_params] = -_matmul(S_kept, xi0[:, None])[..., 0].transpose(1, 2)
+        R[:, 0, 1, :, 1 : 1 + n_params] = (dlam * xi0[:, None, :n_slot, 0]).transpose(1, 2)
+    if with_x0:
+        R[:, 0, 0, :, 1 + n_params :] = V_inv[:, :n_slot]
+    R[:, 1:, 0, :, 0] = Q[:, 1:] = beta_t
+    R[:, 1:, 0, :, 1 : 1 + n_params] = beta2.permute(0, 3, 2, 1)
+    R[:, 1:, 1, :, 1 : 1 + n_params] = dlam.transpose(1, 2)[:, None] * beta_t[..., None]
+    g = gamma[:, :, :n_slot].conj().transpose(1, 2) * omega[:, :, None]  # [b, K, o]
+    coef = g[:, None, None, :, :, None] * R.conj()[:, :, :, :, None, :]  # [b, 1 + m, 2, K, o, col]
+    coef[:, :, 0, :, :, 1 : 1 + n_params] += (Gam.conj() * omega[:, None, None, :]).permute(0, 3, 2, 1)[
+        :, None
+    ] * Q.conj()[..., None, None]
     n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
-    coef_z = torch.view_as_real(picked.resolve_conj()).permute(0, 1, 2, 3, 6, 4, 5).reshape(batch, n_real, o * n_col)
-    coef_w = torch.zeros(batch, m, o, n_col, dtype=torch.float64, device=dev)
+    width = n_real + m + m % 2  # Z is a complex view of the buffer below: an even row width
+    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | 0)
+    coef_all[:, :n_real].view(batch, 1 + m, 2, n_slot, 2, o, n_col).copy_(
+        torch.view_as_real(coef).permute(0, 1, 2, 3, 6, 4, 5)
+    )
+    coef_w = coef_all[:, n_real : n_real + m].view(batch, m, o, n_col)
     coef_w[..., : 1 + n_params] = torch.cat([E[:, None], dE], 1).permute(0, 3, 2, 1)  # y and dy/dp: E w, dE w
-    ok &= torch.isfinite(coef_z.sum((1, 2)))
+    ok &= torch.isfinite(coef_all.sum((1, 2)))
+    lam_s = lam[:, :n_slot]
 
     # The basis by one scalar recursion per slot: Z [T, b, 1 + m, 2, K] complex (time first: 5x
     # faster steps than batch first), channel 0 = (e, f) (start (1, 0), no
     # forcing), 1 + c = (psi_c, chi_c); in each, (z, dz/dlambda) obey z_{k+1} = mu z_k + F_k,
-    # dz_{k+1} = mu dz_k + h z_{k+1} + (F'_k - h F_k). F_k for all k is one bmm (batch first, row
-    # k + 1; row 0, from the padding, is overwritten by the start), moved in and out of the loop's
-    # layout by permuted copies.
+    # dz_{k+1} = mu dz_k + h z_{k+1} + (F'_k - h F_k). F_k for all k is one product per sample
+    # (row k + 1; row 0, from the padding, is overwritten by the start) written straight into the
+    # time-first buffer, and the final product reads the buffer batch first as it is; the input
+    # samples w are columns of the same buffer (padded to an even width: Z is a complex view).
     ell, dell = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
     weights = torch.zeros(batch, m, m_sub + 1, 1 + m, 2, n_slot, 2, dtype=torch.float64, device=dev)
     for c in range(m):  # [b, (c, j), (channel, kind, slot, re/im)]
         weights[:, c, :, 1 + c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
-    # fine [b, m, M + L] starts with M zeros: row k of `held` is s_{k-1, 0..M} (row 0: padding)
-    sb, sc, st = fine.stride()
-    held = fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st))
-    forcing = torch.bmm(held.reshape(batch, T, m * (m_sub + 1)), weights.view(batch, m * (m_sub + 1), n_real))
-    Z = torch.view_as_complex(forcing.view(batch, T, 1 + m, 2, n_slot, 2)).transpose(0, 1).contiguous()
+    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)  # [k, b, (Z | w | 0)]
+    buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
+    buffer[:, :, n_real + m :] = 0
+    _matmul(
+        _held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1)
+    )
+    Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, 1 + m, 2, n_slot, 2))
     Z[0] = 0
     Z[0, :, 0, 0] = 1
-    mu = torch.exp(lam_s * h)[:, None, None, :]  # [b, 1, 1, K]
+    # mu [b, 1 + m, 2, K], expanded: a broadcast operand makes the multiply-add 1.6x slower
+    mu = torch.exp(lam_s * h)[:, None, None, :].expand(-1, 1 + m, 2, -1).contiguous()
     for k in range(T - 1):
         nxt = Z[k + 1]
         nxt.addcmul_(Z[k], mu)
         nxt[:, :, 1].add_(nxt[:, :, 0], alpha=h)
-    basis = torch.view_as_real(Z.transpose(0, 1).contiguous()).view(batch, T, n_real)
-    out = torch.bmm(basis, coef_z)
-    out.baddbmm_(window, coef_w.view(batch, m, o * n_col))
+    out = _matmul(buffer.transpose(0, 1), coef_all)
     return out.view(batch, T, o, n_col), ok
+
+
+def modal_outputs(
+    matrices: tuple[Tensor, Tensor, Tensor, Tensor],
+    scale: Tensor,
+    x0: Tensor | None,
+    fine: Tensor,
+    window: Tensor,
+    h: float,
+    hold: str,
+) -> tuple[Tensor, Tensor]:
+    """-> (y [b, T, o] as exact_outputs, ok [b] bool): modal_sensitivities' column 0 alone,
+
+        y_k = gamma (e_k xi0 + sum_c beta_c psi_{k,c}) + E w_k,
+
+    so only e and psi are propagated (no derivatives, one complex multiply-add per step). The
+    arguments and ``ok`` as in modal_sensitivities."""
+    A, B, C, E = matrices
+    batch, n, m = B.shape
+    o, T = C.shape[1], window.shape[1]
+    m_sub = (fine.shape[2] - 1) // T
+    dev = A.device
+    lam, V, V_inv, cond, ok, omega = _modes(A, scale)
+    ok &= cond <= _LIMIT_OUTPUTS
+    n_slot = omega.shape[1]
+    lam_s = lam[:, :n_slot]
+    # complex coefficients [b, channel, slot, o]: channel 0 = e (only with x0), 1 + c = psi_c
+    first = 0 if x0 is not None else 1
+    gamma = _matmul(C.to(_CDTYPE), V[:, :, :n_slot]).transpose(1, 2)  # [b, K, o]
+    V_inv_s = V_inv[:, :n_slot]  # [b, K, n]
+    drive = [] if x0 is None else [V_inv_s @ x0.to(_CDTYPE)[..., None]]  # xi0 of the kept modes, [b, K, 1]
+    drive = torch.cat(drive + [V_inv_s @ B.to(_CDTYPE)], 2).transpose(1, 2)  # [b, channel, K]
+    coef = (drive[..., None] * gamma[:, None]).conj() * omega[:, None, :, None]
+    n_ch = 1 + m - first
+    n_real = 2 * n_slot * n_ch
+    width = n_real + m + m % 2  # Z is a complex view of the buffer: an even row width
+    coef_all = torch.zeros(batch, width, o, dtype=torch.float64, device=dev)
+    coef_all[:, :n_real] = torch.view_as_real(coef).transpose(-1, -2).reshape(batch, n_real, o)
+    coef_all[:, n_real : n_real + m] = E.transpose(1, 2)
+    ok &= torch.isfinite(coef_all.sum((1, 2)))
+
+    # psi by the recursion of modal_sensitivities (without chi), e = mu^k by the same recursion
+    # started at 1 without forcing; the buffer [T, b, (Z | w | 0)] as there
+    ell, _ = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
+    weights = torch.zeros(batch, m, m_sub + 1, n_ch, n_slot, 2, dtype=torch.float64, device=dev)
+    for c in range(m):  # [b, (c, j), (channel, slot, re/im)]
+        weights[:, c, :, 1 + c - first] = torch.view_as_real(ell).transpose(0, 1)
+    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)
+    buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
+    buffer[:, :, n_real + m :] = 0
+    _matmul(
+        _held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1)
+    )
+    Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, n_ch, n_slot, 2))
+    Z[0] = 0
+    if x0 is not None:
+        Z[0, :, 0] = 1
+    mu = torch.exp(lam_s * h)[:, None, :].expand(-1, n_ch, -1).contiguous()  # [b, channel, K], as there
+    for k in range(T - 1):
+        Z[k + 1].addcmul_(Z[k], mu)
+    return _matmul(buffer.transpose(0, 1), coef_all), ok

@@ -44,8 +44,10 @@ Sensitivities. Outputs are linear in x0, so dy_k/dx0 = H_k = C Phi^k (H_{k+1} = 
 dx_{k+1} = Phi dx_k + dPhi x_k + sum_j dLambda_j s_{k,j} and dy_k = C dx_k + dC x_k + dE w_k.
 exact_sensitivities evaluates these by default in modal coordinates (estimation._modal: per
 sample A = V diag(lambda) V^-1, every column a combination of a few scalar sequences per mode, one
-bmm per chunk); the step recursion below (method="recursion") is the reference and the fallback
-for samples with nearly repeated eigenvalues.
+small product per sample); the step recursion below (method="recursion") is the reference, and
+the fallback for samples with nearly repeated eigenvalues (for up to _STACKED_MAX of them the same
+recursion batch first, _stacked_sensitivities). exact_outputs has the same two methods and picks
+the faster one for the batch size (method="auto").
 
 Layout. Every per-sample quantity is held batch innermost (matrices [r, c, b], tangents
 [r, P, c, b]) and every per-sample product is written as broadcast multiply-adds over contiguous
@@ -66,15 +68,26 @@ from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel
 
-from ._modal import modal_sensitivities
+from ._blas import batched_matmul as _matmul
+from ._modal import modal_outputs, modal_sensitivities
 
 HOLDS = ("spline", "foh", "zoh")
 METHODS = ("modal", "recursion")
+OUTPUT_METHODS = ("auto",) + METHODS
 SPLINE_DEGREES = (3, 5)
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
 _TAYLOR_THETA = 0.25
 _TAYLOR_DEGREE = 11
+# The modal path's fallback takes _stacked_sensitivities up to this many samples (per-sample
+# products, ~1 ms + 0.3 ms per quarter car at 16 sub-steps, T = 100), the batch-innermost recursion
+# above (~19 ms for any small batch).
+_STACKED_MAX = 32
+# exact_outputs(method="auto") takes the modal path up to this many samples and the recursion above:
+# the modal path costs fewer ops (1.6 vs 3.1 ms for 16 quarter cars, 16 sub-steps, T = 100), but
+# its eigen-decompositions (~10 us per sample) make it the slower one from about 190 samples on
+# (8.5 vs 6.8 ms for 384).
+_MODAL_OUTPUTS_MAX = 160
 
 
 # ----------------------------------------------------------------------------- validation
@@ -298,7 +311,7 @@ def _forcing_batch_first(lam: Tensor, held: Tensor, n_steps: int) -> Tensor:
         rows = by_sample[:, c, m_sub : m_sub + (n_steps - 1) * m_sub].unflatten(1, (n_steps - 1, m_sub))
         last = by_sample[:, c, 2 * m_sub :: m_sub]  # s_{k, M} = s_{k+1, 0}, [b, T - 1]
         weights = lam_b[c].contiguous()  # [b, M + 1, n]
-        term = torch.baddbmm(last[:, :, None] * weights[:, m_sub : m_sub + 1], rows, weights[:, :m_sub])
+        term = _matmul(rows, weights[:, :m_sub]).addcmul_(last[:, :, None], weights[:, m_sub : m_sub + 1])
         forcing = term if forcing is None else forcing.add_(term)
     return forcing.permute(1, 2, 0).contiguous()  # [T-1, n, b]
 
@@ -549,6 +562,7 @@ def exact_outputs(
     n_steps: int | None = None,
     spline_degree: int = 5,
     held: Tensor | None = None,
+    method: str = "auto",
 ) -> Tensor:
     """params [b, P], x0 [b, n] (None = rest), inputs [b, T_in, m] -> y [b, n_steps, o] (float64).
 
@@ -556,17 +570,46 @@ def exact_outputs(
     x0 is the state at sample ``start`` in the model's state coordinates. The spline hold
     interpolates all T_in samples, so samples outside the window (margins) make the held input
     near the window's edges as accurate as inside it. ``held``: held_input of the same inputs and
-    window, if the caller has it (the same result, without recomputing it).
+    window, if the caller has it (the same result, without recomputing it). ``method``: "modal"
+    (as in exact_sensitivities: a few hundred ops per call where the recursion takes about a
+    thousand, which is what a line search's small batches cost), "recursion", or "auto" (default:
+    whichever is faster for the batch size, _MODAL_OUTPUTS_MAX); they agree to round-off.
     """
+    if method not in OUTPUT_METHODS:
+        raise ValueError(f"exact: unknown method {method!r}; choose one of {OUTPUT_METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
     _check_held(held, inputs, hold, substeps, T)
+    if T > 1:
+        held = _held(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    if method == "auto":
+        method = "modal" if params.shape[0] <= _MODAL_OUTPUTS_MAX else "recursion"
+    if method == "recursion" or T == 1:
+        return _recursion_outputs(model, params, x0, inputs, h, hold, substeps, start, T, held)
+    A, B, C, E = model.matrices(params)
+    out, ok = modal_outputs((A, B, C, E), _balance(A), x0, held.permute(2, 1, 0), inputs[:, start : start + T], h, hold)
+    if not bool(ok.all()):
+        bad = (~ok).nonzero()[:, 0]
+        out[bad] = _recursion_outputs(
+            model,
+            params[bad],
+            None if x0 is None else x0[bad],
+            inputs[bad],
+            h,
+            hold,
+            substeps,
+            start,
+            T,
+            held[..., bad],
+        )
+    return out
+
+
+def _recursion_outputs(model, params, x0, inputs, h, hold, substeps, start, T, held) -> Tensor:
+    """exact_outputs by the step recursion (validated float64 arguments, held from _held; None for T = 1)."""
     batch = inputs.shape[0]
     _, _, C, E = model.matrices(params)
     if T > 1:
         phi, lam = _maps(model, params, h, hold, substeps, False)
-        if held is None:
-            held = _held(inputs, hold, substeps, start, T, spline_degree)
-        held = held.to(_DTYPE)
         if held.stride(2) != 1 and held.stride(0) == 1:  # stored batch first (PreparedInputs)
             forcing = _forcing_batch_first(lam, held, T)  # [T-1, n, b]
         else:
@@ -626,7 +669,8 @@ def exact_sensitivities(
     )
     if not bool(ok.all()):
         bad = (~ok).nonzero()[:, 0]
-        out[bad] = _recursion_sensitivities(
+        fallback = _stacked_sensitivities if bad.numel() <= _STACKED_MAX else _recursion_sensitivities
+        out[bad] = fallback(
             model,
             params[bad],
             None if x0 is None else x0[bad],
@@ -639,6 +683,96 @@ def exact_sensitivities(
             T,
             held[..., bad],
         )
+    return out
+
+
+def _maps_batch_first(model, p: Tensor, h: float, hold: str, substeps: int):
+    """discrete_maps(..., tangents=True) for a few samples, batch first: (Phi [b, n, n],
+    Lam [b, M+1, n, m], dPhi [b, P, n, n], dLam [b, P, M+1, n, m]). The Van Loan exponential and its
+    Fréchet derivatives are the blocks of exp([[M, dM_j], [0, M]]) (torch.linalg.matrix_exp, one
+    call for all j), the sub-steps are folded as in _maps with per-sample products (_matmul): a few
+    dozen ops instead of the ~400 of the batch-innermost _maps, which only pay off for large
+    batches."""
+    A, B, _, _ = model.matrices(p)
+    dA, dB, _, _ = model.matrix_derivatives(p)
+    batch, n_params = p.shape
+    n, m = model.n_state, model.n_input
+    m_sub = substeps if hold == "spline" else 1
+    tau = h / m_sub
+    N = n + 2 * m
+    block = torch.zeros(batch, n_params, 2 * N, 2 * N, dtype=_DTYPE, device=p.device)
+    M = _van_loan(A, B, tau).permute(2, 0, 1)  # [b, N, N]
+    block[..., :N, :N] = block[..., N:, N:] = M[:, None]
+    block[..., :n, N : N + n] = dA * tau
+    block[..., :n, N + n : N + n + m] = dB * tau
+    d = _balance(block.view(-1, 2 * N, 2 * N)).view(batch, n_params, 1, 2 * N)  # as in _expm_inner
+    ratio = d / d.transpose(2, 3)  # exp(D^-1 X D) = D^-1 exp(X) D, D powers of two: exact
+    F = torch.linalg.matrix_exp(block * ratio) / ratio
+    phi, F1, F2 = F[:, 0, :n, :n], F[:, 0, :n, n : n + m], F[:, 0, :n, n + m : N]
+    dphi, dF1, dF2 = F[..., :n, N : N + n], F[..., :n, N + n : N + n + m], F[..., :n, N + n + m :]
+    g0, g1 = (F1, torch.zeros_like(F2)) if hold == "zoh" else (F1 - F2, F2)
+    dg0, dg1 = (dF1, torch.zeros_like(dF2)) if hold == "zoh" else (dF1 - dF2, dF2)
+    if m_sub == 1:
+        return phi, torch.stack([g0, g1], 1), dphi, torch.stack([dg0, dg1], 2)
+    # as _maps: Lam_m = g1, Lam_j = phi^(m-1-j) c (c = g0 + phi g1), Lam_0 = phi^(m-1) g0, Phi = phi^m
+    phi, dphi = phi.contiguous(), dphi.contiguous()
+    c = _matmul(phi, g1.contiguous()) + g0
+    dc = _matmul(dphi, g1[:, None].contiguous()) + _matmul(phi[:, None], dg1.contiguous()) + dg0
+    W, dW = torch.cat([c, g0, phi], 2), torch.cat([dc, dg0, dphi], 3)
+    lam, dlam = [None] * (m_sub + 1), [None] * (m_sub + 1)
+    lam[m_sub], lam[m_sub - 1], dlam[m_sub], dlam[m_sub - 1] = g1, c, dg1, dc
+    for i in range(1, m_sub):
+        W, dW = _matmul(phi, W), _matmul(dphi, W[:, None]) + _matmul(phi[:, None], dW)
+        if i < m_sub - 1:
+            lam[m_sub - 1 - i], dlam[m_sub - 1 - i] = W[..., :m], dW[..., :m]
+    lam[0], dlam[0] = W[..., m : 2 * m], dW[..., m : 2 * m]
+    return W[..., 2 * m :], torch.stack(lam, 1), dW[..., 2 * m :], torch.stack(dlam, 2)
+
+
+def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
+    """exact_sensitivities by the same step recursion as _recursion_sensitivities, for a few samples
+    (the modal path's fallback, up to _STACKED_MAX). The state and its tangents are one matrix per
+    sample, X_k = [x_k | dx_k/dp | dx_k/dx0] [n, 1 + P (+ n)], and a step is
+
+        X_{k+1} = Phi X_k + [G_k | dPhi_j x_k + dG_k | 0],   G_k = sum_j Lam_j s_{k,j},
+
+    with G and dG for all k from one product before the loop and the maps from
+    _maps_batch_first: 3 ops per step instead of ~50, which is what a handful of samples costs
+    (their arithmetic is negligible)."""
+    batch, n, n_params, m = params.shape[0], model.n_state, model.n_params, model.n_input
+    _, _, C, E = model.matrices(params)
+    _, _, dC, dE = model.matrix_derivatives(params)
+    n_col = 1 + n_params + (n if with_x0 else 0)
+    X = torch.zeros(T, batch, n, n_col, dtype=_DTYPE, device=params.device)  # [k, b, i, column]
+    if x0 is not None:
+        X[0, :, :, 0] = x0
+    if with_x0:
+        X[0, :, :, 1 + n_params :] = torch.eye(n, dtype=_DTYPE, device=params.device)
+    if T > 1:
+        phi, lam, dphi, dlam = _maps_batch_first(model, params, h, hold, substeps)
+        m_sub = lam.shape[1] - 1
+        # s [b, T-1, (j, c)] and the weights [b, (j, c), (i, q)] of G (q = 0) and dG_p (q = 1 + p)
+        s = _sub_samples(held, T).permute(3, 2, 0, 1).reshape(batch, T - 1, (m_sub + 1) * m)
+        weights = torch.cat([lam[:, None], dlam], 1)  # [b, q, j, i, c]
+        weights = weights.permute(0, 2, 4, 3, 1).reshape(batch, (m_sub + 1) * m, n * (1 + n_params))
+        forcing = _matmul(s, weights).view(batch, T - 1, n * (1 + n_params), 1).transpose(0, 1).contiguous()
+        # dPhi as [b, (i, q), l] with zero rows for q = 0: dPhi x_k lands in the tangent columns
+        dphi_q = torch.zeros(batch, n, 1 + n_params, n, dtype=_DTYPE, device=params.device)
+        dphi_q[:, :, 1:] = dphi.transpose(1, 2)
+        dphi_q = dphi_q.view(batch, n * (1 + n_params), n)
+        for k in range(T - 1):  # torch.bmm: for a few samples its per-call cost is the lowest (3 us)
+            torch.bmm(phi, X[k], out=X[k + 1])
+            X[k + 1, ..., : 1 + n_params] += torch.baddbmm(forcing[k], dphi_q, X[k, ..., :1]).view(
+                batch, n, 1 + n_params
+            )
+    # y_k = C x_k + E w_k, dy_k/dp = C dx_k + dC x_k + dE w_k, dy_k/dx0 = C dx_k/dx0: all k at once
+    states = X.transpose(0, 1)  # [b, T, n, column]
+    window = inputs[:, start : start + T]  # [b, T, m]
+    out = torch.einsum("bon,btnc->btoc", C, states)  # [b, T, o, column]
+    out[..., 0] += torch.einsum("bom,btm->bto", E, window)
+    out[..., 1 : 1 + n_params] += torch.einsum("bpon,btn->btop", dC, states[..., 0]) + torch.einsum(
+        "bpom,btm->btop", dE, window
+    )
     return out
 
 

@@ -39,6 +39,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 from torch import Tensor
 
+from ._blas import batched_matmul
 from .noise import SpectralNoise
 from .response import EulerResponse, PreparedInputs, ResponseModel
 
@@ -521,7 +522,8 @@ class NonlinearLeastSquares:
                 out *= self._weights[chunk][:, None, :, None]
             b = chunk.numel()
             augmented = out.view(b, -1, width) if out.is_contiguous() else out.reshape(b, -1, width)
-            gram = torch.bmm(augmented.transpose(1, 2), augmented)  # [b, width, width]
+            # [b, width, width]; numpy's per-sample BLAS: torch.bmm is 1.7x slower at width 18 (exact model)
+            gram = batched_matmul(augmented.transpose(1, 2), augmented)
             if len(cols) < width:
                 gram = gram[:, cols][:, :, cols]
             losses.append(0.5 * gram[:, 0, 0])

