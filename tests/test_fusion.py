@@ -418,3 +418,47 @@ def test_noise_model_is_refitted_where_the_fit_moved_far_from_its_start():
     error = {k: (f.params[:, 1] / p[:, 1] - 1).abs() for k, f in finals.items()}
     assert bool((error[2][stale] < error[0][stale]).all()), (error[0][stale], error[2][stale])
     assert bool((error[2][~stale] == error[0][~stale]).all())  # the others are untouched
+
+
+def test_noise_model_is_not_refitted_without_a_noise_floor():
+    """The same setting on noise-free data: the residual at a right fit is the hold's model error, whose
+    whitened loss is nowhere near its white-noise value, yet there is no noise level to fit again (and a
+    variance of ~1e-10 of the signal's makes the ML pass ill-posed). The refits leave every sample as it
+    was, and the fits are right."""
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.response import quarter_car_response
+    from hybridqcm.physics import reference_params
+    from hybridqcm.testing import synthetic_samples
+
+    b, T, margin = 12, 300, 8
+    drive = synthetic_samples(b, T + 2 * margin, seed=11)
+    p = drive["params"]
+    response = quarter_car_response("exact", 0.01, True, "unknown", "spline", 16)
+    road = (p[:, 9] - p[:, 8])[:, None] * drive["road"]
+    clean = response.outputs(torch.cat([p, drive["vel"][:, margin], drive["disp"][:, margin]], 1), road, margin, T)
+    known = torch.zeros(10, dtype=torch.bool)
+    known[[2, 4]] = True
+    ref = reference_params().double()
+    prior = (ref, torch.where(torch.arange(10) >= 2, 0.3 * ref, math.inf))
+    g = torch.Generator().manual_seed(3)
+    init = p * (1 + 0.05 * torch.randn(b, 10, generator=g, dtype=torch.float64))
+    init[:, known] = p[:, known]  # known means known: the data are then the model's own at the truth
+    outputs = {"targets": clean, "road": drive["road"], "pu": p[:, 9] - p[:, 8], "init": init}
+    outputs.update(index=torch.arange(b), input_offset=margin)
+    finals, refinements = {}, {}
+    for refits in (0, 2):
+        stages = [
+            GaussNewtonStage("w30", build_solver("gauss_newton", max_iterations=10), "observed", 30),
+            GaussNewtonStage("a3", build_solver("gauss_newton", max_iterations=60), "observed"),
+        ]
+        refinements[refits] = GaussNewtonRefinement(
+            stages, known=known, pu_known=True, response=response, reweight="spectral", noise_refits=refits,
+            peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares",
+        )  # fmt: skip
+        finals[refits] = refinements[refits].refine(outputs)["final"]
+    ratio = finals[0].loss / (0.5 * (T - 1))  # no prior applies: noise-free, no floor
+    assert bool(((ratio < 0.5) | (ratio > 2)).any()), ratio  # samples the consistency rule alone would refit
+    residual = response.outputs(finals[2].params, road, margin, T) - clean
+    assert not bool(refinements[2]._noise_floor(residual, clean, (True, False, False)).any())
+    assert torch.equal(finals[2].params, finals[0].params)
+    assert bool(((finals[2].params[:, :2] / p[:, :2] - 1).abs() < 1e-3).all())

@@ -368,21 +368,30 @@ class GaussNewtonRefinement(Callback):
         result: SolverResult,
     ) -> None:
         """In place (``result``, ``params``): the stage's samples whose noise model disagrees with their
-        residual (_noise_consistent) get maximum-likelihood passes with the variances fitted again at
-        their estimate, up to ``noise_refits`` times; a pass that diverges keeps the previous fit."""
+        residual (_noise_consistent) and whose residual has a sensor-noise floor (_noise_floor) get
+        maximum-likelihood passes with the variances fitted again at their estimate, up to
+        ``noise_refits`` times; a pass that diverges keeps the previous fit."""
         consistent = self._noise_consistent(problem, result, window)
         for _ in range(self.noise_refits):
             redo = (~consistent & (result.status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
+            if redo.numel() == 0:
+                return
+            targets = outputs["targets"][redo, :window].double()
+            residual = self._residual(targets, inputs[redo], params[redo], observed, offset)
+            # Only a residual with a sensor-noise floor has a noise level to fit again. Without one the
+            # residual is the model's error: its variance, ~1e-10 of the signal's, makes the ML pass so
+            # sharp that it can leave a right fit for a wrong one (noise-free exp 5: 5 of 1 200).
+            floor = self._noise_floor(residual, targets, observed)
+            consistent[redo[~floor]] = True
+            redo, targets, residual = redo[floor], targets[floor], residual[floor]
             if redo.numel() == 0:
                 return
             sub = {
                 k: (v[redo] if isinstance(v, Tensor) and v.ndim > 0 and v.shape[0] == params.shape[0] else v)
                 for k, v in outputs.items()
             }
-            targets = outputs["targets"][redo, :window].double()
             sub_inputs, start = inputs[redo], params[redo]
-            residual = self._residual(targets, sub_inputs, start, observed, offset)
-            noisy = None if self.param_prior is None else self._noise_floor(residual, targets, observed)
+            noisy = None if self.param_prior is None else torch.ones(redo.numel(), dtype=torch.bool)
             sub_problem = LeastSquaresProblem(
                 targets,
                 sub_inputs,
