@@ -136,7 +136,11 @@ def throughput(args) -> None:
     interval = np.array([c.startswith("std_") or c in ("m3_std", "m3_low", "m3_high") for c in columns], dtype=bool)
     for name, (status, _, numbers) in estimates.items():
         if name != "1 process" and numbers.size:  # the runs must estimate the same thing for their rates to compare
-            rel = np.abs(numbers - numbers_one) / np.maximum(np.abs(numbers_one), 1e-300)
+            # the same non-finite value in both runs (an unbounded interval, a NaN column) is agreement
+            same = (numbers == numbers_one) | (np.isnan(numbers) & np.isnan(numbers_one))
+            with np.errstate(invalid="ignore"):
+                rel = np.abs(numbers - numbers_one) / np.maximum(np.abs(numbers_one), 1e-300)
+            rel = np.where(same, 0.0, np.where(np.isnan(rel), np.inf, rel))
             changed = sum(a != b for a, b in zip(status, status_one))
             print(
                 f"{name} vs 1 process: max relative difference of the estimates {np.nanmax(rel[:, ~interval]):.2e}, "
