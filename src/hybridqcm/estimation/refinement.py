@@ -370,7 +370,8 @@ class GaussNewtonRefinement(Callback):
         """In place (``result``, ``params``): the stage's samples whose noise model disagrees with their
         residual (_noise_consistent) and whose residual has a sensor-noise floor (_noise_floor) get
         maximum-likelihood passes with the variances fitted again at their estimate, up to
-        ``noise_refits`` times; a pass that diverges keeps the previous fit."""
+        ``noise_refits`` times; a pass is kept where it lowers the -log posterior (_profiled_score)
+        and does not diverge."""
         consistent = self._noise_consistent(problem, result, window)
         for _ in range(self.noise_refits):
             redo = (~consistent & (result.status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
@@ -378,9 +379,8 @@ class GaussNewtonRefinement(Callback):
                 return
             targets = outputs["targets"][redo, :window].double()
             residual = self._residual(targets, inputs[redo], params[redo], observed, offset)
-            # Only a residual with a sensor-noise floor has a noise level to fit again. Without one the
-            # residual is the model's error: its variance, ~1e-10 of the signal's, makes the ML pass so
-            # sharp that it can leave a right fit for a wrong one (noise-free exp 5: 5 of 1 200).
+            # Only a residual with a sensor-noise floor has a noise level to fit again. Without one it is
+            # the model's error, whose variance (~1e-10 of the signal's) makes the ML pass ill-posed.
             floor = self._noise_floor(residual, targets, observed)
             consistent[redo[~floor]] = True
             redo, targets, residual = redo[floor], targets[floor], residual[floor]
@@ -406,7 +406,14 @@ class GaussNewtonRefinement(Callback):
                 **self._prior(sub, start, last, noisy),
             )
             refit = stage.solver.solve(sub_problem, start)
-            take = refit.status != SolverStatus.DIVERGED
+            # A refit is a new attempt at the same posterior: kept only where it lowers the -log posterior
+            # with each channel's noise level profiled out (_profiled_score), so that it can never leave
+            # a better fit for a worse one.
+            before = _profiled_score(residual, sub_problem, start)
+            after = _profiled_score(
+                self._residual(targets, sub_inputs, refit.params, observed, offset), sub_problem, refit.params
+            )
+            take = (refit.status != SolverStatus.DIVERGED) & (after <= before)
             _take(result, refit, take, redo[take])
             params[redo[take]] = refit.params[take]
             consistent[redo] = ~take | self._noise_consistent(sub_problem, refit, window)
@@ -742,6 +749,19 @@ _PER_SAMPLE = (
     "relative_residual",
     "whiteness",
 )
+
+
+def _profiled_score(residual: Tensor, problem: LeastSquaresProblem, params: Tensor) -> Tensor:
+    """[batch] -log posterior of a fit with each output channel's white-noise variance profiled out:
+    ½ T Σ_c log(Σ_t r_c²) + ½ Σ λ (θ - μ)² of ``problem``'s prior (constants dropped), from the residual
+    [batch, T, channels] less each channel's mean (offsets are outside the noise model). Per channel,
+    because the channels' scales differ by orders of magnitude: a summed residual would let the wheel's
+    trade the occupant's away."""
+    power = (residual - residual.mean(1, keepdim=True)).square().sum(1).clamp_min(1e-300)  # [batch, channels]
+    score = 0.5 * residual.shape[1] * power.log().sum(1)
+    if problem.prior_mean is not None:
+        score = score + 0.5 * (problem.prior_precision * (params.double() - problem.prior_mean).square()).sum(1)
+    return score
 
 
 def _take(into: SolverResult, other: SolverResult, mask: Tensor, rows: Tensor | None = None) -> None:
