@@ -324,3 +324,52 @@ def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit(
     assert float(GaussNewtonRefinement._attempt_score(torch.tensor([1e-3]), 500, problem, mean[:1] + 2)[0]) == (
         pytest.approx(250 * math.log(1e-3) + 2.0)
     )
+
+
+def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batch():
+    """Each restart start is drawn from a stream of its own (seed, recording, attempt): recordings 4 and
+    1 get the same restart starts in a batch of six and in a batch of just the two, in the other order,
+    and another seed gives other starts."""
+    from hybridqcm.estimation.solver import SolverResult
+    from hybridqcm.physics import reference_params
+
+    def starts_of(index: list[int], seed: int = 0) -> dict:
+        seen: dict = {}
+
+        def run_stages(outputs, init, module, restart=False, x0_at_rest=None):
+            b = init.shape[0]
+            if restart:
+                for row, i in enumerate(outputs["index"].tolist()):
+                    seen.setdefault(i, []).append(init[row].clone())
+            relative = torch.ones(b, dtype=torch.float64)  # never good enough: every attempt is run
+            result = SolverResult(
+                params=init.clone(),
+                status=torch.full((b,), int(SolverStatus.CONVERGED)),
+                iterations=torch.ones(b, dtype=torch.int64),
+                loss=relative.clone(),
+                loss_history=relative[None].clone(),
+                std=torch.ones_like(init),
+                covariance=torch.eye(10, dtype=torch.float64).expand(b, 10, 10).clone(),
+                singular_values=torch.ones_like(init),
+                residual_variance=relative.clone(),
+                relative_residual=relative.sqrt(),
+                whiteness=torch.zeros(b, dtype=torch.float64),
+            )
+            return {}, result, init.clone(), relative.clone(), relative.clone()
+
+        callback = GaussNewtonRefinement(
+            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=3, restart_threshold=0.0, peer_factor=None,
+            seed=seed, restart_batch=1,
+        )  # fmt: skip
+        callback._run_stages = run_stages
+        init = reference_params().double().expand(len(index), 10).clone()
+        callback.refine({"init": init, "index": torch.tensor(index)})
+        return seen
+
+    whole, pair, other_seed = starts_of([0, 1, 2, 3, 4, 5]), starts_of([4, 1]), starts_of([4, 1], seed=1)
+    for i in (4, 1):
+        assert len(whole[i]) == len(pair[i]) == 3
+        for a, b in zip(whole[i], pair[i]):
+            assert torch.equal(a, b)
+        assert not torch.equal(whole[i][0], other_seed[i][0])
+    assert not torch.equal(whole[4][0], whole[1][0])

@@ -178,17 +178,12 @@ class ShardStore:
 
 
 class BlockRefinement(GaussNewtonRefinement):
-    """GaussNewtonRefinement for one block at a time: keeps nothing between blocks, and seeds the
-    multi-start draws per block (block 0 with seed + 2, as the one-batch run), so a block's result
-    does not depend on which process solved it or what it solved before."""
-
-    def __init__(self, *args, seed: int = 0, **kwargs):
-        super().__init__(*args, seed=seed, **kwargs)
-        self._seed = int(seed)
+    """GaussNewtonRefinement for one block at a time: keeps nothing between blocks (the multi-start
+    draws are per recording), so a block's result does not depend on which process solved it or what
+    it solved before."""
 
     def refine_block(self, outputs: Mapping, module, block: int) -> dict:
         """The block's record (see GaussNewtonRefinement.refine); nothing is kept after it."""
-        self.generator.manual_seed(self._seed + 2 + 1_000_003 * int(block))
         record = self.refine(outputs, module)
         self._batches.clear()
         return record

@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from lightning.pytorch import Callback
 from torch import Tensor
@@ -160,7 +161,9 @@ class GaussNewtonRefinement(Callback):
         # Attempts run together while retried samples x attempts <= restart_batch: a solver call on a
         # few samples costs its fixed per-step overhead; on more, attempts that are not needed cost more.
         self.restart_batch = int(restart_batch)
-        self.generator = torch.Generator().manual_seed(int(seed) + 2)
+        # Restart draws come from one stream per (seed, recording, attempt) (_restart_draws): a
+        # recording's restarts do not depend on which others share its batch or are retried with it.
+        self.seed = int(seed)
         # Restart k (k < len) also rescales the start of p1, p2 by restart_mass_factors[k]: both are
         # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
         # which a 10 % perturbation cannot undo. E.g. [0.6, 1.6, 0.4, 2.5] walks m3 over the prior.
@@ -461,6 +464,19 @@ class GaussNewtonRefinement(Callback):
             return {}
         return {"prior_mean": mean, "prior_precision": precision}
 
+    def _restart_draws(self, index: Tensor, attempt: int, width: int) -> Tensor:
+        """[len(index), width] float64 standard normal draws for restart ``attempt`` of the recordings
+        ``index``, each from its own generator seeded by (seed, recording, attempt)."""
+        out = torch.empty(index.shape[0], width, dtype=torch.float64)
+        generator = torch.Generator()
+        for row, i in enumerate(index.tolist()):
+            state = np.random.SeedSequence([self.seed % 2**63, int(i) % 2**63, int(attempt), 2]).generate_state(
+                2, np.uint32
+            )
+            generator.manual_seed(int(state[0]) << 32 | int(state[1]))
+            out[row] = torch.randn(width, generator=generator, dtype=torch.float64)
+        return out
+
     def _far_from_start(self, params: Tensor, init: Tensor) -> Tensor:
         """[batch] bool: free p1 or p2 of ``params`` more than restart_far (relative, either way) from ``init``."""
         if self.restart_far is None:
@@ -567,7 +583,7 @@ class GaussNewtonRefinement(Callback):
             group = min(self.restarts - attempt, max(1, self.restart_batch // retry.numel()))
             starts = []
             for number in range(attempt, attempt + group):
-                delta = torch.randn(retry.numel(), init.shape[1], generator=self.generator, dtype=torch.float64)
+                delta = self._restart_draws(outputs["index"][retry], number, init.shape[1])
                 new_init = init[retry] * (1.0 + self.restart_sigma * delta)
                 if number < len(self.restart_mass_factors):
                     new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[number]
