@@ -276,6 +276,27 @@ def test_fits_far_from_the_networks_start_are_retried_and_keep_the_lowest_loss()
         GaussNewtonRefinement([GaussNewtonStage("seat", GaussNewton())], restart_far=0.0)
 
 
+def _converged(params, relative):
+    """A SolverResult of converged fits at ``params`` [b, n] with relative losses ``relative`` [b], for
+    tests that stand in for the GN stages."""
+    from hybridqcm.estimation.solver import SolverResult
+
+    b, n = params.shape
+    return SolverResult(
+        params=params.clone(),
+        status=torch.full((b,), int(SolverStatus.CONVERGED)),
+        iterations=torch.ones(b, dtype=torch.int64),
+        loss=relative.clone(),
+        loss_history=relative[None].clone(),
+        std=torch.ones_like(params),
+        covariance=torch.eye(n, dtype=torch.float64).expand(b, n, n).clone(),
+        singular_values=torch.ones_like(params),
+        residual_variance=relative.clone(),
+        relative_residual=relative.sqrt(),
+        whiteness=torch.zeros(b, dtype=torch.float64),
+    )
+
+
 def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit():
     """Attempts that all fit (converged) are ranked by -log posterior with the noise variance profiled
     out, ½ n log(residual power) + ½ λ (θ - μ)², not by the misfit alone. Sample 0: the restart has a
@@ -283,8 +304,6 @@ def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit(
     the first fit is kept. Sample 1: a residual 10 % smaller (-26) at 3 standard deviations (+4.5): the
     restart is taken. Without a noise model the smaller misfit wins, as before."""
     from types import SimpleNamespace
-
-    from hybridqcm.estimation.solver import SolverResult
 
     mean = torch.tensor([[10.0, 1000.0], [10.0, 1000.0]], dtype=torch.float64)
     precision = torch.tensor([[1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)  # std 1 on p1, none on p2
@@ -296,20 +315,7 @@ def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit(
 
         def run_stages(outputs, init, module, restart=False, x0_at_rest=None, _n=n_terms, _a=attempts):
             params, relative = (t.double() for t in next(_a))
-            b = params.shape[0]
-            result = SolverResult(
-                params=params.clone(),
-                status=torch.full((b,), int(SolverStatus.CONVERGED)),
-                iterations=torch.ones(b, dtype=torch.int64),
-                loss=relative.clone(),
-                loss_history=relative[None].clone(),
-                std=torch.ones_like(params),
-                covariance=torch.eye(2, dtype=torch.float64).expand(b, 2, 2).clone(),
-                singular_values=torch.ones_like(params),
-                residual_variance=relative.clone(),
-                relative_residual=relative.sqrt(),
-                whiteness=torch.zeros(b, dtype=torch.float64),
-            )
+            result = _converged(params, relative)
             score = GaussNewtonRefinement._attempt_score(relative, _n, problem, params)
             return {}, result, params.clone(), relative.clone(), score
 
@@ -330,7 +336,6 @@ def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batc
     """Each restart start is drawn from a stream of its own (seed, recording, attempt): recordings 4 and
     1 get the same restart starts in a batch of six and in a batch of just the two, in the other order,
     and another seed gives other starts."""
-    from hybridqcm.estimation.solver import SolverResult
     from hybridqcm.physics import reference_params
 
     def starts_of(index: list[int], seed: int = 0) -> dict:
@@ -342,19 +347,7 @@ def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batc
                 for row, i in enumerate(outputs["index"].tolist()):
                     seen.setdefault(i, []).append(init[row].clone())
             relative = torch.ones(b, dtype=torch.float64)  # never good enough: every attempt is run
-            result = SolverResult(
-                params=init.clone(),
-                status=torch.full((b,), int(SolverStatus.CONVERGED)),
-                iterations=torch.ones(b, dtype=torch.int64),
-                loss=relative.clone(),
-                loss_history=relative[None].clone(),
-                std=torch.ones_like(init),
-                covariance=torch.eye(10, dtype=torch.float64).expand(b, 10, 10).clone(),
-                singular_values=torch.ones_like(init),
-                residual_variance=relative.clone(),
-                relative_residual=relative.sqrt(),
-                whiteness=torch.zeros(b, dtype=torch.float64),
-            )
+            result = _converged(init, relative)
             return {}, result, init.clone(), relative.clone(), relative.clone()
 
         callback = GaussNewtonRefinement(
