@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.common import CONFIG_DIR
 from hybridqcm.apps.estimate import run, validate
-from hybridqcm.apps.estimate_inputs import block_rows, build_inputs
+from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows, build_inputs
 from hybridqcm.apps.estimate_shards import ShardStore
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
@@ -102,6 +103,39 @@ def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path)
     assert one[:, 0].tolist() == list(range(24))  # every input row once, in input order
     np.testing.assert_allclose(two, one, rtol=1e-12, atol=0)
     assert not (runs["two"] / "shards").exists()  # merged, then removed
+
+
+def test_more_processes_than_blocks_leaves_a_rank_idle_not_failing(tiny_dataset, tmp_path):
+    """One block on two ranks (a small file, or a resumed run with one block left): rank 1 has nothing
+    to do. Lightning's own predict sampler asserted there; the run must give the single-process rows."""
+    common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=5", "batch_size=8"]
+    runs = {}
+    for name, extra in {"one": [], "two": ["trainer=ddp", "trainer.devices=2"]}.items():
+        command = [str(BIN / "qcm-estimate"), *common, *extra, f"hydra.run.dir={tmp_path / name}"]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+        assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
+        runs[name] = tmp_path / name
+    summary = json.loads((runs["two"] / "summary.json").read_text())
+    assert summary["processes"] == 2 and summary["blocks"] == 1
+    _, one, _ = _estimates(runs["one"] / "estimates.csv")
+    _, two, _ = _estimates(runs["two"] / "estimates.csv")
+    assert two[:, 0].tolist() == list(range(5))
+    np.testing.assert_allclose(two, one, rtol=1e-12, atol=0)
+
+
+def test_rank_blocks_deal_every_block_once():
+    """Without a process group one process takes every block; under W ranks, rank r takes r, r + W, ..."""
+    assert list(RankBlocks(5)) == [0, 1, 2, 3, 4] and len(RankBlocks(0)) == 0
+    ranks = {}
+    for rank in range(3):
+        with (
+            mock.patch.object(torch.distributed, "is_initialized", return_value=True),
+            mock.patch.object(torch.distributed, "get_rank", return_value=rank),
+            mock.patch.object(torch.distributed, "get_world_size", return_value=3),
+        ):
+            ranks[rank] = list(RankBlocks(4))
+    assert ranks == {0: [0, 3], 1: [1], 2: [2]}
+    assert sorted(sum(ranks.values(), [])) == [0, 1, 2, 3]
 
 
 def test_restart_skips_finished_blocks_and_refuses_foreign_shards(tiny_dataset, tmp_path, monkeypatch):

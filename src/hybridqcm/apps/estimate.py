@@ -35,7 +35,7 @@ from omegaconf import DictConfig
 
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError, fail
-from hybridqcm.apps.estimate_inputs import InputSettings, RecordingBlocks, block_rows, build_inputs
+from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
 from hybridqcm.apps.estimate_plan import (
     CHANNELS,
     INITIAL_STATES,
@@ -204,6 +204,7 @@ def build_trainer(cfg, callbacks, run_dir: Path) -> lightning.Trainer:
         callbacks=callbacks,
         default_root_dir=str(run_dir),
         inference_mode=False,
+        use_distributed_sampler=False,  # the blocks are sharded over ranks by RankBlocks
     )
 
 
@@ -243,11 +244,16 @@ def run(cfg) -> dict:
         if len(pending) < len(blocks):
             print(f"resuming: {len(blocks) - len(pending)} of {len(blocks)} blocks already estimated in {store.root}")
         loader = torch.utils.data.DataLoader(
-            RecordingBlocks(InputSettings.from_config(cfg), plan, pending), batch_size=None, shuffle=False
+            RecordingBlocks(InputSettings.from_config(cfg), plan, pending),
+            batch_size=None,
+            sampler=RankBlocks(len(pending)),
         )
+        module = build_module(cfg, plan)
+        module.allow_zero_length_dataloader_with_multiple_devices = True  # fewer blocks than ranks
         with warnings.catch_warnings():  # the writer keys shards by block, not by sampler indices
             warnings.filterwarnings("ignore", message="Couldn't infer the batch indices")
-            trainer.predict(build_module(cfg, plan), dataloaders=loader, return_predictions=False)
+            warnings.filterwarnings("ignore", message=".*within local rank has zero length")
+            trainer.predict(module, dataloaders=loader, return_predictions=False)
     solve_seconds = time.perf_counter() - t_solve
     rss_solve = _max_rss_mib()
     trainer.strategy.barrier("qcm-estimate merge")

@@ -149,9 +149,9 @@ def block_rows(n_samples: int, batch_size: int) -> list[tuple[int, int]]:
 class RecordingBlocks(torch.utils.data.Dataset):
     """Map-style dataset over the blocks still to estimate; item k is block ``blocks[k]``'s batch.
 
-    Used with ``DataLoader(batch_size=None)``: one item is one predict batch. Under DDP, Lightning
-    hands rank r the items r, r + W, ... (unrepeated for predict; a padded sampler's repeats would
-    rewrite the same shard). The δ/η draws are continued block after block within a process."""
+    Used with ``DataLoader(batch_size=None, sampler=RankBlocks(len(blocks)))``: one item is one
+    predict batch, rank r of W takes the items r, r + W, ... The δ/η draws are continued block after
+    block within a process."""
 
     def __init__(self, settings: InputSettings, plan: Mapping, blocks: list[tuple[int, int, int]]):
         self.settings = settings
@@ -172,4 +172,30 @@ class RecordingBlocks(torch.utils.data.Dataset):
         return batch
 
 
-__all__ = ["InputSettings", "build_inputs", "block_rows", "RecordingBlocks"]
+class RankBlocks(torch.utils.data.Sampler):
+    """Items r, r + W, ... of ``n_items`` for rank r of the W processes of the default process group
+    (read when iterated, after the strategy has set the group up; one process without one).
+
+    Unrepeated, like Lightning's predict sampler (a padded sampler's repeats would rewrite the same
+    shard), but a rank may get no item at all: fewer blocks than processes (a small file, or a
+    resumed run with one block left) is a rank with nothing to do, where Lightning's sampler asserts.
+    Use with ``Trainer(use_distributed_sampler=False)``."""
+
+    def __init__(self, n_items: int):
+        self.n_items = int(n_items)
+
+    def _mine(self) -> range:
+        dist = torch.distributed
+        rank, world = (
+            (dist.get_rank(), dist.get_world_size()) if dist.is_available() and dist.is_initialized() else (0, 1)
+        )
+        return range(rank, self.n_items, world)
+
+    def __len__(self) -> int:
+        return len(self._mine())
+
+    def __iter__(self):
+        return iter(self._mine())
+
+
+__all__ = ["InputSettings", "build_inputs", "block_rows", "RecordingBlocks", "RankBlocks"]
