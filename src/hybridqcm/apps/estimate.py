@@ -243,6 +243,12 @@ def run(cfg) -> dict:
     if pending:
         if len(pending) < len(blocks):
             print(f"resuming: {len(blocks) - len(pending)} of {len(blocks)} blocks already estimated in {store.root}")
+        if trainer.world_size > len(pending) and rank_zero_only.rank == 0:
+            print(
+                f"note: {len(pending)} block(s) to estimate on {trainer.world_size} processes, "
+                f"{trainer.world_size - len(pending)} idle (batch_size={int(cfg.batch_size)}; "
+                f"batch_size<={-(-n_samples // trainer.world_size)} gives each one a share)"
+            )
         loader = torch.utils.data.DataLoader(
             RecordingBlocks(InputSettings.from_config(cfg), plan, pending),
             batch_size=None,
