@@ -175,6 +175,30 @@ def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
         assert "\n" not in str(error.value)
 
 
+@pytest.mark.parametrize(
+    "overrides, expected",
+    [
+        (["experiment=exp5_random_init", "dynamics=exact"], "model"),  # road known, residual whitened
+        (["experiment=exp5_random_init", "dynamics=exact", "residual_weighting=false"], "robust_jackknife"),
+        (["experiment=exp5_random_init", "dynamics=euler"], "robust_jackknife"),  # the source protocol
+        (["experiment=occupant_roadfree"], "robust_jackknife"),  # a measured input: errors in variables
+        (["experiment=sprung_roadfree"], "robust_jackknife"),
+        (["experiment=exp5_random_init", "dynamics=exact", "intervals.covariance=jackknife"], "jackknife"),
+    ],
+)
+def test_auto_covariance_is_the_model_one_only_where_the_whitened_residual_is_white(tiny_dataset, overrides, expected):
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.apps.common import CONFIG_DIR
+    from hybridqcm.apps.estimate_plan import validate
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("estimate", overrides=[*overrides, f"data.path={tiny_dataset}", "n_samples=2"])
+    stages = validate(cfg)["stages"]
+    assert stages[-1]["settings"]["covariance"] == expected
+    assert all("covariance" not in s["settings"] for s in stages[:-1])
+
+
 def test_robust_covariance_with_a_prior_is_the_gaussian_product():
     """MAP: the robust data covariance C combines with the prior precision Λ as (C⁻¹ + Λ)⁻¹ — a strong
     prior pins its parameter's std at 1/√λ and leaves the other one no wider than without it."""

@@ -287,6 +287,7 @@ def run(cfg) -> dict:
         "hold": str(cfg.hold) if plan["model"] == "exact" else None,
         "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
         "input_margin": list(plan["input_margin"]),
+        "interval_covariance": plan["stages"][-1]["settings"].get("covariance", "model"),  # auto resolved
         "stages": stage_status,
         "stage_mean_loss": stage_loss,
         "seconds_solve": solve_seconds,

@@ -95,8 +95,8 @@ def interval_settings(cfg) -> dict:
     if intervals is None:
         return {}
     covariance = intervals.get("covariance", "model")
-    if covariance not in COVARIANCES:
-        raise ConfigError(f"intervals.covariance={covariance!r}: choose one of {list(COVARIANCES)}")
+    if covariance not in ("auto", *COVARIANCES):
+        raise ConfigError(f"intervals.covariance={covariance!r}: choose one of {['auto', *COVARIANCES]}")
     band = intervals.get("band", 1)
     if isinstance(band, bool) or not isinstance(band, int) or band < 1:
         raise ConfigError(f"intervals.band={band!r}: must be an integer >= 1")
@@ -104,6 +104,16 @@ def interval_settings(cfg) -> dict:
     if not isinstance(student_t, bool):
         raise ConfigError(f"intervals.student_t={student_t!r}: must be true or false")
     return {"covariance": covariance, "covariance_band": band, "covariance_dof": student_t}
+
+
+def resolve_covariance(cfg, model: str, base_excitation: str | None) -> str:
+    """``intervals.covariance: auto`` for this run: ``model`` where the whitened residual is white noise
+    — a road-driven exact model (the input known, not measured) fitted with a noise model — and
+    ``robust_jackknife`` elsewhere: a measured driving acceleration (errors in variables), or the Euler
+    model without a noise model (its residual is discretisation error, the source's noise multiplicative)."""
+    weighting = str(cfg.get("residual_weighting", "auto")).lower()
+    whitened = weighting in ("spectral", "true") or (weighting == "auto" and model == "exact")
+    return "model" if base_excitation is None and model == "exact" and whitened else "robust_jackknife"
 
 
 def vehicle_prior_settings(cfg) -> dict | None:
@@ -416,6 +426,9 @@ def validate(cfg) -> dict:
     needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
+    for stage in stages:  # only the last stage carries the intervals' settings
+        if stage["settings"].get("covariance") == "auto":
+            stage["settings"]["covariance"] = resolve_covariance(cfg, model, base)
     if initial_state == "unknown":
         # With x0 unknown a short continuation window has up to 6 more unknowns than it can pin
         # down (diverging or stopping in local minima): such stages are skipped.

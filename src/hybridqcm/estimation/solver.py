@@ -112,7 +112,8 @@ class SolverConfig:
     #   "jackknife": the delete-a-group jackknife over the same groups (the sandwich with leverage
     #               correction), at the Student-t quantile of its effective degrees of freedom;
     #   "robust_sandwich" / "robust_jackknife": per parameter the larger of "model" and that variance
-    #               (correlations of "model"). The app's default is robust_jackknife (configs/estimate.yaml).
+    #               (correlations of "model"). The app chooses per model (intervals.covariance: auto in
+    #               configs/estimate.yaml; apps/estimate_plan.resolve_covariance).
     covariance: str = "model"
     covariance_band: int = 1
     covariance_dof: bool = True  # jackknife: Student-t quantile at its Satterthwaite degrees of freedom
