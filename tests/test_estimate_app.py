@@ -204,6 +204,8 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.batch=0"]))
     with pytest.raises(ConfigError, match=r"restarts\.far_from_start must be null or a number > 0, got -0\.5"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.far_from_start=-0.5"]))
+    with pytest.raises(ConfigError, match=r"restarts\.around='nearby': choose auto, start or reference"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.around=nearby"]))
     with pytest.raises(ConfigError, match=r"solver\.decrement_tol must be null or a finite number >= 0, got -1"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "solver.decrement_tol=-1"]))
     with pytest.raises(ConfigError, match=r"vehicle_prior\.rel_std=-0\.3: must be null or a finite number > 0"):

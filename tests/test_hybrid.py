@@ -332,6 +332,43 @@ def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit(
     )
 
 
+def test_restarts_around_the_reference_vehicle_draw_the_vehicle_there_and_keep_the_occupants_start():
+    """restart_center: the vehicle's parameters (p3..p10) of every restart start lie within a few σ of
+    the given vehicle, however far the first start was from it; p1, p2 stay around the first start,
+    scaled by the mass ladder; known parameters keep their values."""
+    from hybridqcm.physics import reference_params
+
+    p_ref = reference_params().double()
+    first = p_ref * torch.tensor([1.0, 1.0, 1.0, 1.5, 1.0, 0.6, 1.4, 0.7, 1.5, 0.5], dtype=torch.float64)
+    seen = []
+
+    def run_stages(outputs, init, module, restart=False, x0_at_rest=None):
+        if restart:
+            seen.append(init.clone())
+        relative = torch.ones(init.shape[0], dtype=torch.float64)
+        return {}, _converged(init, relative), init.clone(), relative.clone(), relative.clone()
+
+    known = torch.zeros(10, dtype=torch.bool)
+    known[[2, 4]] = True
+    callback = GaussNewtonRefinement(
+        [GaussNewtonStage("gn", GaussNewton())], h=H, known=known, restarts=4, restart_threshold=0.0,
+        peer_factor=None, restart_batch=1, restart_sigma=0.01, restart_mass_factors=[1.0, 2.0],
+        restart_center=p_ref,
+    )  # fmt: skip
+    callback._run_stages = run_stages
+    callback.refine({"init": first.expand(8, 10).clone(), "index": torch.arange(8)})
+    starts = torch.stack(seen)  # [attempt, recording, 10]
+    assert starts.shape == (4, 8, 10)
+    vehicle = [3, 5, 6, 7, 8, 9]
+    assert ((starts[..., vehicle] / p_ref[vehicle] - 1).abs() < 0.06).all()  # around p_ref (σ = 1 %)
+    assert ((starts[..., vehicle] / first[vehicle] - 1).abs() > 0.2).all()  # not around the first start
+    assert torch.equal(starts[..., [2, 4]], first[[2, 4]].expand(4, 8, 2))  # known: unchanged
+    ratio = starts[..., :2] / first[:2]
+    assert ((ratio[0] - 1).abs() < 0.06).all() and ((ratio[1] - 2).abs() < 0.12).all()  # the mass ladder
+    with pytest.raises(ValueError, match="restart_center"):
+        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], h=H, restart_center=p_ref[:3])
+
+
 def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batch():
     """Each restart start is drawn from a stream of its own (seed, recording, attempt): recordings 4 and
     1 get the same restart starts in a batch of six and in a batch of just the two, in the other order,

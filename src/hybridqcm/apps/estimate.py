@@ -122,6 +122,14 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         listed = torch.tensor([n in plan["vehicle_prior"]["params"] for n in names])
         if bool(listed.any()):
             param_prior = (mean, torch.where(listed, plan["vehicle_prior"]["rel_std"] * mean, math.inf))
+    around = str(cfg.restarts.get("around", "start"))
+    if around == "auto":
+        around = "reference" if plan["model"] == "exact" else "start"
+    restart_center = None
+    if around == "reference":
+        names = response.theta_names[: response.n_params]
+        p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
+        restart_center = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
     reweight = str(cfg.residual_weighting)
     if reweight == "auto":
         reweight = "spectral" if plan["model"] == "exact" else False
@@ -145,6 +153,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,
+        restart_center=restart_center,
     )
 
 

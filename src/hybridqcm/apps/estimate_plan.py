@@ -259,6 +259,9 @@ def validate(cfg) -> dict:
     if far is not None and (isinstance(far, bool) or not isinstance(far, int | float) or not far > 0):
         raise ConfigError(f"restarts.far_from_start must be null or a number > 0, got {far!r}")
 
+    around = str(cfg.restarts.get("around", "start"))
+    if around not in ("auto", "start", "reference"):
+        raise ConfigError(f"restarts.around={around!r}: choose auto, start or reference")
     stages = []
     for i, stage in enumerate(cfg.stages):
         stage = dict(stage)

@@ -101,6 +101,7 @@ class GaussNewtonRefinement(Callback):
         restart_far: float | None = None,
         param_prior: tuple[Tensor, Tensor] | None = None,
         noise_refits: int = 2,
+        restart_center: Tensor | None = None,
     ):
         super().__init__()
         if not stages:
@@ -168,6 +169,15 @@ class GaussNewtonRefinement(Callback):
         # (C3, K3)/m3, and a wrong occupant mass puts the seat mode's phase off by whole cycles,
         # which a 10 % perturbation cannot undo. E.g. [0.6, 1.6, 0.4, 2.5] walks m3 over the prior.
         self.restart_mass_factors = [float(f) for f in restart_mass_factors]
+        # restart_center [n_params] (a vehicle, e.g. the reference one), or None: restarts draw the
+        # vehicle's parameters (all but the occupant's p1, p2, which keep the first start and the mass
+        # ladder) around it instead of around the first start. A random start that ended in a wrong
+        # minimum is a bad centre for the next ones: draws around it land in the same basin.
+        if restart_center is not None:
+            restart_center = torch.as_tensor(restart_center, dtype=torch.float64)
+            if restart_center.shape != (n_params,) or not bool((restart_center > 0).all()):
+                raise ValueError(f"restart_center must be [{n_params}] positive parameters, got {restart_center}")
+        self.restart_center = restart_center
         # A fit that fits but ends with p1 or p2 more than restart_far (relative) away from a start
         # the networks gave is retried too: under noise a one-channel loss can hold several minima of
         # nearly equal depth, and the lowest-loss attempt wins (the same rule as above). None: off.
@@ -584,7 +594,11 @@ class GaussNewtonRefinement(Callback):
             starts = []
             for number in range(attempt, attempt + group):
                 delta = self._restart_draws(outputs["index"][retry], number, init.shape[1])
-                new_init = init[retry] * (1.0 + self.restart_sigma * delta)
+                centre = init[retry].clone()
+                if self.restart_center is not None:
+                    n_p = self.restart_center.numel()
+                    centre[:, 2:n_p] = self.restart_center[2:].to(centre)
+                new_init = centre * (1.0 + self.restart_sigma * delta)
                 if number < len(self.restart_mass_factors):
                     new_init[:, :2] = new_init[:, :2] * self.restart_mass_factors[number]
                 starts.append(torch.where(self.known[: init.shape[1]] | (new_init <= 0), init[retry], new_init))
