@@ -87,15 +87,21 @@ def test_blocks_read_the_same_inputs_as_one_in_memory_draw(tiny_dataset):
     assert torch.equal(torch.cat([b["index"] for b in blocks]), torch.arange(37))
 
 
-def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path):
-    """24 recordings in 4 blocks of 6: rank 0 solves blocks 0 and 2, rank 1 blocks 1 and 3 (gloo)."""
-    common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=24", "batch_size=8"]
+def _one_and_two_processes(overrides: list[str], tmp_path: Path) -> dict[str, Path]:
+    """Run folders of qcm-estimate with ``overrides`` in one process ("one") and in two ("two", gloo)."""
     runs = {}
     for name, extra in {"one": [], "two": ["trainer=ddp", "trainer.devices=2"]}.items():
-        command = [str(BIN / "qcm-estimate"), *common, *extra, f"hydra.run.dir={tmp_path / name}"]
+        command = [str(BIN / "qcm-estimate"), *overrides, *extra, f"hydra.run.dir={tmp_path / name}"]
         result = subprocess.run(command, capture_output=True, text=True, timeout=300)
         assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
         runs[name] = tmp_path / name
+    return runs
+
+
+def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path):
+    """24 recordings in 4 blocks of 6: rank 0 solves blocks 0 and 2, rank 1 blocks 1 and 3 (gloo)."""
+    common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=24", "batch_size=8"]
+    runs = _one_and_two_processes(common, tmp_path)
     assert json.loads((runs["two"] / "summary.json").read_text())["processes"] == 2
     header1, one, status1 = _estimates(runs["one"] / "estimates.csv")
     header2, two, status2 = _estimates(runs["two"] / "estimates.csv")
@@ -109,12 +115,7 @@ def test_more_processes_than_blocks_leaves_a_rank_idle_not_failing(tiny_dataset,
     """One block on two ranks (a small file, or a resumed run with one block left): rank 1 has nothing
     to do. Lightning's own predict sampler asserted there; the run must give the single-process rows."""
     common = [*ROADFREE, f"data.path={tiny_dataset}", "n_samples=5", "batch_size=8"]
-    runs = {}
-    for name, extra in {"one": [], "two": ["trainer=ddp", "trainer.devices=2"]}.items():
-        command = [str(BIN / "qcm-estimate"), *common, *extra, f"hydra.run.dir={tmp_path / name}"]
-        result = subprocess.run(command, capture_output=True, text=True, timeout=300)
-        assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
-        runs[name] = tmp_path / name
+    runs = _one_and_two_processes(common, tmp_path)
     summary = json.loads((runs["two"] / "summary.json").read_text())
     assert summary["processes"] == 2 and summary["blocks"] == 1
     _, one, _ = _estimates(runs["one"] / "estimates.csv")
