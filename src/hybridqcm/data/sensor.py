@@ -46,6 +46,19 @@ def _per_channel(value, name: str) -> tuple[float, float, float]:
     return out
 
 
+def keyed_normals(keys: Sequence[Sequence[int]], shape: tuple[int, ...]) -> Tensor:
+    """[len(keys), *shape] float64 standard normals, row k from a generator of its own seeded by
+    numpy's SeedSequence(keys[k]): a row depends on its key alone, never on the other rows of the
+    batch (per-sample sensor noise, per-recording restart draws)."""
+    out = torch.empty(len(keys), *shape, dtype=torch.float64)
+    generator = torch.Generator()
+    for row, key in enumerate(keys):
+        state = np.random.SeedSequence([int(k) for k in key]).generate_state(2, np.uint32)
+        generator.manual_seed(int(state[0]) << 32 | int(state[1]))
+        out[row] = torch.randn(*shape, generator=generator, dtype=torch.float64)
+    return out
+
+
 @dataclass
 class SensorModel:
     kind: str = "none"  # none | additive | multiplicative
@@ -122,15 +135,8 @@ class SensorModel:
 
     def _noise(self, index: Tensor, n_steps: int, salt: int) -> Tensor:
         """eta [b, T, 3] float64, sample i's from its own generator seeded by (seed, salt, i)."""
-        out = torch.empty(index.shape[0], n_steps, 3, dtype=torch.float64)
-        generator = torch.Generator()
-        for row, i in enumerate(index.tolist()):
-            state = np.random.SeedSequence([int(self.seed), int(salt) % 2**63, int(i) % 2**63]).generate_state(
-                2, np.uint32
-            )
-            generator.manual_seed(int(state[0]) << 32 | int(state[1]))
-            out[row] = torch.randn(n_steps, 3, generator=generator, dtype=torch.float64)
-        return out
+        keys = [[int(self.seed), int(salt) % 2**63, int(i) % 2**63] for i in index.tolist()]
+        return keyed_normals(keys, (n_steps, 3))
 
     def levels(self, index: Tensor, salt: int = 0) -> Tensor:
         """[b, 3] noise level sigma_c per sample: the configured sigma, or with `sigma_range` a log-uniform
@@ -248,4 +254,4 @@ def additive_augmentation(
     return out
 
 
-__all__ = ["SensorModel", "build_sensor", "apply_to_channels", "additive_augmentation", "KINDS"]
+__all__ = ["SensorModel", "build_sensor", "apply_to_channels", "additive_augmentation", "keyed_normals", "KINDS"]

@@ -15,10 +15,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import torch
 from lightning.pytorch import Callback
 from torch import Tensor
+
+from hybridqcm.data.sensor import keyed_normals
 
 from .front import CHANNELS, HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
@@ -477,15 +478,8 @@ class GaussNewtonRefinement(Callback):
     def _restart_draws(self, index: Tensor, attempt: int, width: int) -> Tensor:
         """[len(index), width] float64 standard normal draws for restart ``attempt`` of the recordings
         ``index``, each from its own generator seeded by (seed, recording, attempt)."""
-        out = torch.empty(index.shape[0], width, dtype=torch.float64)
-        generator = torch.Generator()
-        for row, i in enumerate(index.tolist()):
-            state = np.random.SeedSequence([self.seed % 2**63, int(i) % 2**63, int(attempt), 2]).generate_state(
-                2, np.uint32
-            )
-            generator.manual_seed(int(state[0]) << 32 | int(state[1]))
-            out[row] = torch.randn(width, generator=generator, dtype=torch.float64)
-        return out
+        keys = [[self.seed % 2**63, int(i) % 2**63, int(attempt), 2] for i in index.tolist()]
+        return keyed_normals(keys, (width,))
 
     def _far_from_start(self, params: Tensor, init: Tensor) -> Tensor:
         """[batch] bool: free p1 or p2 of ``params`` more than restart_far (relative, either way) from ``init``."""
