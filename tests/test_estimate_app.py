@@ -206,6 +206,9 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.far_from_start=-0.5"]))
     with pytest.raises(ConfigError, match=r"restarts\.around='nearby': choose auto, start or reference"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.around=nearby"]))
+    for dynamics, around in (("exact", "reference"), ("euler", "start")):  # auto: the source's protocol on Euler
+        plan = validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", f"dynamics={dynamics}"]))
+        assert plan["restarts_around"] == around
     with pytest.raises(ConfigError, match=r"solver\.decrement_tol must be null or a finite number >= 0, got -1"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "solver.decrement_tol=-1"]))
     with pytest.raises(ConfigError, match=r"vehicle_prior\.rel_std=-0\.3: must be null or a finite number > 0"):

@@ -114,22 +114,15 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         )
     if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
         threshold = math.inf
+    # The reference vehicle (vehicle:) on the model's own p: the vehicle prior's mean, the restarts' centre.
+    names = response.theta_names[: response.n_params]
+    p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
+    reference = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
     param_prior = None
-    if plan["vehicle_prior"] is not None:  # around the reference vehicle (vehicle:), on the model's own p
-        names = response.theta_names[: response.n_params]
-        p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
-        mean = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
+    if plan["vehicle_prior"] is not None:
         listed = torch.tensor([n in plan["vehicle_prior"]["params"] for n in names])
         if bool(listed.any()):
-            param_prior = (mean, torch.where(listed, plan["vehicle_prior"]["rel_std"] * mean, math.inf))
-    around = str(cfg.restarts.get("around", "start"))
-    if around == "auto":
-        around = "reference" if plan["model"] == "exact" else "start"
-    restart_center = None
-    if around == "reference":
-        names = response.theta_names[: response.n_params]
-        p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
-        restart_center = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
+            param_prior = (reference, torch.where(listed, plan["vehicle_prior"]["rel_std"] * reference, math.inf))
     reweight = str(cfg.residual_weighting)
     if reweight == "auto":
         reweight = "spectral" if plan["model"] == "exact" else False
@@ -153,7 +146,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,
-        restart_center=restart_center,
+        restart_center=reference if plan["restarts_around"] == "reference" else None,
     )
 
 

@@ -429,6 +429,8 @@ def validate(cfg) -> dict:
     needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
         model, initial_state = "exact", "unknown"
+    if around == "auto":  # the exact model is for real recordings; Euler keeps the source's protocol
+        around = "reference" if model == "exact" else "start"
     for stage in stages:  # only the last stage carries the intervals' settings
         if stage["settings"].get("covariance") == "auto":
             stage["settings"]["covariance"] = resolve_covariance(cfg, model, base)
@@ -460,6 +462,7 @@ def validate(cfg) -> dict:
         "initial_state": initial_state,
         "x0_start": x0_start,
         "vehicle_prior": vehicle_prior_settings(cfg),
+        "restarts_around": around,
         "base_excitation": base,
         "n_params": n_params,
         "sensor": sensor,
