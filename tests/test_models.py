@@ -17,6 +17,7 @@ from hybridqcm.models import (
     LabelledEstimator,
     ParameterCNN,
     PhysicsResidualEstimator,
+    SpectralCNN,
     UNet1d,
     count_parameters,
     least_squares_p12,
@@ -33,6 +34,7 @@ SMALL_CNN = {
     "kernels": [10, 5],
     "hidden": [16, 8],
 }
+SMALL_SPECTRAL = {"_target_": "hybridqcm.models.networks.SpectralCNN", "channels": [6], "kernels": [9], "hidden": [8]}
 SMALL_CAE = {"_target_": "hybridqcm.models.networks.DenoisingCAE", "channels": [4, 8], "kernel_size": 9}
 
 
@@ -84,6 +86,66 @@ def test_signal_networks_keep_length(n):
 
 
 # -- physics residual -------------------------------------------------------------------------------------
+def test_spectral_cnn_energies_are_each_filters_log_mean_square():
+    """Against numpy's own convolution: filter i of the bank is sum_c w[i, c] (*) x_c + b_i over the valid part."""
+    import numpy as np
+
+    torch.manual_seed(0)
+    net = SpectralCNN(window=120, channels=(5,), kernels=(11,), hidden=(4,), remove_mean=False).double()
+    x = torch.randn(3, 2, 120, dtype=torch.float64) + 0.5
+    conv = net.features[0]
+    w, b = conv.weight.detach().numpy(), conv.bias.detach().numpy()
+    expected = np.empty((3, 5))
+    for s in range(3):
+        for i in range(5):
+            # torch's conv1d is a cross-correlation: numpy's convolve with the kernel reversed.
+            y = sum(np.convolve(x[s, c].numpy(), w[i, c, ::-1], mode="valid") for c in range(2)) + b[i]
+            expected[s, i] = np.log(np.mean(y**2) + 1e-6)
+    np.testing.assert_allclose(net.band_energies(x).detach().numpy(), expected, rtol=1e-12)
+
+
+def test_spectral_cnn_does_not_care_where_a_stationary_window_is_cut():
+    """A periodic signal whose period divides the window and the filters' valid length gives the same output
+    at every cut:
+    the estimate of a window cut mid-drive does not depend on the phase at which it starts. The source's
+    flattening CNN does not have this property (checked as the negative control)."""
+    torch.manual_seed(0)
+    period, kernel, window = 20, 21, 120  # window 6 periods (its mean is the signal's), valid length 5
+    t = torch.arange(window + period, dtype=torch.float64)
+    signal = torch.stack(
+        [
+            torch.sin(2 * torch.pi * t / period) + 0.3 * torch.cos(6 * torch.pi * t / period),
+            torch.cos(2 * torch.pi * t / period + 0.4),
+        ]
+    )
+    cuts = torch.stack([signal[:, s : s + window] for s in range(0, period, 3)])
+    spectral = SpectralCNN(window=window, channels=(8,), kernels=(kernel,), hidden=(16,)).double()
+    out = spectral(cuts)
+    assert torch.allclose(out, out[:1].expand_as(out), atol=1e-12, rtol=0)
+    flat = ParameterCNN(window=window, channels=(4, 4), hidden=(8,)).double()
+    out = flat(cuts)
+    assert not torch.allclose(out, out[:1].expand_as(out), atol=1e-6, rtol=0)
+
+
+def test_spectral_cnn_ignores_a_constant_sensor_bias():
+    torch.manual_seed(0)
+    x = torch.randn(4, 2, 200, dtype=torch.float64)
+    bias = torch.tensor([0.3, -1.2], dtype=torch.float64)[:, None]
+    net = SpectralCNN(window=200, channels=(6,), kernels=(25,), hidden=(8,)).double()
+    assert torch.allclose(net(x + bias), net(x), atol=1e-12, rtol=0)
+    net.remove_mean = False  # the control: without the mean removed, the bias is seen
+    assert not torch.allclose(net(x + bias), net(x), atol=1e-3, rtol=0)
+
+
+def test_spectral_cnn_refuses_bad_sizes():
+    with pytest.raises(ValueError, match="shorter than the longest kernel 25"):
+        SpectralCNN(window=20, kernels=(25,), channels=(4,))
+    with pytest.raises(ValueError, match="equal lengths"):
+        SpectralCNN(channels=(4, 4), kernels=(9,))
+    with pytest.raises(ValueError, match=r"expects \[B, 2, 500\]"):
+        SpectralCNN()(torch.zeros(1, 2, 400))
+
+
 def test_physics_residual_zero_for_true_parameters(clean_batch):
     aux, p = _aux(clean_batch), clean_batch["params"][:, :2]
     r = physics_residual(p, aux)
@@ -122,10 +184,11 @@ def _modules():
         PhysicsResidualEstimator(net=SMALL_CNN, lr_schedule={"max_lr": 1e-3}, plot_every_n_epochs=0),
         DenoisingAutoencoder(net=SMALL_CAE, plot_every_n_epochs=0),
         CompletionUNet(net={"_target_": "hybridqcm.models.networks.UNet1d", "filters": [2, 4]}, plot_every_n_epochs=0),
+        PhysicsResidualEstimator(net=SMALL_SPECTRAL, residual_norm="balanced", plot_every_n_epochs=0),
     ]
 
 
-@pytest.mark.parametrize("index", range(4))
+@pytest.mark.parametrize("index", range(5))
 def test_fast_dev_run_every_module(tiny, index):
     module = _modules()[index]
     dm = tiny_datamodule(tiny, module, noise_sigma=0.1 if isinstance(module, DenoisingAutoencoder) else 0.0)
@@ -142,7 +205,7 @@ def test_fast_dev_run_every_module(tiny, index):
         assert results["mse"].shape == (16, 2) and torch.isfinite(results["mse"]).all()
 
 
-@pytest.mark.parametrize("index", range(4))
+@pytest.mark.parametrize("index", range(5))
 def test_checkpoint_round_trip_and_inference_api(tiny, tmp_path, index):
     module = _modules()[index]
     dm = tiny_datamodule(tiny, module)

@@ -127,7 +127,7 @@ def test_manifest_records_merge_across_runs(tmp_path):
 
 def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, monkeypatch, capsys):
     """Without the demo's checkpoints the noise sweep stops before any work, naming the files; with
-    them it runs exp 10 and the road-free model at every noise level, each against those checkpoints."""
+    them it runs exp 10, the road-free model and the CNN alone at every noise level, against those checkpoints."""
     root, networks, dataset = tmp_path / "r", tmp_path / "demo", tmp_path / "d.h5"
     calls = []
     monkeypatch.setattr(
@@ -142,11 +142,14 @@ def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, 
         (networks / name / "checkpoints").mkdir(parents=True)
         (networks / name / "checkpoints" / "last.ckpt").write_bytes(b"")
     assert pipeline.run_pipeline("noise", str(root), str(dataset), networks=str(networks)) == 0
-    assert len(calls) == 2 * len(stages.NOISE_LEVELS)
+    assert len(calls) == 3 * len(stages.NOISE_LEVELS)
     for sigma in stages.NOISE_LEVELS:
         exp10 = next(c for c in calls if f"hydra.run.dir={root}/exp10_noise{sigma:g}" in c)
         assert f"sensor.sigma={sigma:g}" in exp10 and f"cnn_ckpt={networks}/exp2_physics/checkpoints/last.ckpt" in exp10
         roadfree = next(c for c in calls if f"hydra.run.dir={root}/occupant_noise{sigma:g}" in c)
         assert "experiment=occupant_roadfree" in roadfree and "sensor=additive" in roadfree
+        cnn = next(c for c in calls if f"hydra.run.dir={root}/cnn_noise{sigma:g}" in c)
+        assert "train=false" in cnn and f"ckpt_path={networks}/exp2_physics/checkpoints/last.ckpt" in cnn
+        assert f"sensor.sigma={sigma:g}" in cnn
     with pytest.raises(SystemExit):  # --networks belongs to the noise pipeline
         pipeline.main(["demo", "--networks", "x", "--plan"])

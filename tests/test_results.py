@@ -102,6 +102,39 @@ def test_unknown_table_id_fails(tmp_path):
         results.compare_stage(_stage("exp", run_dir, "9.99"), results.load_thesis_tables())
 
 
+def test_noise_sweep_network_rows_read_each_evaluations_test_metrics(tmp_path):
+    """A noise pipeline's network evaluations (qcm-train stages) get their own table by noise level, from
+    test_metrics.json, apart from the estimation table; a run without it fails naming the file."""
+    stages = []
+    for sigma, mean in ((0.05, 0.0094), (0.0, 0.0015)):
+        run_dir = _run_folder(tmp_path, f"cnn{sigma}", 0.001, n_params=2)
+        metrics = {"test/loss": 0.1, "test/mean_rel_err": mean}
+        for p, offset in (("p1", 0.0), ("p2", 0.0001)):
+            metrics |= {
+                f"test/{p}/mean_rel_err": mean + offset,
+                f"test/{p}/max_rel_err": 0.14,
+                f"test/{p}/over_25pct": 0,
+            }
+        (run_dir / "test_metrics.json").write_text(json.dumps({"n_test": 1200, "metrics": metrics}))
+        stages.append(
+            {
+                **_stage(f"cnn_noise{sigma:g}", run_dir, None, app="qcm-train"),
+                "noise": sigma,
+                "setting": f"the CNN alone, additive noise {sigma:.0%}",
+            }
+        )
+    text, _, _ = results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
+    assert "m3 mean error" not in text  # no estimation stage, no estimation table
+    rows = [line for line in text.splitlines() if line.startswith(("| 0 %", "| 5 %"))]
+    assert rows == [
+        "| 0 % | the CNN alone | 1200 | p1 / p2 | 0.15 % / 0.16 % | 14 % / 14 % | 0 % / 0 % |",
+        "| 5 % | the CNN alone | 1200 | p1 / p2 | 0.94 % / 0.95 % | 14 % / 14 % | 0 % / 0 % |",
+    ]
+    (tmp_path / "cnn0.0" / "test_metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="cnn0.0/test_metrics.json"):
+        results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
+
+
 def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
     """A noise pipeline's stages become one table ordered by noise level, numbers from summary.json;
     a run without its summary fails naming the file."""

@@ -149,6 +149,37 @@ def _noise_table(stages: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _network_noise_table(stages: list[dict]) -> str:
+    """One table over a noise sweep's network evaluations (qcm-train stages with a ``noise`` level),
+    from each run's test_metrics.json: every estimated parameter's mean and max error, > 25 %."""
+    rows = []
+    for stage in sorted(stages, key=lambda st: st["noise"]):
+        path = Path(stage["run_dir"]) / "test_metrics.json"
+        try:
+            report = json.loads(path.read_text())
+            metrics, n = report["metrics"], int(report["n_test"])
+            params = sorted(
+                {key.split("/")[1] for key in metrics if key.endswith("/mean_rel_err") and key.count("/") == 2}
+            )
+            cells = [
+                " / ".join(_pct(metrics[f"test/{p}/{kind}"]) for p in params)
+                for kind in ("mean_rel_err", "max_rel_err", "over_25pct")
+            ]
+        except FileNotFoundError:
+            raise FileNotFoundError(f"stage {stage['name']}: {path} does not exist") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"stage {stage['name']}: {path}: no test metrics ({error!r})") from None
+        rows.append(
+            f"| {_pct(stage['noise'])} | {stage['setting'].rsplit(', additive noise', 1)[0]} | {n} | "
+            f"{' / '.join(params)} | " + " | ".join(cells) + " |"
+        )
+    header = [
+        "| noise (of RMS) | network | recordings | parameters | mean error | max error | above 25 % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    return "\n".join(header + rows) + "\n"
+
+
 def _display(command: str) -> str:
     """The command as a user types it: the console script's name instead of its path in the venv."""
     head, _, rest = command.partition(" ")
@@ -177,8 +208,12 @@ def render(
         manifest = load_manifest(manifest_path)
         parts += [f"## Pipeline `{manifest['pipeline']}` — dataset `{manifest.get('dataset')}`", ""]
         swept = [stage for stage in _in_pipeline_order(manifest) if stage.get("noise") is not None]
-        if swept:
-            parts += [_noise_table(swept), ""]
+        estimated = [stage for stage in swept if stage["app"] != "qcm-train"]
+        networks = [stage for stage in swept if stage["app"] == "qcm-train"]
+        if estimated:
+            parts += [_noise_table(estimated), ""]
+        if networks:
+            parts += [_network_noise_table(networks), ""]
         for stage in _in_pipeline_order(manifest):
             if stage["app"] == "qcm-simulate":
                 parts += [f"### {stage['name']}", "", f"`{_display(stage['command'])}`", ""]

@@ -421,7 +421,8 @@ def noise_stages(
     """The occupant's mass with and without the road, at additive accelerometer noise 0, 1, 5, 10 %
     of each channel's RMS on continuous mid-drive recordings (issue 12's table): road-based exp 10
     (a3 only, road and p_u known, the demo's U-Net and CNN) beside the road-free seat model (a3 and
-    a2, no road), both on the longest window the recordings allow (N = 500 of 512 stored samples).
+    a2, no road), both on the longest window the recordings allow (N = 500 of 512 stored samples);
+    and the demo's CNN alone on the whole test split at each level (issue 10's table).
     Uses the demo's dataset and networks (run `make demo` first); ``samples`` bounds exp 10 (about a
     second per recording under noise; 400, so that a coverage is known to about 1 %, on two processes),
     the road-free model reads every test recording."""
@@ -444,6 +445,20 @@ def noise_stages(
                 f"road-based exp 10 (a3 only, road known), additive noise {sigma:.0%}",
                 noise=sigma,
                 requires=[cnn_path, unet_path, dataset],
+            ),
+            Stage(
+                f"cnn_noise{sigma:g}",
+                "qcm-train",
+                ["experiment=exp2_physics_continuous", f"data.path={dataset}", "train=false", f"ckpt_path={cnn_path}"]
+                + sensor,
+                f"{root}/cnn_noise{sigma:g}",
+                ["error_distribution.csv", "test_metrics.json"],
+                0.3,
+                None,
+                "exp2",
+                f"the demo's CNN alone (a3, a2 -> p1, p2), additive noise {sigma:.0%}",
+                noise=sigma,
+                requires=[cnn_path, dataset],
             ),
             Stage(
                 f"occupant_noise{sigma:g}",

@@ -2,7 +2,7 @@
 
 from hybridqcm.models.base import CheckpointMismatch, QCMModule
 from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
-from hybridqcm.models.networks import DenoisingCAE, ParameterCNN, UNet1d, count_parameters
+from hybridqcm.models.networks import DenoisingCAE, ParameterCNN, SpectralCNN, UNet1d, count_parameters
 from hybridqcm.models.physics_losses import least_squares_p12, physics_residual, physics_residual_loss
 from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 
@@ -15,6 +15,7 @@ __all__ = [
     "QCMModule",
     "CheckpointMismatch",
     "ParameterCNN",
+    "SpectralCNN",
     "DenoisingCAE",
     "UNet1d",
     "count_parameters",

@@ -98,6 +98,66 @@ class ParameterCNN(nn.Module):
         return self.head(self.features(x))
 
 
+class SpectralCNN(nn.Module):
+    """(a3, a2) [B, C, window] -> outputs: a filter bank, its log band energies, an MLP.
+
+    The windows of a drive are stationary and the vehicle is linear, so what identifies its
+    parameters is second-order: the spectra of the channels and their cross-spectrum, i.e. the
+    transfer function between them. The last convolution is linear (a bank of `channels[-1]` FIR
+    filters, each mixing all input channels, so cross-spectra are reachable); the mean square of
+    each filter output over the window [B, F] is a band energy, and its log turns the ratios a
+    transfer function is made of into differences the MLP reads linearly. Earlier convolutions
+    (with activations) are optional. Pooling over time makes the output shift-invariant, so a
+    window cut anywhere in a drive is one case, not many; stride 1 keeps every sample's phase.
+    With `remove_mean` each channel's mean over the window is subtracted first, so a constant
+    accelerometer bias changes nothing (the mean of a stationary acceleration is ~0 anyway).
+    """
+
+    def __init__(
+        self,
+        in_channels: int = 2,
+        window: int = 500,
+        channels: Sequence[int] = (64,),
+        kernels: Sequence[int] = (101,),
+        hidden: Sequence[int] = (128, 64),
+        out_features: int = 2,
+        activation_name: str = "gelu",
+        dropout: float = 0.0,
+        remove_mean: bool = True,
+    ) -> None:
+        super().__init__()
+        if not channels or len(channels) != len(kernels):
+            raise ValueError(f"SpectralCNN: channels {channels} and kernels {kernels} must be non-empty, equal lengths")
+        if int(window) < max(kernels):
+            raise ValueError(f"SpectralCNN: window {window} is shorter than the longest kernel {max(kernels)}")
+        layers: list[nn.Module] = []
+        c = in_channels
+        for i, (c_out, k) in enumerate(zip(channels, kernels)):
+            layers.append(nn.Conv1d(c, c_out, k))  # "valid": no padded edges in the energies
+            if i < len(channels) - 1:
+                layers.append(activation(activation_name))
+            c = c_out
+        self.features = nn.Sequential(*layers)
+        dense: list[nn.Module] = []
+        width = c
+        for h in hidden:
+            dense += [nn.Linear(width, h), activation(activation_name)] + ([nn.Dropout(dropout)] if dropout > 0 else [])
+            width = h
+        dense.append(nn.Linear(width, out_features))
+        self.head = nn.Sequential(*dense)
+        self.window, self.in_channels, self.remove_mean = int(window), in_channels, bool(remove_mean)
+
+    def band_energies(self, x: Tensor) -> Tensor:
+        """Log mean-square of each filter's output over the window: [B, C, window] -> [B, F]."""
+        y = self.features(x - x.mean(-1, keepdim=True) if self.remove_mean else x)
+        return torch.log(y.square().mean(-1) + 1e-6)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.shape[1:] != (self.in_channels, self.window):
+            raise ValueError(f"SpectralCNN expects [B, {self.in_channels}, {self.window}], got {tuple(x.shape)}")
+        return self.head(self.band_energies(x))
+
+
 class DenoisingCAE(nn.Module):
     """Convolutional autoencoder [B, C, N] -> [B, C, N] (any N).
 
@@ -199,6 +259,16 @@ def count_parameters(module: nn.Module) -> int:
 
 
 # The allow-list of networks a module (or a checkpoint's hyper-parameters) may build, by `_target_`.
-NETWORKS = {f"hybridqcm.models.networks.{cls.__name__}": cls for cls in (ParameterCNN, DenoisingCAE, UNet1d)}
+NETWORKS = {
+    f"hybridqcm.models.networks.{cls.__name__}": cls for cls in (ParameterCNN, SpectralCNN, DenoisingCAE, UNet1d)
+}
 
-__all__ = ["ParameterCNN", "DenoisingCAE", "UNet1d", "SameConv1d", "SameConvTranspose1d", "count_parameters"]
+__all__ = [
+    "ParameterCNN",
+    "SpectralCNN",
+    "DenoisingCAE",
+    "UNet1d",
+    "SameConv1d",
+    "SameConvTranspose1d",
+    "count_parameters",
+]
