@@ -118,7 +118,7 @@ class SpectralCNN(nn.Module):
         in_channels: int = 2,
         window: int = 500,
         channels: Sequence[int] = (64,),
-        kernels: Sequence[int] = (101,),
+        kernels: Sequence[int] = (25,),
         hidden: Sequence[int] = (128, 64),
         out_features: int = 2,
         activation_name: str = "gelu",
@@ -150,7 +150,7 @@ class SpectralCNN(nn.Module):
     def band_energies(self, x: Tensor) -> Tensor:
         """Log mean-square of each filter's output over the window: [B, C, window] -> [B, F]."""
         y = self.features(x - x.mean(-1, keepdim=True) if self.remove_mean else x)
-        return torch.log(y.square().mean(-1) + 1e-6)
+        return torch.log(y.square().mean(-1) + 1e-6)  # the floor keeps a silent filter finite
 
     def forward(self, x: Tensor) -> Tensor:
         if x.shape[1:] != (self.in_channels, self.window):
