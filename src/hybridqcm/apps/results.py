@@ -117,67 +117,63 @@ def _in_pipeline_order(manifest: dict) -> list[dict]:
     return sorted(manifest["stages"], key=lambda stage: order.get(stage["name"], len(order)))
 
 
+def _sweep_rows(stages: list[dict], filename: str, what: str, cells) -> list[str]:
+    """One row per noise-sweep stage, by noise level: ``cells(report)`` turns the run's ``filename``
+    (JSON) into (recordings, [cell, ...]); a missing file or a report without them fails naming it."""
+    rows = []
+    for stage in sorted(stages, key=lambda st: st["noise"]):
+        path = Path(stage["run_dir"]) / filename
+        try:
+            n, row = cells(json.loads(path.read_text()))
+        except FileNotFoundError:
+            raise FileNotFoundError(f"stage {stage['name']}: {path} does not exist") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"stage {stage['name']}: {path}: no {what} ({error!r})") from None
+        method = stage["setting"].rsplit(", additive noise", 1)[0]
+        rows.append(f"| {_pct(stage['noise'])} | {method} | {n} | " + " | ".join(row) + " |")
+    return rows
+
+
+def _estimate_cells(summary: dict) -> tuple[int, list[str]]:
+    """An estimation run's summary.json: the occupant mass m3's errors, its 95 % interval's coverage
+    and width, the status counts and the solve time."""
+    counts, n = summary["status_counts"], int(summary["n_samples"])
+    keys = ("m3_mean_rel_err", "m3_p95_rel_err", "m3_within_1pct", "m3_within_5pct", "m3_coverage_95")
+    converged, misfit = counts.get("converged", 0), counts.get("misfit", 0)
+    return n, [
+        *(_pct(summary[k]) for k in (*keys, "m3_interval_median_rel_width")),
+        f"{converged} / {misfit} / {n - converged - misfit}",
+        f"{1000.0 * summary['seconds_solve'] / max(n, 1):.0f}",
+    ]
+
+
+def _network_cells(report: dict) -> tuple[int, list[str]]:
+    """A network evaluation's test_metrics.json: every estimated parameter's mean and max error, > 25 %."""
+    metrics, n = report["metrics"], int(report["n_test"])
+    params = sorted({key.split("/")[1] for key in metrics if key.endswith("/mean_rel_err") and key.count("/") == 2})
+    kinds = ("mean_rel_err", "max_rel_err", "over_25pct")
+    return n, [" / ".join(params), *(" / ".join(_pct(metrics[f"test/{p}/{k}"]) for p in params) for k in kinds)]
+
+
 def _noise_table(stages: list[dict]) -> str:
-    """One table over a noise sweep's estimation stages (those with a ``noise`` level), rows by noise
-    level then stage, from each run's summary.json: the occupant mass m3's errors, its 95 % interval's
-    coverage and width, the status counts and the solve time."""
+    """One table over a noise sweep's estimation stages (those with a ``noise`` level), from each run's
+    summary.json (``_estimate_cells``)."""
     lines = [
         "| noise (of RMS) | method | recordings | m3 mean error | m3 p95 | m3 within 1 % | m3 within 5 % "
         "| 95 % coverage | median width | converged / misfit / other | GN s per 1 000 |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for stage in sorted(stages, key=lambda st: st["noise"]):
-        path = Path(stage["run_dir"]) / "summary.json"
-        try:
-            summary = json.loads(path.read_text())
-            counts = summary["status_counts"]
-            n = int(summary["n_samples"])
-            values = [summary[k] for k in ("m3_mean_rel_err", "m3_p95_rel_err", "m3_within_1pct", "m3_within_5pct")]
-            coverage, width = summary["m3_coverage_95"], summary["m3_interval_median_rel_width"]
-            seconds = 1000.0 * summary["seconds_solve"] / max(n, 1)
-        except FileNotFoundError:
-            raise FileNotFoundError(f"stage {stage['name']}: {path} does not exist") from None
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f"stage {stage['name']}: {path}: no m3 summary ({error!r})") from None
-        other = n - counts.get("converged", 0) - counts.get("misfit", 0)
-        lines.append(
-            f"| {_pct(stage['noise'])} | {stage['setting'].rsplit(', additive noise', 1)[0]} | {n} | "
-            + " | ".join(_pct(v) for v in values)
-            + f" | {_pct(coverage)} | {_pct(width)} | {counts.get('converged', 0)} / {counts.get('misfit', 0)} / "
-            f"{other} | {seconds:.0f} |"
-        )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _sweep_rows(stages, "summary.json", "m3 summary", _estimate_cells)) + "\n"
 
 
 def _network_noise_table(stages: list[dict]) -> str:
     """One table over a noise sweep's network evaluations (qcm-train stages with a ``noise`` level),
-    from each run's test_metrics.json: every estimated parameter's mean and max error, > 25 %."""
-    rows = []
-    for stage in sorted(stages, key=lambda st: st["noise"]):
-        path = Path(stage["run_dir"]) / "test_metrics.json"
-        try:
-            report = json.loads(path.read_text())
-            metrics, n = report["metrics"], int(report["n_test"])
-            params = sorted(
-                {key.split("/")[1] for key in metrics if key.endswith("/mean_rel_err") and key.count("/") == 2}
-            )
-            cells = [
-                " / ".join(_pct(metrics[f"test/{p}/{kind}"]) for p in params)
-                for kind in ("mean_rel_err", "max_rel_err", "over_25pct")
-            ]
-        except FileNotFoundError:
-            raise FileNotFoundError(f"stage {stage['name']}: {path} does not exist") from None
-        except (KeyError, TypeError, ValueError) as error:
-            raise ValueError(f"stage {stage['name']}: {path}: no test metrics ({error!r})") from None
-        rows.append(
-            f"| {_pct(stage['noise'])} | {stage['setting'].rsplit(', additive noise', 1)[0]} | {n} | "
-            f"{' / '.join(params)} | " + " | ".join(cells) + " |"
-        )
-    header = [
+    from each run's test_metrics.json (``_network_cells``)."""
+    lines = [
         "| noise (of RMS) | network | recordings | parameters | mean error | max error | above 25 % |",
         "|---|---|---|---|---|---|---|",
     ]
-    return "\n".join(header + rows) + "\n"
+    return "\n".join(lines + _sweep_rows(stages, "test_metrics.json", "test metrics", _network_cells)) + "\n"
 
 
 def _display(command: str) -> str:
