@@ -3,13 +3,15 @@ MAP estimate (CNN mean and variance as the prior of the last GN stage), per sens
 
     PYTHONPATH=src .venv/bin/python bench/fusion_table.py --cnn CKPT --data data/cont_small.h5 \
         [--experiment occupant_roadfree] [--unet CKPT] [--samples 300] [--sigmas 0 0.01 0.05 0.1] \
-        [--out outputs/fusion] [--extra n_steps=496 ...]
+        [--out outputs/fusion] [--extra n_steps=496 ...] [--correlation]
 
 GN alone and fused are `qcm-estimate` runs (the commands are printed); their m3 and 95 % interval
 come from estimates.csv. The CNN alone is read from the same inputs as the runs (the app's own
 validate/build_inputs, same sensor noise per sample; for exp 10 the U-Net-completed a2): median
 K3 / exp(log p2) and the image of log p2 ± 1.96 s. Metrics: estimation.fusion.interval_summary.
-Prints one markdown table.
+Prints one markdown table. With --correlation also, per level, the correlation of the CNN's and GN's
+relative m3 errors and the best fixed-weight combination w CNN + (1 - w) GN with w fitted on the truth
+(an oracle: the most any linear fusion of the two could reach).
 """
 
 from __future__ import annotations
@@ -107,7 +109,9 @@ def main() -> None:
     parser.add_argument("--sigmas", type=float, nargs="+", default=[0.0, 0.01, 0.05, 0.1])
     parser.add_argument("--out", default="outputs/fusion")
     parser.add_argument("--extra", nargs="*", default=[])
+    parser.add_argument("--correlation", action="store_true", help="print the oracle fusion of CNN and GN")
     args = parser.parse_args()
+    oracle = []
 
     lines = [
         f"{args.experiment}, {args.samples} samples of {args.data}, additive noise per channel",
@@ -133,7 +137,23 @@ def main() -> None:
                 f"{100 * s['median_rel_width']:.3g} % | {1000 * r['seconds'] / args.samples:.1f} |"
             )
         print("\n".join(lines[-3:]), flush=True)
-    print("\n".join(lines))
+        if args.correlation:
+            oracle.append(_oracle(sigma, results["CNN alone"]["m3"], results["GN alone"]["m3"], truth))
+    print("\n".join(lines + oracle))
+
+
+def _oracle(sigma: float, cnn: torch.Tensor, gn: torch.Tensor, truth: torch.Tensor) -> str:
+    """Correlation of the two relative m3 errors and the best fixed-weight combination of them."""
+    ec, eg = (cnn / truth - 1).numpy(), (gn / truth - 1).numpy()
+    ok = np.isfinite(ec) & np.isfinite(eg)
+    ec, eg = ec[ok], eg[ok]
+    rho, sc, sg = np.corrcoef(ec, eg)[0, 1], ec.std(), eg.std()
+    w = (sg**2 - rho * sc * sg) / (sc**2 + sg**2 - 2 * rho * sc * sg)  # minimum-variance weight on the CNN
+    best = np.abs(w * ec + (1 - w) * eg).mean()
+    return (
+        f"{100 * sigma:g} %: error std CNN {100 * sc:.3g} % / GN {100 * sg:.3g} %, correlation {rho:.2f}; "
+        f"oracle fusion (w = {w:.2f} on the CNN) mean {100 * best:.3g} %"
+    )
 
 
 if __name__ == "__main__":
