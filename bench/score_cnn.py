@@ -1,6 +1,7 @@
 """A trained (a3, a2) -> (p1, p2) CNN on any file with `/test/accel` and `/test/params`, e.g. another
-simulator's (bench/foreign_sim.py), which stores no velocities or displacements for qcm-train's test
-stage. Loaded through the safe loader; prints each parameter's mean and max relative error.
+simulator's (bench/foreign_sim.py): several files in one call, one line each, without a run folder.
+Loaded through the safe loader; prints each parameter's mean and max relative error. (`qcm-train
+train=false ckpt_path=CKPT data.path=FILE` gives the same numbers with the full test report.)
 
     PYTHONPATH=src .venv/bin/python bench/score_cnn.py CKPT data/foreign_clean.h5 [data/foreign_n5.h5 ...]
 """

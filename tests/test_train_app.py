@@ -171,6 +171,36 @@ def test_cli_evaluates_checkpoint_on_other_file_with_noise_and_denoiser(data, tr
     assert (run_dir / "error_distribution.csv").exists()
 
 
+def test_physics_cnn_is_tested_on_a_file_without_velocities_and_displacements(data, trained, tmp_path, caplog):
+    """A logger's or another simulator's file stores accelerations and labels only. The same recordings
+    with and without /vel, /disp (written here by a second writer) give the same predictions and errors;
+    the run says the training loss's channels are missing."""
+    import h5py
+
+    bare = tmp_path / "bare.h5"
+    with h5py.File(data["other"], "r") as src, DatasetWriter(bare) as writer:
+        n, n_steps = src["test/accel"].shape[:2]
+        writer.create_split("test", n, n_steps, keys=("accel", "road", "params"))
+        writer.write("test", 0, **{k: src[f"test/{k}"][()] for k in ("accel", "road", "params")})
+    ckpt = f"ckpt_path={trained['exp2_physics']}/checkpoints/last.ckpt"
+    runs = {}
+    for name, path in (("full", data["other"]), ("bare", bare)):
+        with caplog.at_level("WARNING", logger="qcm-train"):
+            caplog.clear()
+            metrics = train(
+                _cfg(["experiment=exp2_physics", "train=false", ckpt, f"data.path={path}"], tmp_path / name)
+            )
+        runs[name] = (metrics, caplog.text)
+        with open(tmp_path / name / "predictions.csv") as handle:
+            runs[name] += ([(r["p1_pred"], r["p2_pred"]) for r in csv.DictReader(handle)],)
+    (full, full_log, full_pred), (bare_metrics, bare_log, bare_pred) = runs["full"], runs["bare"]
+    assert "test/loss" in full and "test/loss" not in bare_metrics  # the residual loss needs the aux channels
+    assert full_pred == bare_pred and len(bare_pred) == n
+    for key in ("test/p1/mean_rel_err", "test/p2/max_rel_err"):
+        assert bare_metrics[key] == pytest.approx(full[key], rel=1e-12)
+    assert "testing without that loss" in bare_log and "testing without" not in full_log
+
+
 def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
     sweep = tmp_path / "sweep"
     command = [

@@ -60,7 +60,34 @@ def build_datamodule(data_cfg: Mapping, requirements: Mapping, train: bool):
     elif int(window) < int(requirements["window"]):
         raise ConfigError(f"data.window = {window} is shorter than the model's window {requirements['window']}")
     cfg["targets_optional"] = bool(requirements.get("targets_optional")) or not train
+    if not train and cfg["aux"] and not _split_has(cfg.get("path"), cfg.get("test_split"), cfg["aux"]):
+        # Evaluation reads the network's inputs and the labels; the auxiliaries only add the training
+        # loss, and a logger's or another simulator's file stores no velocities or displacements.
+        log.warning(
+            "%s: /%s has no %s (the training loss's auxiliary channels): testing without that loss",
+            cfg["path"],
+            cfg["test_split"],
+            cfg["aux"],
+        )
+        cfg["aux"] = []
     return instantiate(cfg, _convert_="all")
+
+
+def _split_has(path, split, channels) -> bool:
+    """Whether an HDF5 file's split stores every dataset these channels read (True where there is no
+    file to ask: a streaming datamodule simulates them)."""
+    if not path or not split or not Path(str(path)).is_file():
+        return True
+    import h5py
+
+    from hybridqcm.data.channels import required_keys
+
+    try:
+        with h5py.File(str(path), "r") as handle:
+            group = handle.get(str(split))
+            return group is None or required_keys(channels) <= set(group.keys())
+    except OSError:
+        return True  # the datamodule's own check reports an unreadable file, naming it
 
 
 def load_module(path: str, cls: type):
