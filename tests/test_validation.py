@@ -181,6 +181,38 @@ def test_coverage_counts_diverged_and_non_finite_as_not_covered():
     )
 
 
+def test_summary_reports_the_converged_answers_beside_all(tmp_path):
+    """A flagged wrong basin (misfit, occupant 1 000x too heavy) dominates the mean over all recordings;
+    the converged-only mean and max are those of the converged rows, computed here by hand from m3 = K3/p2."""
+    from omegaconf import OmegaConf
+
+    from hybridqcm.apps.estimate_report import write_metrics
+    from hybridqcm.estimation.solver import SolverStatus
+    from hybridqcm.physics import reference_params
+
+    true = reference_params().repeat(4, 1).double()
+    params = true.clone()
+    params[:, 1] *= torch.tensor([1.01, 0.001, 0.98, 1.0], dtype=torch.float64)
+    codes = [SolverStatus.CONVERGED, SolverStatus.MISFIT, SolverStatus.CONVERGED, SolverStatus.DIVERGED]
+    columns = {
+        "params": params,
+        "std": 0.01 * true,
+        "status": torch.tensor([int(c) for c in codes]),
+        "iterations": torch.ones(4),
+        "restarts": torch.zeros(4),
+    }
+    cfg = OmegaConf.create({"K3": 98935.0, "experiment_name": "t", "n_steps": 10, "plots": False, "tensorboard": False})
+    summary, _ = write_metrics(cfg, columns, true, [], tmp_path)
+    converged_err = [abs(1 / 1.01 - 1), abs(1 / 0.98 - 1)]  # m3 = K3 / p2
+    assert summary["m3_mean_rel_err_converged"] == pytest.approx(np.mean(converged_err), rel=1e-12)
+    assert summary["m3_max_rel_err_converged"] == pytest.approx(max(converged_err), rel=1e-12)
+    # over all: the misfit's 999 dominates; the diverged row's last iterate counts with its error (0 here)
+    assert summary["m3_mean_rel_err"] == pytest.approx(np.mean([*converged_err, 1 / 0.001 - 1, 0.0]), rel=1e-12)
+    codes = torch.full((4,), int(SolverStatus.MISFIT))
+    summary, _ = write_metrics(cfg, {**columns, "status": codes}, true, [], tmp_path)
+    assert summary["m3_mean_rel_err_converged"] is None and summary["m3_max_rel_err_converged"] is None
+
+
 def test_train_refuses_unknown_top_level_keys(tmp_path):
     from hybridqcm.apps.train import check_top_level_keys
 
