@@ -237,6 +237,25 @@ def test_a_fit_worse_than_zero_is_misfit_even_when_its_residual_is_white():
     assert (fit.status == SolverStatus.CONVERGED).all() and (fit.relative_residual < 0.2).all()
 
 
+@pytest.mark.parametrize(("size", "status"), [(3e-3, SolverStatus.MISFIT), (2e-4, SolverStatus.CONVERGED)])
+def test_a_structured_residual_is_judged_without_peers(size, status):
+    """One recording, no batch to compare with: a structured residual the size a wrong basin leaves on
+    noise-free data (3e-3 of the channel's RMS) is misfit; one the size of the exact model's hold error
+    (2e-4) is not. The data are J θ plus a slow sine no column of J can represent."""
+    g = torch.Generator().manual_seed(2)
+    design = torch.randn(300, 1, 3, generator=g, dtype=torch.float64)
+    truth = torch.randn(1, 3, generator=g, dtype=torch.float64)
+    clean = torch.einsum("ton,bn->bto", design, truth)
+    sine = torch.sin(torch.arange(300, dtype=torch.float64) / 7.0)[None, :, None]
+    data = clean + size * clean.square().mean().sqrt() / sine.square().mean().sqrt() * sine
+    problem = LeastSquaresProblem(
+        data, torch.zeros(1, 300, dtype=torch.float64), H, observed=(True,), model=_linear_model(design)
+    )
+    fit = GaussNewton(SolverConfig(max_iterations=5)).solve(problem, truth + 1.0)
+    assert fit.relative_residual.item() == pytest.approx(size, rel=0.2) and fit.whiteness.item() > 1
+    assert fit.status.item() == status
+
+
 def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
     """x0 enters the outputs linearly: with p known, the MAP estimate of x0 under a Gaussian prior and
     its Laplace covariance are the closed-form ridge solution (JᵀJ/σ² + Λ)⁻¹(JᵀY/σ² + Λμ)."""
