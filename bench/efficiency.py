@@ -11,7 +11,8 @@ prior of the data (uniform 30-150 kg, std 34.6 kg) at each recording's mass: the
 
     PYTHONPATH=src .venv/bin/python bench/efficiency.py outputs/noise/exp10_noise0.01 outputs/noise/exp10_noise0.05 ...
 
-Reads each run's estimates.csv and summary.json (data file, split) and the file's true parameters.
+Reads each run's estimates.csv and summary.json (data file, split) and the file's true parameters; only
+the recordings called `converged` count (a flagged wrong basin's standard deviation is not a bound).
 """
 
 from __future__ import annotations
@@ -39,13 +40,16 @@ def _run(run: Path) -> None:
         m3 = handle[f"{summary['split']}/truth_m3"][()][index] if "truth_m3" in handle[summary["split"]] else None
     if m3 is None:
         m3 = REFERENCE_VEHICLE.K3 / truth[:, 1]
-    print(f"{run}: {len(rows)} recordings, covariance {summary.get('interval_covariance')}")
+    converged = np.array([r["status"] == "converged" for r in rows])
+    print(
+        f"{run}: {converged.sum()} of {len(rows)} recordings converged, covariance {summary.get('interval_covariance')}"
+    )
     columns = {"p1": (truth[:, 0], "p1", "std_p1"), "p2": (truth[:, 1], "p2", "std_p2"), "m3": (m3, "m3", "m3_std")}
     print("  quantity | mean |error| | efficient mean | ratio | std z | mean z | 0.8 x GN | prior info r (median)")
     for name, (true, key, std_key) in columns.items():
         est = np.array([float(r[key]) for r in rows])
         std = np.array([float(r[std_key]) for r in rows])
-        keep = np.isfinite(est) & np.isfinite(std) & (std > 0)
+        keep = converged & np.isfinite(est) & np.isfinite(std) & (std > 0)
         err, rel_std = (est[keep] - true[keep]) / true[keep], std[keep] / true[keep]
         z = err / rel_std
         mean_err, efficient = np.mean(np.abs(err)), math.sqrt(2 / math.pi) * np.mean(rel_std)
