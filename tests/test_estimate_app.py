@@ -202,6 +202,8 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "noise_sigma=-1"]))
     with pytest.raises(ConfigError, match=r"restarts\.batch must be an integer >= 1, got 0"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.batch=0"]))
+    with pytest.raises(ConfigError, match=r"restarts\.failed must be an integer >= 0, got -1"):
+        validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.failed=-1"]))
     with pytest.raises(ConfigError, match=r"restarts\.far_from_start must be null or a number > 0, got -0\.5"):
         validate(_cfg(["experiment=exp5_random_init", f"data.path={tiny_dataset}", "restarts.far_from_start=-0.5"]))
     with pytest.raises(ConfigError, match=r"restarts\.around='nearby': choose auto, start or reference"):
@@ -238,6 +240,10 @@ def test_vehicle_prior_is_the_reference_vehicle_on_the_listed_unknowns(tiny_data
     assert build_refinement(off, validate(off)).param_prior is None
     seat = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "dynamics=exact"])
     assert build_refinement(seat, validate(seat)).param_prior is None
+    # exp 10's extra attempts for wrong basins: the exact model only (the Euler reproduction keeps its protocol)
+    assert refinement.restarts_failed == 8
+    euler = _cfg(["experiment=exp10_hybrid", f"data.path={tiny_dataset}", "init.cnn=false", "dynamics=euler"])
+    assert build_refinement(euler, validate(euler)).restarts_failed == 0
 
 
 def test_cnn_window_longer_than_file(files, checkpoints):

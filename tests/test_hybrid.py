@@ -369,6 +369,45 @@ def test_restarts_around_the_reference_vehicle_draw_the_vehicle_there_and_keep_t
         GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], h=H, restart_center=p_ref[:3])
 
 
+def test_failed_restarts_retry_only_the_misfit_recordings_and_can_rescue_them():
+    """restarts=2 then restarts_failed=3: recording 0 fits at once, 1 is `far from start` for the first
+    tier only (retried twice, never in the second), 2 stays misfit until its 4th attempt (the second
+    tier rescues it: converged, attempts 0..3 run, not 4). With restarts_failed=0 recording 2 ends misfit."""
+    from hybridqcm.estimation.solver import SolverStatus as S
+
+    def make(failed_tier: int):
+        calls: list[list[int]] = []
+
+        def run_stages(outputs, init, module, restart=False, x0_at_rest=None):
+            index = outputs["index"].tolist()
+            if restart:
+                calls.append(index)
+            relative = torch.ones(init.shape[0], dtype=torch.float64)
+            result = _converged(init, relative)
+            attempts = [sum(c.count(i) for c in calls) for i in index]  # restarts so far, this one included
+            for row, (i, n) in enumerate(zip(index, attempts, strict=True)):
+                if i == 2 and (not restart or n < 4):
+                    result.status[row] = int(S.MISFIT)
+            return {}, result, init.clone(), relative.clone(), relative.clone()
+
+        callback = GaussNewtonRefinement(
+            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=2, restarts_failed=failed_tier,
+            restart_threshold=math.inf, peer_factor=None, restart_batch=1,
+        )  # fmt: skip
+        callback._run_stages = run_stages
+        callback._far_from_start = lambda params, init: torch.tensor([False, True, False])
+        record = callback.refine({"init": torch.ones(3, 10, dtype=torch.float64), "index": torch.arange(3)})
+        return record, calls
+
+    record, calls = make(3)
+    assert calls == [[1, 2], [1, 2], [2], [2]]  # tier 1: both retried; tier 2: only the misfit one
+    assert record["final"].status.tolist() == [int(S.CONVERGED)] * 3 and record["restarts"].tolist() == [0, 2, 4]
+    record, calls = make(0)
+    assert calls == [[1, 2], [1, 2]] and record["final"].status[2] == int(S.MISFIT)
+    with pytest.raises(ValueError, match="restarts_failed"):
+        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], h=H, restarts_failed=-1)
+
+
 def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batch():
     """Each restart start is drawn from a stream of its own (seed, recording, attempt): recordings 4 and
     1 get the same restart starts in a batch of six and in a batch of just the two, in the other order,

@@ -143,6 +143,8 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
         restart_batch=int(cfg.restarts.get("batch", 64)),
+        # the exact model's extra attempts for wrong basins; the Euler reproduction keeps the source's protocol
+        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" else 0,
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,

@@ -255,6 +255,9 @@ def validate(cfg) -> dict:
     restart_batch = cfg.restarts.get("batch", 64)
     if isinstance(restart_batch, bool) or not isinstance(restart_batch, int) or restart_batch < 1:
         raise ConfigError(f"restarts.batch must be an integer >= 1, got {restart_batch!r}")
+    restart_failed = cfg.restarts.get("failed", 0)
+    if isinstance(restart_failed, bool) or not isinstance(restart_failed, int) or restart_failed < 0:
+        raise ConfigError(f"restarts.failed must be an integer >= 0, got {restart_failed!r}")
     far = cfg.restarts.get("far_from_start")
     if far is not None and (isinstance(far, bool) or not isinstance(far, int | float) or not far > 0):
         raise ConfigError(f"restarts.far_from_start must be null or a number > 0, got {far!r}")

@@ -98,6 +98,7 @@ class GaussNewtonRefinement(Callback):
         peer_factor: float | None = 10.0,
         peer_min_batch: int = 20,
         restart_batch: int = 64,
+        restarts_failed: int = 0,
         x0_start: str = "rest",
         restart_far: float | None = None,
         param_prior: tuple[Tensor, Tensor] | None = None,
@@ -158,6 +159,11 @@ class GaussNewtonRefinement(Callback):
         # repeat exactly. (With the exact model the noise-free floor is the hold's model error, so
         # a loss threshold means nothing there: pass restart_threshold=inf.)
         self.restarts = int(restarts)
+        # After the ``restarts``, up to ``restarts_failed`` more attempts for the recordings still
+        # misfit or diverged (a wrong basin the first attempts did not leave), nothing else retried.
+        if int(restarts_failed) < 0:
+            raise ValueError(f"restarts_failed must be >= 0, got {restarts_failed!r}")
+        self.restarts_failed = int(restarts_failed)
         self.restart_threshold = float(restart_threshold)
         self.restart_sigma = float(restart_sigma)
         # Attempts run together while retried samples x attempts <= restart_batch: a solver call on a
@@ -575,16 +581,23 @@ class GaussNewtonRefinement(Callback):
         restarted = torch.zeros(init.shape[0], dtype=torch.int64)
         typical = self._flag_outliers(result)
         attempt = 0
-        while attempt < self.restarts:
+        while attempt < self.restarts + self.restarts_failed:
             failed = (result.status == SolverStatus.MISFIT) | (result.status == SolverStatus.DIVERGED)
-            retry = (relative > self.restart_threshold) | failed | self._far_from_start(params, init)
+            if attempt < self.restarts:
+                retry = (relative > self.restart_threshold) | failed | self._far_from_start(params, init)
+                tier_end = self.restarts
+            else:  # the extra attempts: failed recordings only
+                retry, tier_end = failed, self.restarts + self.restarts_failed
             retry = retry.nonzero().squeeze(1)
             if retry.numel() == 0:
-                break
+                if attempt >= self.restarts:
+                    break
+                attempt = self.restarts  # nothing to retry in the first tier; the failed tier may still run
+                continue
             # A few retried samples: run several attempts in one solver call (a small batch costs
             # the solver's fixed per-step overhead, not its size); many: one attempt at a time, so
             # samples that succeed are not retried again.
-            group = min(self.restarts - attempt, max(1, self.restart_batch // retry.numel()))
+            group = min(tier_end - attempt, max(1, self.restart_batch // retry.numel()))
             starts = []
             for number in range(attempt, attempt + group):
                 delta = self._restart_draws(outputs["index"][retry], number, init.shape[1])
