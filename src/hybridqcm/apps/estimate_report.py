@@ -247,9 +247,9 @@ def write_metrics(
     summary["m3_coverage_95"] = float(inside.mean())
     # What the statuses promise: an answer called `converged` is right. Its mean and worst error, beside
     # the mean over every recording (which a single flagged wrong basin can dominate); None: none converged.
-    done = status_codes == int(SolverStatus.CONVERGED)
-    summary["m3_mean_rel_err_converged"] = float(m3_err[done].mean()) if bool(done.any()) else None
-    summary["m3_max_rel_err_converged"] = float(m3_err[done].max()) if bool(done.any()) else None
+    done = m3_err[status_codes == int(SolverStatus.CONVERGED)]
+    summary["m3_mean_rel_err_converged"] = float(done.mean()) if done.numel() else None
+    summary["m3_max_rel_err_converged"] = float(done.max()) if done.numel() else None
     summary["m3_interval_median_rel_width"] = float(m3_width[m3_ok].median()) if bool(m3_ok.any()) else math.inf
     if cfg.plots:
         from hybridqcm.plots import close, plot_sorted_predictions  # matplotlib: only when plotting

@@ -54,6 +54,15 @@ class SameConvTranspose1d(nn.ConvTranspose1d):
         return y[..., left : left + n * s] if excess > 0 else F.pad(y, (0, -excess))
 
 
+def _mlp(width: int, hidden: Sequence[int], out_features: int, activation_name: str, dropout: float) -> list[nn.Module]:
+    """The dense head's layers: Linear -> activation (-> Dropout) per hidden width, then Linear to the outputs."""
+    layers: list[nn.Module] = []
+    for h in hidden:
+        layers += [nn.Linear(width, h), activation(activation_name)] + ([nn.Dropout(dropout)] if dropout > 0 else [])
+        width = h
+    return [*layers, nn.Linear(width, out_features)]
+
+
 class ParameterCNN(nn.Module):
     """(a3, a2) [B, 2, window] -> 2 outputs (normalised parameters).
 
@@ -83,13 +92,7 @@ class ParameterCNN(nn.Module):
             layers += [SameConv1d(c, c_out, k, stride=s), activation(activation_name)]
             c, n = c_out, same_length(n, s)
         self.features = nn.Sequential(*layers)
-        dense: list[nn.Module] = [nn.Flatten()]
-        width = c * n
-        for h in hidden:
-            dense += [nn.Linear(width, h), activation(activation_name)] + ([nn.Dropout(dropout)] if dropout > 0 else [])
-            width = h
-        dense.append(nn.Linear(width, out_features))
-        self.head = nn.Sequential(*dense)
+        self.head = nn.Sequential(nn.Flatten(), *_mlp(c * n, hidden, out_features, activation_name, dropout))
         self.window, self.in_channels, self.flat_features = int(window), in_channels, c * n
 
     def forward(self, x: Tensor) -> Tensor:
@@ -138,13 +141,7 @@ class SpectralCNN(nn.Module):
                 layers.append(activation(activation_name))
             c = c_out
         self.features = nn.Sequential(*layers)
-        dense: list[nn.Module] = []
-        width = c
-        for h in hidden:
-            dense += [nn.Linear(width, h), activation(activation_name)] + ([nn.Dropout(dropout)] if dropout > 0 else [])
-            width = h
-        dense.append(nn.Linear(width, out_features))
-        self.head = nn.Sequential(*dense)
+        self.head = nn.Sequential(*_mlp(c, hidden, out_features, activation_name, dropout))
         self.window, self.in_channels, self.remove_mean = int(window), in_channels, bool(remove_mean)
 
     def band_energies(self, x: Tensor) -> Tensor:
