@@ -60,6 +60,7 @@ from hybridqcm.apps.estimate_report import (
     print_report,
     write_metrics,
 )
+from hybridqcm.apps.estimate_occupant import build_selection
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import DatasetError, HybridQCMError
@@ -92,18 +93,13 @@ def build_module(cfg, plan) -> HybridEstimator:
     )
 
 
-def build_refinement(cfg, plan) -> BlockRefinement:
-    """The GN stages, the response model they fit, weighting and multi-start settings."""
+def build_refinement(cfg, plan):
+    """The GN stages, the response model they fit, weighting and multi-start settings; with several
+    occupant models or a channel delay (plan["occupant"]), one such refinement per candidate model
+    and the per-recording selection over them (estimation/occupant.py)."""
     n_params = plan["n_params"]
     known_mask = torch.zeros(n_params, dtype=torch.bool)
     known_mask[plan["known"]] = True
-    stages = [
-        GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
-        for s in plan["stages"]
-    ]
-    sigma = float(cfg.noise_sigma)
-    # Restart threshold on L/(½Σa²): noise-free fits end near 1e-15; with noise the floor is ~σ².
-    threshold = float(cfg.restarts.threshold) if sigma == 0 else max(float(cfg.restarts.threshold), 4.0 * sigma**2)
     if plan["base_excitation"] is None:
         response = quarter_car_response(
             plan["model"], plan["h"], bool(cfg.pu_known), plan["initial_state"], str(cfg.hold), int(cfg.substeps)
@@ -112,8 +108,6 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         response = base_excitation_response(
             plan["base_excitation"], plan["h"], plan["initial_state"], str(cfg.hold), int(cfg.substeps)
         )
-    if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
-        threshold = math.inf
     # The reference vehicle (vehicle:) on the model's own p: the vehicle prior's mean, the restarts' centre.
     names = response.theta_names[: response.n_params]
     p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
@@ -123,6 +117,25 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         listed = torch.tensor([n in plan["vehicle_prior"]["params"] for n in names])
         if bool(listed.any()):
             param_prior = (reference, torch.where(listed, plan["vehicle_prior"]["rel_std"] * reference, math.inf))
+    centre = reference if plan["restarts_around"] == "reference" else None
+    if plan.get("occupant") is not None:
+        return build_selection(
+            cfg, plan, plan["occupant"], lambda r, k, prior: _refinement(cfg, plan, r, k, prior, None)
+        )
+    return _refinement(cfg, plan, response, known_mask, param_prior, centre)
+
+
+def _refinement(cfg, plan, response, known_mask, param_prior, restart_center) -> BlockRefinement:
+    """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings."""
+    stages = [
+        GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
+        for s in plan["stages"]
+    ]
+    sigma = float(cfg.noise_sigma)
+    # Restart threshold on L/(½Σa²): noise-free fits end near 1e-15; with noise the floor is ~σ².
+    threshold = float(cfg.restarts.threshold) if sigma == 0 else max(float(cfg.restarts.threshold), 4.0 * sigma**2)
+    if plan["model"] == "exact":  # the loss floor is the hold's model error: restarts go by status alone
+        threshold = math.inf
     reweight = str(cfg.residual_weighting)
     if reweight == "auto":
         reweight = "spectral" if plan["model"] == "exact" else False
@@ -148,7 +161,7 @@ def build_refinement(cfg, plan) -> BlockRefinement:
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,
-        restart_center=reference if plan["restarts_around"] == "reference" else None,
+        restart_center=restart_center,
     )
 
 
@@ -230,12 +243,14 @@ def run(cfg) -> dict:
 
     refinement = build_refinement(cfg, plan)
     theta_names = list(refinement.response.theta_names)
+    n_theta_params = refinement.response.n_params  # with body modes and a delay: more than the n_params scored
+    extra = list(getattr(refinement, "extra_columns", []))
     writer = ShardWriter(
         store,
         refinement,
-        estimates_header(theta_names, n_params),
+        estimates_header(theta_names, n_theta_params, extra),
         STATUS_HEADER,
-        functools.partial(block_tables, n_params=n_params, K3=float(cfg.K3)),
+        functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra),
         block_stage_stats,
     )
     trainer = build_trainer(cfg, [writer], run_dir)

@@ -193,6 +193,7 @@ def check_known_keys(cfg) -> None:
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
+    from hybridqcm.apps.estimate_occupant import delay_margin, occupant_plan
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
     from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
     from hybridqcm.estimation.fusion import check_cnn_prior
@@ -410,15 +411,23 @@ def validate(cfg) -> dict:
             f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one"
         )
     margin = cfg.get("input_margin", "auto")
+    occupant = occupant_plan(cfg, base)
+    # a channel delay reads the input that far beyond the window's ends too
+    lead = max(4, delay_margin(cfg, h_file or 0.01)) if occupant is not None else 4
+    tail = max(8, lead)
     if longest:  # every stored step, less the exact model's input margins
         exact = base is not None or model == "exact"
-        n_steps = stored - (12 if exact and str(margin) == "auto" and stored >= 14 else 0)
+        n_steps = stored - (lead + tail if exact and str(margin) == "auto" and stored >= lead + tail + 2 else 0)
         if str(margin) != "auto":
             n_steps = stored - sum(int(m) for m in margin)
         if n_steps < 2:
             raise DatasetError(f"{path}: n_steps=max leaves {n_steps} steps of the {stored} stored")
     if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
-        margin = (0, 0) if model == "euler" else (min(4, stored - n_steps), max(0, min(8, stored - n_steps - 4)))
+        margin = (
+            (0, 0)
+            if model == "euler"
+            else (min(lead, stored - n_steps), max(0, min(tail, stored - n_steps - lead)))
+        )
     try:
         margin = tuple(int(m) for m in margin)
     except (TypeError, ValueError):
@@ -468,6 +477,7 @@ def validate(cfg) -> dict:
         "restarts_around": around,
         "base_excitation": base,
         "n_params": n_params,
+        "occupant": occupant,
         "sensor": sensor,
         "input_margin": margin,
         "n_steps": n_steps,

@@ -37,8 +37,9 @@ STATUS_HEADER = [
 ]
 
 
-def estimates_header(theta_names: Sequence[str], n_params: int) -> list[str]:
-    """θ = (p1..pP, x0...): the model's parameters first, then the estimated initial state (if any)."""
+def estimates_header(theta_names: Sequence[str], n_params: int, extra: Sequence[str] = ()) -> list[str]:
+    """θ = (p1..pP, x0...): the model's parameters first, then the estimated initial state (if any), then
+    ``extra`` diagnostics (the occupant model chosen, its body modes: estimation/occupant.py)."""
     params, states = list(theta_names[:n_params]), list(theta_names[n_params:])
     return [
         "index",
@@ -51,6 +52,7 @@ def estimates_header(theta_names: Sequence[str], n_params: int) -> list[str]:
         "m3_high",
         *states,
         *[f"std_{n}" for n in states],
+        *extra,
     ]
 
 
@@ -64,17 +66,24 @@ def m3_interval(params: torch.Tensor, std: torch.Tensor, K3: float) -> tuple[tor
     return m3, m3_std, m3_low, m3_high
 
 
-def block_tables(record: Mapping, n_params: int, K3: float) -> tuple[list, list, dict]:
+def block_tables(
+    record: Mapping, n_params: int, K3: float, n_scored: int | None = None, extra: Sequence[str] = ()
+) -> tuple[list, list, dict]:
     """One refined block (GaussNewtonRefinement.refine's record) -> (estimate rows, status rows, columns).
 
-    columns: index [b], params [b, P], std [b, P], status [b], iterations [b], restarts [b]
-    (what the run's metrics need), as tensors."""
+    columns: index [b], params [b, n_scored], std [b, n_scored] (the first n_scored parameters, those
+    the file's truth holds; default all), status [b], iterations [b], restarts [b], m3_low, m3_high [b]
+    (what the run's metrics need), as tensors. A record may carry its own m3 interval (``m3_low``,
+    ``m3_high``: an occupant-model selection's, wider where models disagree) and ``extra`` columns."""
     result = record["final"]
     theta, theta_std = record["params"], result.std
     params, std = theta[:, :n_params], theta_std[:, :n_params]
     x0, x0_std = theta[:, n_params:], theta_std[:, n_params:]
     status = [STATUS_LABELS[int(s)] for s in result.status]
     m3, m3_std, m3_low, m3_high = m3_interval(params, std, K3)
+    if "m3_low" in record:
+        m3_low, m3_high = record["m3_low"].double(), record["m3_high"].double()
+    extra_values = [record["extra"][name] for name in extra]
     index = record["index"]
     rows, status_rows = [], []
     condition = result.condition_number
@@ -91,6 +100,7 @@ def block_tables(record: Mapping, n_params: int, K3: float) -> tuple[list, list,
                 repr(float(m3_high[i])),
                 *[repr(float(x)) for x in x0[i]],
                 *[repr(float(x)) for x in x0_std[i]],
+                *[v[i] if isinstance(v, list) else repr(float(v[i])) for v in extra_values],
             ]
         )
         status_rows.append(
@@ -106,10 +116,13 @@ def block_tables(record: Mapping, n_params: int, K3: float) -> tuple[list, list,
                 repr(float(result.whiteness[i])),
             ]
         )
+    scored = n_params if n_scored is None else n_scored
     columns = {
         "index": index.long(),
-        "params": params.double(),
-        "std": std.double(),
+        "params": params[:, :scored].double(),
+        "std": std[:, :scored].double(),
+        "m3_low": m3_low.double(),
+        "m3_high": m3_high.double(),
         "status": result.status.long(),
         "iterations": result.iterations.long(),
         "restarts": record["restarts"].long(),
@@ -200,6 +213,8 @@ def write_metrics(
     free_names = [PARAM_NAMES[j] for j in free]
     true = true[:, :n_params]
     m3, m3_std, m3_low, m3_high = m3_interval(params, std, K3)
+    if "m3_low" in columns:  # the interval the estimates report (a model selection's may be wider)
+        m3_low, m3_high = columns["m3_low"], columns["m3_high"]
     table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
     window = cfg.n_steps if n_steps is None else n_steps
     title = f"{cfg.experiment_name}: {n} samples, N = {window}, sensor noise: {noise}"

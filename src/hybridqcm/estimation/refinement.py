@@ -182,7 +182,8 @@ class GaussNewtonRefinement(Callback):
         # minimum is a bad centre for the next ones: draws around it land in the same basin.
         if restart_center is not None:
             restart_center = torch.as_tensor(restart_center, dtype=torch.float64)
-            if restart_center.shape != (n_params,) or not bool((restart_center > 0).all()):
+            positive = self.response.positive[:n_params]
+            if restart_center.shape != (n_params,) or not bool((restart_center[positive] > 0).all()):
                 raise ValueError(f"restart_center must be [{n_params}] positive parameters, got {restart_center}")
         self.restart_center = restart_center
         # A fit that fits but ends with p1 or p2 more than restart_far (relative) away from a start
@@ -537,9 +538,9 @@ class GaussNewtonRefinement(Callback):
         linear = getattr(self.response, "model", None)
         if self.quarter_car or linear is None or len(channels) != linear.n_output:
             return SpectralNoise(v_alone)
-        n_params = self.response.n_params
         omega = 2 * math.pi * torch.fft.rfftfreq(targets.shape[1], d=self.h, dtype=torch.float64)
-        H, _ = frequency_response(linear, params[:, :n_params].double(), omega)
+        # the linear model's own parameters (a delay after them changes the phase, not the noise's power)
+        H, _ = frequency_response(linear, params[:, : linear.n_params].double(), omega)
         v_out, v_in = estimate_variances(residual, H, linear.n_input, reference)
         # An input "noise" far below any accelerometer's floor is the hold's interpolation error
         # between samples (deterministic, concentrated near Nyquist), not noise: modelling it as

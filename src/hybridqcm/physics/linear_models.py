@@ -169,3 +169,63 @@ class SprungBaseExcitation(LinearModel):
         A = torch.cat([C, kinematics], -2)
         B = torch.stack([-one, -one, zero, zero], -1)[..., None]
         return A, B, C, torch.zeros(p.shape[0], 2, 1, dtype=p.dtype, device=p.device)
+
+
+class SeatOccupantBaseExcitation(LinearModel):
+    """Road-free seat model with a seated person (SPEC § 10, physics/occupant.py): the chassis
+    acceleration a2 drives the seat pan, a3 is the pan's acceleration; the occupant is a rigid part
+    with ``n_modes`` (1 or 2) body modes hung on it. params (p1, p2, r1, k1, c1[, r2, k2, c2]),
+    state (dz, dy1[, dy2], z, y1[, y2]) with z = q_pan - q2 and y_i = q_i - q_pan:
+
+        a3 = R (-p1 dz - p2 z) + Σ r_i (c_i dy_i + k_i y_i),   R = 1 + Σ r_i
+        dz' = a3 - a2,   dy_i' = -(c_i dy_i + k_i y_i) - a3
+
+    Not linear in the parameters (R p1, r_i k_i): derivatives by torch.func.jacfwd. n_modes = 0 is
+    SeatBaseExcitation.
+    """
+
+    linear_in_params = False
+    input_names = ("a2",)
+    output_names = ("a3",)
+
+    def __init__(self, n_modes: int = 1) -> None:
+        from hybridqcm.physics.occupant import occupant_param_names
+
+        if n_modes not in (1, 2):
+            raise ValueError(f"seat occupant: n_modes must be 1 or 2 (0 is SeatBaseExcitation), got {n_modes!r}")
+        self.n_modes = int(n_modes)
+        self.name = f"seat_body{self.n_modes}_base_excitation"
+        self.param_names = occupant_param_names(self.n_modes)
+        modes = range(1, self.n_modes + 1)
+        self.state_names = ("dz",) + tuple(f"dy{i}" for i in modes) + ("z",) + tuple(f"y{i}" for i in modes)
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        self.check_params(p)
+        n, b = self.n_modes, p.shape[0]
+        modes = p[:, 2:].reshape(b, n, 3)
+        r, k, c = modes[..., 0], modes[..., 1], modes[..., 2]
+        R = 1.0 + r.sum(-1)
+        # a3 = C x, x = (dz, dy, z, y): the pan's acceleration
+        C = torch.cat([(-R * p[:, 0])[:, None], r * c, (-R * p[:, 1])[:, None], r * k], -1)  # [b, 2 + 2n]
+        # dy_i' = -(c_i dy_i + k_i y_i) - a3: row i is -C with the mode's own terms added
+        own = torch.cat(
+            [
+                torch.zeros(b, n, 1, dtype=p.dtype, device=p.device),
+                torch.diag_embed(c),
+                torch.zeros(b, n, 1, dtype=p.dtype, device=p.device),
+                torch.diag_embed(k),
+            ],
+            -1,
+        )
+        rows_dy = -C[:, None, :].expand(b, n, -1) - own
+        kinematics = torch.cat(
+            [
+                torch.eye(1 + n, dtype=p.dtype, device=p.device).expand(b, -1, -1),
+                torch.zeros(b, 1 + n, 1 + n, dtype=p.dtype, device=p.device),
+            ],
+            -1,
+        )
+        A = torch.cat([C[:, None, :], rows_dy, kinematics], -2)
+        B = torch.zeros(b, 2 + 2 * n, 1, dtype=p.dtype, device=p.device)
+        B = torch.cat([-torch.ones(b, 1, 1, dtype=p.dtype, device=p.device), B[:, 1:]], -2)  # out of place (vmap)
+        return A, B, C[:, None, :], torch.zeros(b, 1, 1, dtype=p.dtype, device=p.device)

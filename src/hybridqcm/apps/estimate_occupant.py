@@ -1,0 +1,108 @@
+"""qcm-estimate's occupant settings: which occupant models to fit and the channel delay (SPEC § 10).
+
+    occupant.models: [rigid, body1, body2]   candidates; several: per recording the lowest BIC
+    occupant.interval_weight: 0.05           candidates this close (BIC weight) widen m3's interval
+    occupant.body_prior: true                the literature's ranges as a weak prior on body modes
+    delay: estimate | <ms> | null            a3 behind its driving channel: estimated, known, or none
+    delay_max_ms: 20                         the largest delay searched (either sign)
+
+Only the road-free seat model (``base_excitation: seat``) has occupant models and a delay today;
+elsewhere the occupant is rigid and the channels share one clock, and asking for more is refused.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from hybridqcm.apps.common import ConfigError
+from hybridqcm.physics.occupant import N_MODES, OCCUPANT_MODELS, body_prior, body_start
+
+
+def occupant_plan(cfg, base: str | None) -> dict | None:
+    """The validated occupant and delay settings, or None when the plain rigid model is asked for."""
+    occupant = cfg.get("occupant") or {}
+    models = occupant.get("models", ["rigid"])
+    if isinstance(models, str) or models is None:
+        models = [models]
+    models = [str(m) for m in models]
+    if not models:
+        raise ConfigError(f"occupant.models is empty: list one or more of {list(OCCUPANT_MODELS)}")
+    bad = [m for m in models if m not in OCCUPANT_MODELS]
+    if bad:
+        raise ConfigError(f"occupant.models={models}: {bad} unknown; choose from {list(OCCUPANT_MODELS)}")
+    if len(set(models)) != len(models):
+        raise ConfigError(f"occupant.models={models}: a model is listed twice")
+    delay = cfg.get("delay", None)
+    max_ms = cfg.get("delay_max_ms", 20)
+    if isinstance(max_ms, bool) or not isinstance(max_ms, (int, float)) or not math.isfinite(max_ms) or max_ms < 0:
+        raise ConfigError(f"delay_max_ms={max_ms!r}: give the largest channel delay searched, a number >= 0 [ms]")
+    if delay is not None and str(delay) != "estimate":
+        if isinstance(delay, bool) or not isinstance(delay, (int, float)) or not math.isfinite(delay):
+            raise ConfigError(f"delay={delay!r}: give estimate, null (none) or the known delay in ms (a number)")
+        if abs(delay) > max_ms:
+            raise ConfigError(f"delay={delay} ms lies beyond delay_max_ms={max_ms}")
+    weight = occupant.get("interval_weight", 0.05)
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 < weight <= 1:
+        raise ConfigError(f"occupant.interval_weight={weight!r}: give a number in (0, 1]")
+    plain = models == ["rigid"] and (delay is None or (str(delay) != "estimate" and float(delay) == 0.0))
+    if plain:
+        return None
+    if base != "seat":
+        raise ConfigError(
+            f"occupant.models={models}, delay={delay!r}: body models and the channel delay are available for "
+            f"the road-free seat model (base_excitation: seat, e.g. experiment=occupant_roadfree); "
+            f"this run fits {base or 'the road-driven quarter car'} with a rigid occupant on one clock"
+        )
+    return {
+        "models": models,
+        "delay": None if delay is None else ("estimate" if str(delay) == "estimate" else float(delay) / 1000.0),
+        "max_delay": float(max_ms) / 1000.0,
+        "interval_weight": float(weight),
+        "body_prior": bool(occupant.get("body_prior", True)),
+    }
+
+
+def delay_margin(cfg, h: float) -> int:
+    """Input samples the delay needs beyond each end of the window (0 without a delay)."""
+    delay = cfg.get("delay", None)
+    if delay is None or (str(delay) != "estimate" and float(delay) == 0.0):
+        return 0
+    return math.ceil(float(cfg.get("delay_max_ms", 20)) / 1000.0 / h - 1e-9) + 2
+
+
+def build_selection(cfg, plan, occupant: dict, make_refinement):
+    """The candidates' refinements and the selection over them (estimation/occupant.py).
+
+    ``make_refinement(response, known [n_params] bool, param_prior | None)`` builds one candidate's
+    GaussNewtonRefinement with the run's stages, noise model and restarts."""
+    from hybridqcm.estimation.delay import DelayedResponse
+    from hybridqcm.estimation.occupant import OccupantSelection
+    from hybridqcm.estimation.response import ExactResponse
+    from hybridqcm.physics.linear_models import SeatBaseExcitation, SeatOccupantBaseExcitation
+
+    candidates, starts = {}, {}
+    for name in occupant["models"]:
+        modes = N_MODES[name]
+        linear = SeatBaseExcitation() if modes == 0 else SeatOccupantBaseExcitation(modes)
+        response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), "unknown")
+        start = body_start(modes)
+        mean, std = body_prior(modes)
+        known = torch.zeros(2 + 3 * modes, dtype=torch.bool)
+        known[plan["known"]] = True
+        if occupant["delay"] is not None:
+            response = DelayedResponse(response, occupant["max_delay"])
+            tau = 0.0 if occupant["delay"] == "estimate" else occupant["delay"]
+            start = torch.cat([start, torch.tensor([tau], dtype=torch.float64)])
+            mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
+            std = torch.cat([std, torch.full((1,), math.inf, dtype=torch.float64)])
+            known = torch.cat([known, torch.tensor([occupant["delay"] != "estimate"])])
+        prior = None
+        if occupant["body_prior"] and modes > 0:
+            full_mean = torch.cat([torch.ones(2, dtype=torch.float64), mean])
+            full_std = torch.cat([torch.full((2,), math.inf, dtype=torch.float64), std])
+            prior = (full_mean, full_std)
+        candidates[name] = make_refinement(response, known, prior)
+        starts[name] = start
+    return OccupantSelection(candidates, starts, float(cfg.K3), occupant["interval_weight"])
