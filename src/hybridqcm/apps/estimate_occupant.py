@@ -3,7 +3,8 @@
     occupant.models: [rigid, body1, body2]   candidates; several: per recording the lowest BIC
     occupant.interval_weight: 0.05           candidates this close (BIC weight) widen m3's interval
     occupant.body_prior: true                the literature's ranges as a weak prior on body modes
-    delay: estimate | <ms> | null            a3 behind its driving channel: estimated, known, or none
+    delay: auto | estimate | <ms> | null     a3 behind its driving channel: each model with and without
+                                             an estimated delay (BIC decides), estimated, known, or none
     delay_max_ms: 20                         the largest delay searched (either sign)
 
 Only the road-free seat model (``base_excitation: seat``) has occupant models and a delay today;
@@ -38,15 +39,15 @@ def occupant_plan(cfg, base: str | None) -> dict | None:
     max_ms = cfg.get("delay_max_ms", 20)
     if isinstance(max_ms, bool) or not isinstance(max_ms, (int, float)) or not math.isfinite(max_ms) or max_ms < 0:
         raise ConfigError(f"delay_max_ms={max_ms!r}: give the largest channel delay searched, a number >= 0 [ms]")
-    if delay is not None and str(delay) != "estimate":
+    if delay is not None and str(delay) not in ("estimate", "auto"):
         if isinstance(delay, bool) or not isinstance(delay, (int, float)) or not math.isfinite(delay):
-            raise ConfigError(f"delay={delay!r}: give estimate, null (none) or the known delay in ms (a number)")
+            raise ConfigError(f"delay={delay!r}: give auto, estimate, null (none) or the known delay in ms (a number)")
         if abs(delay) > max_ms:
             raise ConfigError(f"delay={delay} ms lies beyond delay_max_ms={max_ms}")
     weight = occupant.get("interval_weight", 0.05)
     if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 < weight <= 1:
         raise ConfigError(f"occupant.interval_weight={weight!r}: give a number in (0, 1]")
-    plain = models == ["rigid"] and (delay is None or (str(delay) != "estimate" and float(delay) == 0.0))
+    plain = models == ["rigid"] and (delay is None or (str(delay) not in ("estimate", "auto") and float(delay) == 0.0))
     if plain:
         return None
     if base != "seat":
@@ -57,17 +58,30 @@ def occupant_plan(cfg, base: str | None) -> dict | None:
         )
     return {
         "models": models,
-        "delay": None if delay is None else ("estimate" if str(delay) == "estimate" else float(delay) / 1000.0),
+        "delay": None
+        if delay is None
+        else (str(delay) if str(delay) in ("estimate", "auto") else float(delay) / 1000.0),
         "max_delay": float(max_ms) / 1000.0,
         "interval_weight": float(weight),
         "body_prior": bool(occupant.get("body_prior", True)),
+        "delay_prior": _delay_prior(cfg),
     }
+
+
+def _delay_prior(cfg) -> float:
+    """The delay prior's standard deviation [s] (inf: none) from delay_prior_ms."""
+    value = cfg.get("delay_prior_ms", None)
+    if value is None:
+        return math.inf
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise ConfigError(f"delay_prior_ms={value!r}: give a standard deviation > 0 [ms] or null (none)")
+    return float(value) / 1000.0
 
 
 def delay_margin(cfg, h: float) -> int:
     """Input samples the delay needs beyond each end of the window (0 without a delay)."""
     delay = cfg.get("delay", None)
-    if delay is None or (str(delay) != "estimate" and float(delay) == 0.0):
+    if delay is None or (str(delay) not in ("estimate", "auto") and float(delay) == 0.0):
         return 0
     return math.ceil(float(cfg.get("delay_max_ms", 20)) / 1000.0 / h - 1e-9) + 2
 
@@ -83,26 +97,34 @@ def build_selection(cfg, plan, occupant: dict, make_refinement):
     from hybridqcm.physics.linear_models import SeatBaseExcitation, SeatOccupantBaseExcitation
 
     candidates, starts = {}, {}
+    delay = occupant["delay"]
+    # auto: each model both on one clock and with the delay estimated; BIC charges the delay its parameter
+    variants = [(None, ""), ("estimate", "+delay")] if delay == "auto" else [(delay, "")]
     for name in occupant["models"]:
-        modes = N_MODES[name]
-        linear = SeatBaseExcitation() if modes == 0 else SeatOccupantBaseExcitation(modes)
-        response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), "unknown")
-        start = body_start(modes)
-        mean, std = body_prior(modes)
-        known = torch.zeros(2 + 3 * modes, dtype=torch.bool)
-        known[plan["known"]] = True
-        if occupant["delay"] is not None:
-            response = DelayedResponse(response, occupant["max_delay"])
-            tau = 0.0 if occupant["delay"] == "estimate" else occupant["delay"]
-            start = torch.cat([start, torch.tensor([tau], dtype=torch.float64)])
-            mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
-            std = torch.cat([std, torch.full((1,), math.inf, dtype=torch.float64)])
-            known = torch.cat([known, torch.tensor([occupant["delay"] != "estimate"])])
-        prior = None
-        if occupant["body_prior"] and modes > 0:
-            full_mean = torch.cat([torch.ones(2, dtype=torch.float64), mean])
-            full_std = torch.cat([torch.full((2,), math.inf, dtype=torch.float64), std])
-            prior = (full_mean, full_std)
-        candidates[name] = make_refinement(response, known, prior)
-        starts[name] = start
+        for tau_setting, suffix in variants:
+            modes = N_MODES[name]
+            linear = SeatBaseExcitation() if modes == 0 else SeatOccupantBaseExcitation(modes)
+            response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), "unknown")
+            start = body_start(modes)
+            mean, std = body_prior(modes)
+            known = torch.zeros(2 + 3 * modes, dtype=torch.bool)
+            known[plan["known"]] = True
+            if tau_setting is not None:
+                response = DelayedResponse(response, occupant["max_delay"])
+                tau = 0.0 if tau_setting == "estimate" else tau_setting
+                start = torch.cat([start, torch.tensor([tau], dtype=torch.float64)])
+                mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
+                std = torch.cat([std, torch.full((1,), occupant["delay_prior"], dtype=torch.float64)])
+                known = torch.cat([known, torch.tensor([tau_setting != "estimate"])])
+            prior = None
+            if (occupant["body_prior"] and modes > 0) or (
+                tau_setting == "estimate" and occupant["delay_prior"] < math.inf
+            ):
+                full_mean = torch.cat([torch.ones(2, dtype=torch.float64), mean])
+                full_std = torch.cat([torch.full((2,), math.inf, dtype=torch.float64), std])
+                if not occupant["body_prior"]:
+                    full_std[2 : 2 + 3 * modes] = math.inf
+                prior = (full_mean, full_std)
+            candidates[name + suffix] = make_refinement(response, known, prior)
+            starts[name + suffix] = start
     return OccupantSelection(candidates, starts, float(cfg.K3), occupant["interval_weight"])

@@ -424,9 +424,7 @@ def validate(cfg) -> dict:
             raise DatasetError(f"{path}: n_steps=max leaves {n_steps} steps of the {stored} stored")
     if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
         margin = (
-            (0, 0)
-            if model == "euler"
-            else (min(lead, stored - n_steps), max(0, min(tail, stored - n_steps - lead)))
+            (0, 0) if model == "euler" else (min(lead, stored - n_steps), max(0, min(tail, stored - n_steps - lead)))
         )
     try:
         margin = tuple(int(m) for m in margin)

@@ -50,7 +50,12 @@ def _lagrange(u: Tensor) -> tuple[Tensor, Tensor]:
     """Four-point Lagrange weights on nodes -1, 0, 1, 2 at u [b] and their derivatives: [b, 4] each."""
     u = u[:, None]
     w = torch.cat(
-        [-u * (u - 1) * (u - 2) / 6, (u + 1) * (u - 1) * (u - 2) / 2, -(u + 1) * u * (u - 2) / 2, (u + 1) * u * (u - 1) / 6],
+        [
+            -u * (u - 1) * (u - 2) / 6,
+            (u + 1) * (u - 1) * (u - 2) / 2,
+            -(u + 1) * u * (u - 2) / 2,
+            (u + 1) * u * (u - 1) / 6,
+        ],
         1,
     )
     dw = torch.cat(

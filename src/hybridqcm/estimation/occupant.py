@@ -100,7 +100,7 @@ class OccupantSelection:
         self._batches: list[dict] = []
 
     @staticmethod
-    def _modes(refinement: GaussNewtonRefinement) -> int:
+    def _modes(refinement) -> int:
         return sum(1 for n in refinement.response.theta_names if n.startswith("r") and n[1:].isdigit())
 
     def refine_block(self, outputs: Mapping, module, block: int) -> dict:
@@ -196,6 +196,9 @@ class OccupantSelection:
                 continue
             rec, res = records[name], records[name]["final"]
             cols = torch.tensor([layout.index(n) for n in self.candidates[name].response.theta_names])
+            if "tau" in layout and "tau" not in self.candidates[name].response.theta_names:
+                params[rows, layout.index("tau")] = 0.0  # fitted on one clock
+                std[rows, layout.index("tau")] = 0.0
             params[rows[:, None], cols] = rec["params"][rows].double()
             std[rows[:, None], cols] = res.std[rows].double()
             if res.model_std is not None:

@@ -1,0 +1,123 @@
+"""Seated persons and two clocks (issue 28): occupant models, the channel delay, the model selection."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from hybridqcm.estimation.delay import DelayedResponse
+from hybridqcm.estimation.exact import exact_outputs
+from hybridqcm.estimation.noise import frequency_response
+from hybridqcm.estimation.response import ExactResponse
+from hybridqcm.physics.linear_models import SeatBaseExcitation, SeatOccupantBaseExcitation
+from hybridqcm.physics.occupant import derived, normalised_apparent_mass, transmissibility
+
+K3 = 98935.0
+
+
+def _body(n_modes: int, mass: float = 80.0) -> torch.Tensor:
+    modes = [2.0, (2 * math.pi * 5) ** 2, 2 * 0.4 * 2 * math.pi * 5]
+    if n_modes == 2:
+        modes += [0.5, (2 * math.pi * 10) ** 2, 2 * 0.3 * 2 * math.pi * 10]
+    return torch.tensor([[615.0 / mass, K3 / mass, *modes]], dtype=torch.float64)
+
+
+def _drive(T: int = 400, h: float = 0.01) -> torch.Tensor:
+    t = torch.arange(T, dtype=torch.float64) * h
+    a2 = (
+        torch.sin(2 * math.pi * 1.3 * t)
+        + 0.6 * torch.sin(2 * math.pi * 4.7 * t + 1)
+        + 0.3 * torch.sin(2 * math.pi * 9.1 * t)
+    )
+    return a2[None, :, None]
+
+
+@pytest.mark.parametrize("n_modes", [1, 2])
+def test_state_space_matches_the_apparent_mass_formula(n_modes):
+    """The state-space seat + body model's transfer equals (p1 s + p2)/(s² AM/M + p1 s + p2) written
+    from the apparent mass (SPEC § 10), and AM(0) = M (the static mass)."""
+    p = _body(n_modes)
+    omega = torch.linspace(0.5, 100.0, 60, dtype=torch.float64)
+    H, _ = frequency_response(SeatOccupantBaseExcitation(n_modes), p, omega)
+    torch.testing.assert_close(H[:, :, 0, 0], transmissibility(p, omega), rtol=1e-10, atol=1e-12)
+    am0 = normalised_apparent_mass(p, torch.zeros(1, dtype=torch.float64))
+    assert abs(complex(am0[0, 0]) - 1) < 1e-12
+    d = derived(p, K3)
+    assert abs(float(d["f1_hz"]) - 5.0) < 1e-9 and abs(float(d["zeta1"]) - 0.4) < 1e-9
+    assert abs(float(d["rigid_kg"] + d["mass1_kg"] + d.get("mass2_kg", 0)) - 80.0) < 1e-9
+
+
+def test_a_vanishing_body_mode_is_the_rigid_seat():
+    """r1 -> 0 (no body mass): the body model's outputs are the rigid seat's, from the same input."""
+    a2, h = _drive(), 0.01
+    p = _body(1)
+    p[0, 2] = 1e-12
+    body = exact_outputs(SeatOccupantBaseExcitation(1), p, None, a2, h, "spline", 16, start=4, n_steps=300)
+    rigid = exact_outputs(SeatBaseExcitation(), p[:, :2], None, a2, h, "spline", 16, start=4, n_steps=300)
+    torch.testing.assert_close(body, rigid, rtol=0, atol=1e-9 * float(rigid.abs().max()))
+
+
+@pytest.mark.parametrize("n_modes", [0, 1])
+def test_delay_jacobian_matches_finite_differences(n_modes):
+    model = SeatBaseExcitation() if n_modes == 0 else SeatOccupantBaseExcitation(n_modes)
+    p = _body(n_modes)[:, : 2 + 3 * n_modes]
+    response = DelayedResponse(ExactResponse(model, 0.01, "spline", 16, "unknown"), 0.02)
+    theta = torch.cat([p, torch.tensor([[0.0037]]), torch.full((1, model.n_state), 0.01)], 1)
+    prepared = response.prepare(_drive(), 10, 200)
+    jac = response.sensitivities(theta, prepared, 10, 200)
+    for j in range(theta.shape[1]):
+        step = 1e-6 * max(1.0, abs(float(theta[0, j])))
+        up, down = theta.clone(), theta.clone()
+        up[0, j] += step
+        down[0, j] -= step
+        fd = (response.outputs(up, prepared, 10, 200) - response.outputs(down, prepared, 10, 200)) / (2 * step)
+        assert float((fd[..., 0] - jac[..., 0, 1 + j]).abs().max()) <= 1e-6 * float(fd.abs().max().clamp_min(1e-12))
+
+
+def test_a_whole_sample_delay_is_the_input_shifted_by_one_sample():
+    """τ = h: the outputs equal the undelayed model driven by the input array shifted by one sample
+    (an independent path: array indexing, no interpolation)."""
+    a2, h = _drive(), 0.01
+    model = SeatOccupantBaseExcitation(1)
+    p = _body(1)
+    response = DelayedResponse(ExactResponse(model, h, "spline", 16, "rest"), 0.02)
+    delayed = response.outputs(torch.cat([p, torch.tensor([[h]])], 1), a2, 20, 300)
+    shifted = exact_outputs(model, p, None, a2[:, :-1], h, "spline", 16, start=19, n_steps=300)
+    # (the two splines end differently 64 samples away: round-off-sized differences, not 1e-2 of a wrong shift)
+    torch.testing.assert_close(delayed, shifted, rtol=0, atol=1e-5 * float(shifted.abs().max()))
+
+
+def test_delay_needs_samples_around_the_window():
+    response = DelayedResponse(ExactResponse(SeatBaseExcitation(), 0.01, "spline", 16, "unknown"), 0.02)
+    with pytest.raises(ValueError, match="input samples on both sides"):
+        response.prepare(_drive(), 0, 100)
+
+
+# ------------------------------------------------------------------------------------------- the app
+def _app(tmp_path, *overrides):
+    cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", *overrides, f"hydra.run.dir={tmp_path}", "progress=false"]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("occupant.models=[]", "occupant.models is empty"),
+        ("occupant.models=[rigid,giant]", "unknown"),
+        ("delay=abc", "delay='abc'"),
+        ("delay_max_ms=abc", "delay_max_ms="),
+    ],
+)
+def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, tmp_path, override, message):
+    proc = _app(tmp_path, "experiment=occupant_roadfree", f"data.path={tiny_dataset}", override)
+    assert proc.returncode != 0
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_body_models_are_refused_for_the_road_driven_model(tiny_dataset, tmp_path):
+    proc = _app(tmp_path, "experiment=exp5_random_init", f"data.path={tiny_dataset}", "occupant.models=[body1]")
+    assert proc.returncode != 0 and "road-free seat model" in proc.stderr and "Traceback" not in proc.stderr
