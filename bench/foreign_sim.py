@@ -2,7 +2,8 @@
 
     .venv/bin/python bench/foreign_sim.py make --out data/foreign.h5 --n 300 [--noise 0.05 --bias 0.2]
     .venv/bin/python bench/foreign_sim.py make --out data/foreign.csv --n 1 --steps 6000   (one drive, qcm-import)
-    .venv/bin/python bench/foreign_sim.py score RUN_DIR [--data data/foreign.h5]
+    .venv/bin/python bench/foreign_sim.py make --out data/persons.h5 --n 400 --occupant mixed --delay-ms-range -20 20
+    .venv/bin/python bench/foreign_sim.py score RUN_DIR [--data data/foreign.h5] [--json score.json]
 
 Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and differs from
 `physics/continuous.py` wherever a real car's simulator could:
@@ -18,15 +19,48 @@ Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and di
 * every drive starts at rest at t = 0 on the road as it is, and the logger's window starts after a
   warm-up drawn per recording;
 * logger: accelerations from the bodies' forces at t_k = t0 + k h, additive white noise of a given
-  fraction of each channel's RMS and a constant bias per channel, any rate h.
+  fraction of each channel's RMS and a constant bias per channel, any rate h;
+* occupant (`--occupant`): `rigid` (the default) is one mass m3 ~ U(30, 150) kg on the seat's K3, C3, seat
+  included, exactly as before these options existed (same random stream, byte-identical files). Otherwise
+  the seat pan m_pan ~ U(3, 12) kg (rigid) sits on K3, C3 and carries a seated person of static mass
+  M ~ U(30, 150) kg (the old m3 draw): a rigid part m_r (20-40 % of M) moving with the pan, and the rest hung
+  on the pan as body masses (apparent mass: Fairley & Griffin 1989; Wei & Griffin 1998; ISO 5982):
+  - `body1`: one mass m_b = M - m_r on the pan through k_b, c_b; natural frequency sqrt(k_b/m_b)/2pi
+    ~ U(4, 6) Hz, damping ratio c_b/(2 sqrt(k_b m_b)) ~ U(0.3, 0.5). Its apparent-mass peak then lies at
+    3.2-5.4 Hz, mean 4.3 (below the natural frequency: the damping), |M_app|/M 1.25-1.74 there.
+  - `body2`: a series chain pan <- k_a, c_a -> m_a <- k_b, c_b -> m_b (not two masses in parallel, so not a
+    model an estimator fits), m_b = U(0.1, 0.3) of the chain. Drawn as the chain's fixed-pan undamped
+    frequencies f1 ~ U(4.5, 6.5), f2 ~ U(9, 13) Hz (the softer of the two stiffness pairs that give them),
+    element damping ratios c_a/(2 sqrt(k_a m_a)) ~ U(0.3, 0.5), c_b/(2 sqrt(k_b m_b)) ~ U(0.15, 0.3), and
+    redrawn until |M_app| (rigid part included) has exactly two maxima on 0.5-20 Hz, the first in 4-6 Hz,
+    the second in 8-12 Hz (most draws pass). Resulting ranges over 20 000 persons: maxima at
+    4.0-6.0 Hz (mean 4.8; |M_app|/M 1.13-2.01) and 8.0-12.0 Hz (mean 9.8; |M_app|/M 0.59-1.47); m_a/M
+    0.42-0.72, m_b/M 0.06-0.24; sqrt(k_a/m_a) 7.5-12.9 Hz (k_a/M 980-4 700 N/m/kg), sqrt(k_b/m_b) 4.6-7.8 Hz
+    (k_b/M 52-530 N/m/kg); c_a 510-7 950, c_b 17-715 Ns/m;
+  - `mixed`: rigid (pan + M, all rigid), body1 or body2 with probability 1/3 each.
+  Person draws come from their own stream (seed, 1): the vehicles, roads and noise of a file are those of
+  the rigid file with the same seed. `/test/truth_m3` is the static mass on the seat spring, the mass an
+  estimator is asked for: m_pan + M (the seat's apparent mass at 0 Hz); p1 = C3/(m_pan + M),
+  p2 = K3/(m_pan + M), p3..p10 as for a rigid occupant. a3 is the seat pan's acceleration;
+* two logger clocks (`--delay-ms`, `--delay-ms-range`): a3's logger runs tau behind a2's: a3 is sampled at
+  t_k - tau while a2, a1 and the road are at t_k (tau > 0: a3 late). The state at t_k - tau comes from the
+  same first-order hold over the fraction of a fine step (one more Van Loan exponential per recording):
+  exact for any tau, not interpolated; a whole number of fine steps uses the fine state itself. Delays per
+  recording ~ U(A, B) come from their own stream (seed, 2).
 
 `make` writes what another producer would: `/test/accel` float64 [M, steps, 3] (a3, a2, a1), `/test/road`
 (sampled at the logger's instants), `/test/params` (p1..p10 from the constants, for scoring), attrs
 `schema` and `h` only (no `physics`: a foreign file is continuous with an unknown initial state), plus
-`/test/truth_m3`, `/test/truth_K3` for scoring. With a `.csv` output it writes one long drive of the
+`/test/truth_m3`, `/test/truth_K3` for scoring; with a person also `/test/truth_occupant` (int8: 0 rigid,
+1 body1, 2 body2), `/test/truth_pan` [kg] and `/test/truth_body` [M, 8] with the columns PERSON_COLUMNS
+(person M, rigid part m_r, m_a, k_a, c_a, m_b, k_b, c_b in kg, N/m, Ns/m; body1 uses the b columns, its
+mass hung on the pan; body2 hangs a on the pan and b on a; unused columns 0; also the dataset's attr
+`columns`), and with a delay `/test/truth_delay_s`. With a `.csv` output it writes one long drive of the
 first vehicle in the layout `qcm-import` reads (t, a3, a2, a1 in m/s²), its truth in a `.json` beside.
-`score` reads a qcm-estimate run folder and prints the occupant mass error and status counts, and how
-many answers more than a tolerance off are still called `converged`.
+`score` reads a qcm-estimate run folder and prints the occupant mass error and status counts, how many
+answers more than a tolerance off are still called `converged`, the chosen occupant models, the 95 %
+interval coverage of m3, and the honesty count: `converged`, more than 10 % off and the truth outside
+[m3_low, m3_high]; `--json OUT` writes those numbers.
 """
 
 from __future__ import annotations
@@ -42,6 +76,16 @@ import scipy.linalg
 # Reference vehicle (SPEC §1): the centre of the draws.
 REF = {"C3": 615.0, "C2": 4761.0, "K3": 98935.0, "K2": 149171.0, "K1": 40000.0, "m2": 2160.0, "m1": 145.0}
 ISO_CLASSES = "ABCDEFGH"
+OCCUPANTS = ("rigid", "body1", "body2")
+PERSON_COLUMNS = ("M", "m_r", "m_a", "k_a", "c_a", "m_b", "k_b", "c_b")
+# body2's draws (see the module docstring for the constants they give)
+BODY2_RANGES = {
+    "f_fixed_pan_hz": ((4.5, 6.5), (9.0, 13.0)),
+    "zeta": ((0.3, 0.5), (0.15, 0.3)),
+    "b_share_of_chain": (0.1, 0.3),
+    "peaks_hz": ((4.0, 6.0), (8.0, 12.0)),
+}
+PEAK_GRID_HZ = np.linspace(0.5, 20.0, 1951)  # where body2's apparent-mass maxima are looked for (0.01 Hz)
 
 
 def draw_vehicles(n: int, rng: np.random.Generator, rel: float = 0.1, seat_rel: float = 0.0, c1_max: float = 0.0):
@@ -74,31 +118,128 @@ def parameters(v) -> np.ndarray:
     )
 
 
+def draw_persons(v, occupant: str, rng: np.random.Generator):
+    """Seat pan + seated person in place of the rigid occupant of `v` (in place; see the module docstring).
+
+    The person's static mass M is the old draw v["m3"]; afterwards v["m3"] = m_pan + M (the static mass on
+    the seat spring, so `parameters` gives p1 = C3/(m_pan + M), p2 = K3/(m_pan + M)) and v gains
+    "occupant" (0/1/2), "pan", "m_s" (the pan's body: m_pan + m_r) and PERSON_COLUMNS, each [n]."""
+    n = len(v["m3"])
+    kind = rng.integers(0, 3, n) if occupant == "mixed" else np.full(n, OCCUPANTS.index(occupant))
+    M = v["m3"].copy()
+    pan = rng.uniform(3.0, 12.0, n)
+    rigid = np.where(kind == 0, 1.0, rng.uniform(0.2, 0.4, n)) * M
+    f_b = rng.uniform(4.0, 6.0, n)  # body1: natural frequency and damping ratio of the body mode
+    zeta_b = rng.uniform(0.3, 0.5, n)
+    body = {k: np.zeros(n) for k in PERSON_COLUMNS}
+    body["M"], body["m_r"] = M, rigid
+    one = kind == 1
+    body["m_b"][one] = M[one] - rigid[one]
+    body["k_b"][one] = body["m_b"][one] * (2 * np.pi * f_b[one]) ** 2
+    body["c_b"][one] = 2 * zeta_b[one] * np.sqrt(body["k_b"][one] * body["m_b"][one])
+    for i in np.flatnonzero(kind == 2):
+        chain = _draw_chain(M[i] - rigid[i], rigid[i], rng)
+        for k, value in chain.items():
+            body[k][i] = value
+    v.update(body)
+    v["occupant"], v["pan"], v["m_s"] = kind.astype(np.int8), pan, pan + rigid
+    v["m3"] = pan + M
+    return v
+
+
+def _draw_chain(mass: float, m_r: float, rng: np.random.Generator) -> dict:
+    """body2's chain pan <- k_a, c_a -> m_a <- k_b, c_b -> m_b of total mass `mass`, redrawn until its apparent
+    mass has its two maxima in BODY2_RANGES["peaks_hz"]. Fixed pan, undamped: with x = k_a/m_a,
+    y = k_b/m_b, mu = m_b/m_a the frequencies w1, w2 solve x + (1 + mu) y = w1² + w2², x y = w1² w2²."""
+    r, grid = BODY2_RANGES, PEAK_GRID_HZ
+    while True:
+        share = rng.uniform(*r["b_share_of_chain"])
+        w1, w2 = (2 * np.pi * rng.uniform(*band) for band in r["f_fixed_pan_hz"])
+        z_a, z_b = (rng.uniform(*band) for band in r["zeta"])
+        m_b = share * mass
+        m_a = mass - m_b
+        mu, S, P = m_b / m_a, w1**2 + w2**2, w1**2 * w2**2
+        disc = S * S - 4 * (1 + mu) * P
+        if disc < 0:
+            continue
+        y = (S - np.sqrt(disc)) / (2 * (1 + mu))  # the softer upper spring
+        k_a, k_b = P / y * m_a, y * m_b
+        chain = {"m_a": m_a, "k_a": k_a, "c_a": 2 * z_a * np.sqrt(k_a * m_a), "m_b": m_b, "k_b": k_b}
+        chain["c_b"] = 2 * z_b * np.sqrt(k_b * m_b)
+        mag = np.abs(apparent_mass(m_r, chain, 2j * np.pi * grid, kind=2))
+        top = np.flatnonzero((mag[1:-1] > mag[:-2]) & (mag[1:-1] > mag[2:])) + 1
+        if len(top) == 2 and all(lo <= grid[t] <= hi for t, (lo, hi) in zip(top, r["peaks_hz"])):
+            return chain
+
+
+def apparent_mass(m_r, body, s, kind: int):
+    """The person's force on the pan over the pan's acceleration at the Laplace variable s (rigid part m_r,
+    body constants as in PERSON_COLUMNS): m_r + m_b T_b (body1), m_r + (m_a + m_b T_b) T_a' (body2) with
+    T_b = (c_b s + k_b)/(m_b s² + c_b s + k_b), T_a' = (c_a s + k_a)/(s² (m_a + m_b T_b) + c_a s + k_a)."""
+    if kind == 0:
+        return m_r + 0 * s
+    T_b = (body["c_b"] * s + body["k_b"]) / (body["m_b"] * s**2 + body["c_b"] * s + body["k_b"])
+    if kind == 1:
+        return m_r + body["m_b"] * T_b
+    upper = body["m_a"] + body["m_b"] * T_b
+    z_a = body["c_a"] * s + body["k_a"]
+    return m_r + upper * z_a / (s**2 * upper + z_a)
+
+
 def _state_space(v, i: int):
-    """x = (q3, q2, q1, v3, v2, v1), input w = (u, du/dt): dx/dt = A x + B w, from Newton's law per body."""
-    m = np.array([v["m3"][i], v["m2"][i], v["m1"][i]])
+    """x = (q3, q2, q1[, qa, qb], v3, v2, v1[, va, vb]), input w = (u, du/dt): dx/dt = A x + B w, from
+    Newton's law per body. With a person (draw_persons) body 3 is the seat pan with the rigid part and
+    bodies a, b are the person's masses (an unused one: mass 1, no links, stays at rest)."""
     C3, C2, C1, K3, K2, K1 = (v[k][i] for k in ("C3", "C2", "C1", "K3", "K2", "K1"))
-    # Forces on (seat, chassis, wheel) per unit of (q, v): the seat spring/damper between 3 and 2,
-    # the suspension between 2 and 1, the tyre between 1 and the road.
-    Kq = np.array([[-K3, K3, 0.0], [K3, -K3 - K2, K2], [0.0, K2, -K2 - K1]])
-    Cv = np.array([[-C3, C3, 0.0], [C3, -C3 - C2, C2], [0.0, C2, -C2 - C1]])
-    Fu = np.array([[0.0, 0.0], [0.0, 0.0], [K1, C1]])  # tyre force from (u, du/dt)
-    A = np.zeros((6, 6))
-    A[:3, 3:] = np.eye(3)
-    A[3:, :3] = Kq / m[:, None]
-    A[3:, 3:] = Cv / m[:, None]
-    B = np.zeros((6, 2))
-    B[3:] = Fu / m[:, None]
+    if "occupant" not in v:  # the rigid occupant of old, written out
+        m = np.array([v["m3"][i], v["m2"][i], v["m1"][i]])
+        # Forces on (seat, chassis, wheel) per unit of (q, v): the seat spring/damper between 3 and 2,
+        # the suspension between 2 and 1, the tyre between 1 and the road.
+        Kq = np.array([[-K3, K3, 0.0], [K3, -K3 - K2, K2], [0.0, K2, -K2 - K1]])
+        Cv = np.array([[-C3, C3, 0.0], [C3, -C3 - C2, C2], [0.0, C2, -C2 - C1]])
+        Fu = np.array([[0.0, 0.0], [0.0, 0.0], [K1, C1]])  # tyre force from (u, du/dt)
+    else:
+        kind = int(v["occupant"][i])
+        m_a, m_b = v["m_a"][i], v["m_b"][i]
+        m = np.array([v["m_s"][i], v["m2"][i], v["m1"][i], m_a if kind == 2 else 1.0, m_b if kind else 1.0])
+        # Links (body, body, k, c); index 5 is the road. Newton per body: m_i a_i = sum over its links of
+        # k (q_j - q_i) + c (v_j - v_i).
+        links = [(0, 1, K3, C3), (1, 2, K2, C2), (2, 5, K1, C1)]
+        if kind == 1:
+            links.append((4, 0, v["k_b"][i], v["c_b"][i]))  # body1: m_b on the pan
+        elif kind == 2:
+            links += [(3, 0, v["k_a"][i], v["c_a"][i]), (4, 3, v["k_b"][i], v["c_b"][i])]  # pan <- a <- b
+        Kq, Cv, Fu = np.zeros((5, 5)), np.zeros((5, 5)), np.zeros((5, 2))
+        for a, b, k, c in links:
+            Kq[a, a] -= k
+            Cv[a, a] -= c
+            if b == 5:
+                Fu[a] += (k, c)  # tyre force from (u, du/dt)
+                continue
+            Kq[a, b] += k
+            Cv[a, b] += c
+            Kq[b, b] -= k
+            Cv[b, b] -= c
+            Kq[b, a] += k
+            Cv[b, a] += c
+    nb = len(m)
+    A = np.zeros((2 * nb, 2 * nb))
+    A[:nb, nb:] = np.eye(nb)
+    A[nb:, :nb] = Kq / m[:, None]
+    A[nb:, nb:] = Cv / m[:, None]
+    B = np.zeros((2 * nb, 2))
+    B[nb:] = Fu / m[:, None]
     return A, B
 
 
-def _foh(A: np.ndarray, B: np.ndarray, dt: float):
-    """x_{j+1} = Ad x_j + G0 w_j + G1 w_{j+1} for w linear between steps (Van Loan block exponential)."""
+def _foh(A: np.ndarray, B: np.ndarray, dt: float, frac: float = 1.0):
+    """x_{j+1} = Ad x_j + G0 w_j + G1 w_{j+1} for w linear between steps (Van Loan block exponential).
+    With frac < 1: the state at t_j + frac dt from the same w_j, w_{j+1} (w still linear over dt)."""
     n, m = B.shape
     blk = np.zeros((n + 2 * m, n + 2 * m))
-    blk[:n, :n] = A * dt
-    blk[:n, n : n + m] = B * dt
-    blk[n : n + m, n + m :] = np.eye(m)
+    blk[:n, :n] = A * dt * frac if frac != 1.0 else A * dt
+    blk[:n, n : n + m] = B * dt * frac if frac != 1.0 else B * dt
+    blk[n : n + m, n + m :] = np.eye(m) * frac
     E = scipy.linalg.expm(blk)
     Ad, P1, P2 = E[:n, :n], E[:n, n : n + m], E[:n, n + m :]
     return Ad, P1 - P2, P2
@@ -130,43 +271,70 @@ def simulate(
     classes=(0, 1, 2),
     warmup=(2.0, 20.0),
     sub: int = 10,
+    delay_s=None,
 ):
     """Recordings [n, steps, 3] (a3, a2, a1), road [n, steps], window start times [n], road class [n].
 
     Each drive: from rest at t = 0 on its own road; states advanced by the first-order hold on the fine
-    step h / sub (the road is linear between fine points); the window is `steps` samples from t0 on."""
+    step h / sub (the road is linear between fine points); the window is `steps` samples from t0 on.
+    delay_s [n] (optional): a3 is sampled at t0 + k h - delay_s, the other channels and the road at t0 + k h."""
     n_veh = len(v["m3"])
     dt = h / sub
     t0 = np.round(rng.uniform(*warmup, n_veh) / h) * h
     start = np.round(t0 / dt).astype(int)
-    n_fine = int(start.max()) + (steps - 1) * sub + 1
+    # a3's clock: fine step start + k sub + lag + frac (lag whole, 0 <= frac < 1; frac = 0 within 1e-9)
+    shift = np.zeros(n_veh) if delay_s is None else -np.asarray(delay_s, float) / dt
+    lag = np.floor(shift + 1e-9).astype(int)
+    frac = np.where(shift - lag > 1e-9, shift - lag, 0.0)
+    if np.any(start + lag < 0):
+        raise ValueError("a delay longer than the warm-up: a3 would be sampled before the drive starts")
+    n_fine = int(max(start.max(), (start + lag + (frac > 0)).max())) + (steps - 1) * sub + 1
     cls = rng.choice(np.asarray(classes), n_veh)
     # Road in time on the fine grid (x = speed t) and its slope, both linear in the state update.
     u = np.stack([iso_road(n_fine + 1, speed_mps * dt, int(c), rng) for c in cls])
     du = np.diff(u, axis=1) / dt  # slope on each fine interval; the hold uses it at both ends
+    u_next = u[:, 1:]
     u = u[:, :n_fine]
     systems = [_state_space(v, i) for i in range(n_veh)]
+    nb = systems[0][0].shape[0] // 2
     mats = [_foh(A, B, dt) for A, B in systems]
     Ad = np.stack([m[0] for m in mats])
     G0 = np.stack([m[1] for m in mats])
     G1 = np.stack([m[2] for m in mats])
+    part = np.flatnonzero(frac > 0)  # recordings whose a3 falls between fine points: the hold over frac dt
+    mats_f = [_foh(*systems[i], dt, frac[i]) for i in part]
+    Pd, P0, P1 = (np.stack([m[c] for m in mats_f]) if len(part) else None for c in range(3))
     # w = (u, du/dt) with du/dt piecewise constant: hold u linearly and du/dt as a zero-order hold,
     # i.e. G0 @ (u_j, s_j) + G1 @ (u_{j+1}, s_j) with s_j the slope on interval j (exact).
-    x = np.zeros((n_veh, 6))
+    x = np.zeros((n_veh, 2 * nb))
     accel = np.empty((n_veh, steps, 3))
     road = np.empty((n_veh, steps))
-    Ac = np.stack([A[3:] for A, _ in systems])  # [n, 3, 6] accelerations from the state
-    Bc = np.stack([B[3:] for _, B in systems])  # [n, 3, 2] and from (u, du/dt)
+    Ac = np.stack([A[nb : nb + 3] for A, _ in systems])  # [n, 3, 2 nb] accelerations from the state
+    Bc = np.stack([B[nb : nb + 3] for _, B in systems])  # [n, 3, 2] and from (u, du/dt)
     rows = np.arange(n_veh)
+    start3 = start + lag
     for j in range(n_fine):
         k = (j - start) // sub
         rec = ((j - start) % sub == 0) & (k >= 0) & (k < steps)
-        if rec.any():
+        k3 = (j - start3) // sub
+        rec3 = ((j - start3) % sub == 0) & (k3 >= 0) & (k3 < steps)
+        if rec.any() or rec3.any():
             s_here = du[rows, j]  # the slope on the interval starting here (the tyre damper's view)
             w = np.stack([u[rows, j], s_here], axis=1)
             a = np.einsum("nij,nj->ni", Ac, x) + np.einsum("nij,nj->ni", Bc, w)
-            accel[rec, k[rec]] = a[rec]  # rows of A, B below the identity: (a3, a2, a1)
+            accel[rec, k[rec], 1:] = a[rec, 1:]  # rows of A, B below the identity: (a3, a2, a1)
             road[rec, k[rec]] = u[rec, j]
+            on = rec3 & (frac == 0)
+            accel[on, k3[on], 0] = a[on, 0]
+            q = np.flatnonzero(rec3[part])  # a3 at t_j + frac dt: the state there, the road and slope there
+            if len(q):
+                i = part[q]
+                w0 = np.stack([u[i, j], du[i, j]], axis=1)
+                w1 = np.stack([u_next[i, j], du[i, j]], axis=1)
+                xf = np.einsum("nij,nj->ni", Pd[q], x[i]) + np.einsum("nij,nj->ni", P0[q], w0)
+                xf += np.einsum("nij,nj->ni", P1[q], w1)
+                wf = np.stack([u[i, j] + frac[i] * dt * du[i, j], du[i, j]], axis=1)
+                accel[i, k3[i], 0] = np.einsum("nj,nj->n", Ac[i, 0], xf) + np.einsum("nj,nj->n", Bc[i, 0], wf)
         if j + 1 < n_fine:
             w0 = np.stack([u[:, j], du[:, j]], axis=1)
             w1 = np.stack([u[:, j + 1], du[:, j]], axis=1)
@@ -196,16 +364,35 @@ def make(args) -> None:
         ("--noise-abs", args.noise_abs, args.noise_abs >= 0),
         ("--bias", args.bias, args.bias >= 0),
         ("--warmup", args.warmup, 0 <= args.warmup[0] <= args.warmup[1]),
+        ("--delay-ms", args.delay_ms, np.isfinite(args.delay_ms)),
+        (
+            "--delay-ms-range",
+            args.delay_ms_range,
+            args.delay_ms_range is None or args.delay_ms_range[0] <= args.delay_ms_range[1],
+        ),
     ):
         if not ok:
             sys.exit(f"foreign_sim make: {key} = {value} is out of range")
     if any(c not in ISO_CLASSES for c in args.classes):
         sys.exit(f"foreign_sim make: --classes {args.classes}: each one of {list(ISO_CLASSES)}")
+    if args.delay_ms_range is not None and args.delay_ms != 0:
+        sys.exit("foreign_sim make: --delay-ms and --delay-ms-range: give one")
+    late = args.delay_ms if args.delay_ms_range is None else args.delay_ms_range[1]
+    if late / 1000 > args.warmup[0]:
+        sys.exit(f"foreign_sim make: a3 {late} ms late needs a warm-up of at least that (--warmup {args.warmup[0]})")
     out = Path(args.out)
     if out.exists():
         sys.exit(f"{out}: exists; choose another --out")
     rng = np.random.default_rng(args.seed)
     v = draw_vehicles(args.n, rng, seat_rel=args.seat_rel, c1_max=args.c1_max)
+    person = args.occupant != "rigid"
+    if person:
+        draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]))
+    delay_s = None
+    if args.delay_ms_range is not None:
+        delay_s = np.random.default_rng([args.seed, 2]).uniform(*args.delay_ms_range, args.n) / 1000
+    elif args.delay_ms != 0:
+        delay_s = np.full(args.n, args.delay_ms / 1000)
     accel, road, t0, cls = simulate(
         v,
         args.steps,
@@ -215,6 +402,7 @@ def make(args) -> None:
         classes=[ISO_CLASSES.index(c) for c in args.classes],
         warmup=tuple(args.warmup),
         sub=args.sub,
+        delay_s=delay_s,
     )
     accel = add_sensor(accel, rng, args.noise, args.bias, args.noise_abs)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -224,6 +412,11 @@ def make(args) -> None:
         t = np.arange(args.steps) * args.h
         table = np.column_stack([t, accel[0], road[0]])
         truth = {"params": params[0].tolist(), "m3": float(v["m3"][0]), "K3": float(v["K3"][0]), "h": args.h}
+        if person:
+            truth |= {"occupant": OCCUPANTS[v["occupant"][0]], "pan": float(v["pan"][0])}
+            truth["body"] = {k: float(v[k][0]) for k in PERSON_COLUMNS}
+        if delay_s is not None:
+            truth["delay_s"] = float(delay_s[0])
         out.with_suffix(".json").write_text(json.dumps(truth, indent=1))
         np.savetxt(tmp, table, delimiter=",", header="t,a3,a2,a1,road", comments="", fmt="%.10g")
         tmp.rename(out)
@@ -241,8 +434,20 @@ def make(args) -> None:
             g["truth_K3"] = v["K3"]
             g["road_class"] = cls.astype(np.int8)
             g["window_start_s"] = t0
+            if person:
+                g["truth_occupant"] = v["occupant"]
+                g["truth_pan"] = v["pan"]
+                g["truth_body"] = np.stack([v[k] for k in PERSON_COLUMNS], axis=1)
+                g["truth_body"].attrs["columns"] = ",".join(PERSON_COLUMNS)
+            if delay_s is not None:
+                g["truth_delay_s"] = delay_s
         tmp.rename(out)
-    print(f"{out}: {args.n} recordings x {args.steps} steps at h = {args.h} s, noise {args.noise}, bias {args.bias}")
+    extra = f", occupant {args.occupant}" if person else ""
+    if delay_s is not None:
+        extra += f", a3 late by {1000 * delay_s.min():.3g}..{1000 * delay_s.max():.3g} ms"
+    print(
+        f"{out}: {args.n} recordings x {args.steps} steps at h = {args.h} s, noise {args.noise}, bias {args.bias}{extra}"
+    )
 
 
 def score(args) -> None:
@@ -259,13 +464,16 @@ def score(args) -> None:
         truth = f["test/params"][()]
         # a file of ours has no truth_m3: its seat is the reference one (thesis prior, SPEC § 2)
         truth_m3 = f["test/truth_m3"][()] if "truth_m3" in f["test"] else REF["K3"] / truth[:, 1]
+        occupant = f["test/truth_occupant"][()] if "truth_occupant" in f["test"] else None
     idx = np.array([int(r["index"]) for r in rows])
     m3 = np.array([float(r["m3"]) for r in rows])
     status = np.array([r["status"] for r in rows])
     err = np.abs(m3 / truth_m3[idx] - 1)
+    has_interval = "m3_low" in rows[0] and "m3_high" in rows[0]
     lo = np.array([float(r.get("m3_low", "nan")) for r in rows])
     hi = np.array([float(r.get("m3_high", "nan")) for r in rows])
-    cover = np.mean((lo <= truth_m3[idx]) & (truth_m3[idx] <= hi))
+    inside = (lo <= truth_m3[idx]) & (truth_m3[idx] <= hi)
+    cover = np.mean(inside)
     names = [k for k in rows[0] if k.startswith("p") and k[1:].isdigit()]
     perr = np.stack([np.abs(np.array([float(r[k]) for r in rows]) / truth[idx, int(k[1:]) - 1] - 1) for k in names], 1)
     conv = status == "converged"
@@ -273,6 +481,8 @@ def score(args) -> None:
     print(f"  m3 mean {100 * err.mean():.3g} %, p95 {100 * np.percentile(err, 95):.3g} %, max {100 * err.max():.3g} %")
     within = ", ".join(f"{100 * np.mean(err <= t):.4g} %" for t in (0.005, 0.01, 0.05))
     print(f"  m3 within 0.5 / 1 / 5 %: {within}; 95 % interval covers {100 * cover:.3g} %")
+    within_wide = {f"{100 * t:g}": float(np.mean(err <= t)) for t in (0.02, 0.05, 0.10)}
+    print(f"  m3 within 2 / 5 / 10 %: {', '.join(f'{100 * w:.4g} %' for w in within_wide.values())}")
     for k, e in zip(names, perr.T):
         line = f"  {k}: mean {100 * e.mean():.3g} %, within 1 % {100 * np.mean(e <= 0.01):.3g} %, 5 % {100 * np.mean(e <= 0.05):.3g} %"
         if f"std_{k}" in rows[0]:  # the 95 % interval est ± 1.96 std
@@ -285,6 +495,45 @@ def score(args) -> None:
     print(f"  status: {counts}")
     tol = args.tol
     print(f"  converged with m3 > {100 * tol:g} % off: {int(np.sum(conv & (err > tol)))}")
+    models = None
+    if "occupant_model" in rows[0]:
+        models = {str(k): int(c) for k, c in zip(*np.unique([r["occupant_model"] for r in rows], return_counts=True))}
+        print(f"  occupant model chosen: {models}")
+    by_truth = {}
+    if occupant is not None:
+        for code, name in enumerate(OCCUPANTS):
+            sel = occupant[idx] == code
+            if sel.any():
+                by_truth[name] = {"n": int(sel.sum()), "m3_mean": float(err[sel].mean())}
+                by_truth[name]["within_5"] = float(np.mean(err[sel] <= 0.05))
+        print(
+            "  by true occupant: "
+            + "; ".join(
+                f"{k} {d['n']}: mean {100 * d['m3_mean']:.3g} %, within 5 % {100 * d['within_5']:.3g} %"
+                for k, d in by_truth.items()
+            )
+        )
+    # the honesty count: an answer called converged, more than 10 % off, whose interval excludes the truth
+    wrong = conv & (err > 0.10) & ~inside if has_interval else conv & (err > 0.10)
+    what = "and the truth outside [m3_low, m3_high]" if has_interval else "(no m3_low/m3_high in the run)"
+    print(f"  converged, m3 > 10 % off {what}: {int(wrong.sum())} ({100 * wrong.mean():.3g} %)")
+    if args.json:
+        numbers = {
+            "run": str(run),
+            "data": str(data),
+            "n": len(rows),
+            "m3_mean": float(err.mean()),
+            "m3_p95": float(np.percentile(err, 95)),
+            "m3_max": float(err.max()),
+            "within": within_wide,
+            "coverage_95": float(cover) if has_interval else None,
+            "status": counts,
+            "occupant_model": models,
+            "by_true_occupant": by_truth or None,
+            "converged_wrong_excluded": int(wrong.sum()),
+            "converged_wrong_excluded_fraction": float(wrong.mean()),
+        }
+        Path(args.json).write_text(json.dumps(numbers, indent=1))
 
 
 def main(argv=None) -> None:
@@ -305,10 +554,14 @@ def main(argv=None) -> None:
     mk.add_argument("--seat-rel", type=float, default=0.0, help="relative spread of the seat's C3, K3")
     mk.add_argument("--c1-max", type=float, default=0.0, help="tyre damper C1 ~ U(0, this) [Ns/m]")
     mk.add_argument("--seed", type=int, default=0)
+    mk.add_argument("--occupant", choices=(*OCCUPANTS, "mixed"), default="rigid", help="rigid mass or seated person")
+    mk.add_argument("--delay-ms", type=float, default=0.0, help="a3's logger this many ms behind a2's")
+    mk.add_argument("--delay-ms-range", type=float, nargs=2, metavar=("A", "B"), help="a3 late by U(A, B) ms each")
     sc = sub.add_parser("score", help="score a qcm-estimate run folder against the file's truth")
     sc.add_argument("run")
     sc.add_argument("--data")
     sc.add_argument("--tol", type=float, default=0.05)
+    sc.add_argument("--json", help="write the m3 numbers to this JSON file")
     args = ap.parse_args(argv)
     make(args) if args.cmd == "make" else score(args)
 

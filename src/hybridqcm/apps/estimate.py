@@ -36,6 +36,7 @@ from omegaconf import DictConfig
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError, fail
 from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
+from hybridqcm.apps.estimate_occupant import build_selection
 from hybridqcm.apps.estimate_plan import (
     CHANNELS,
     INITIAL_STATES,
@@ -60,7 +61,6 @@ from hybridqcm.apps.estimate_report import (
     print_report,
     write_metrics,
 )
-from hybridqcm.apps.estimate_occupant import build_selection
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import DatasetError, HybridQCMError
