@@ -465,6 +465,7 @@ def score(args) -> None:
         # a file of ours has no truth_m3: its seat is the reference one (thesis prior, SPEC § 2)
         truth_m3 = f["test/truth_m3"][()] if "truth_m3" in f["test"] else REF["K3"] / truth[:, 1]
         occupant = f["test/truth_occupant"][()] if "truth_occupant" in f["test"] else None
+        delay = f["test/truth_delay_s"][()] if "truth_delay_s" in f["test"] else np.zeros(len(truth_m3))
     idx = np.array([int(r["index"]) for r in rows])
     m3 = np.array([float(r["m3"]) for r in rows])
     status = np.array([r["status"] for r in rows])
@@ -513,6 +514,11 @@ def score(args) -> None:
                 for k, d in by_truth.items()
             )
         )
+    tau = None
+    if "tau" in rows[0]:  # the estimated delay [s] of a3 behind a2, against the file's (0 where it has none)
+        miss = np.abs(np.array([float(r["tau"] or "nan") for r in rows]) - delay[idx]) * 1000
+        tau = {"mean_abs_ms": float(np.nanmean(miss)), "within_1ms": float(np.mean(miss <= 1.0))}
+        print(f"  delay: mean |tau - truth| {tau['mean_abs_ms']:.3g} ms, within 1 ms {100 * tau['within_1ms']:.3g} %")
     # the honesty count: an answer called converged, more than 10 % off, whose interval excludes the truth
     wrong = conv & (err > 0.10) & ~inside if has_interval else conv & (err > 0.10)
     what = "and the truth outside [m3_low, m3_high]" if has_interval else "(no m3_low/m3_high in the run)"
@@ -530,6 +536,7 @@ def score(args) -> None:
             "status": counts,
             "occupant_model": models,
             "by_true_occupant": by_truth or None,
+            "delay": tau,
             "converged_wrong_excluded": int(wrong.sum()),
             "converged_wrong_excluded_fraction": float(wrong.mean()),
         }
