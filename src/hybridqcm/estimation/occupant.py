@@ -93,6 +93,7 @@ class OccupantSelection:
         self.extra_columns = (
             ["occupant_model"]
             + [f"bic_{n}" for n in self.names]
+            + [f"m3_{n}" for n in self.names]
             + ["rigid_kg"]
             + [c for i in range(1, self.max_modes + 1) for c in (f"f{i}_hz", f"zeta{i}", f"mass{i}_kg")]
         )
@@ -134,6 +135,7 @@ class OccupantSelection:
         extra = {"occupant_model": [self.names[int(c)] for c in choice]}
         for j, name in enumerate(self.names):
             extra[f"bic_{name}"] = bic_t[:, j]
+            extra[f"m3_{name}"] = self.K3 / records[name]["params"][:, 1].double()
         params = record["params"][:, : self.response.n_params]
         names = self.response.theta_names[: self.response.n_params]
         body = torch.nan_to_num(params[:, [i for i, n in enumerate(names) if n != "tau"]], nan=0.0)
