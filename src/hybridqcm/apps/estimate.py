@@ -36,7 +36,7 @@ from omegaconf import DictConfig
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError, fail
 from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
-from hybridqcm.apps.estimate_occupant import build_selection
+from hybridqcm.apps.estimate_occupant import build_selection, plot_first_recordings
 from hybridqcm.apps.estimate_plan import (
     CHANNELS,
     INITIAL_STATES,
@@ -286,6 +286,12 @@ def run(cfg) -> dict:
         return {}
 
     columns, markers = store.merge(blocks, n_samples)
+    if plan.get("occupant") is not None and cfg.plots:  # a person at a glance: fitted apparent mass vs a3/a2
+        pictures = plot_first_recordings(run_dir, plan, run_dir / "estimates.csv")
+        if cfg.tensorboard and pictures:
+            from hybridqcm.tracking import log_estimation_to_tensorboard
+
+            log_estimation_to_tensorboard(run_dir / "tb", [], pictures, prefix="occupant")
     stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], [s["name"] for s in plan["stages"]])
     if cfg.tensorboard:
         log_stage_losses(run_dir / "tb", stage_loss)
