@@ -1,0 +1,191 @@
+"""Issue 28's table: the occupant mass of seated persons, before (rigid occupant, one clock) and after
+(`experiment=occupant_persons`), each file beside its Cramér–Rao bound, and the time of both side by side.
+
+    .venv/bin/python bench/persons_table.py run   [--n 100] [--files rigid_n0 body1_n5 ...]   # the runs
+    .venv/bin/python bench/persons_table.py table [--out docs/results/persons.md]              # the table
+
+The recordings come from the second simulator (bench/foreign_sim.py; data/persons/*.h5, made as its
+docstring says, 400 each) and the bounds from bench/occupant_crb.py (data/persons/crb_<file>.json). `run`
+estimates the first --n recordings of each file twice, into outputs/persons/<file>__rigid (the old default,
+`occupant_roadfree`) and outputs/persons/<file> (`occupant_persons`), on two processes; a run folder that
+holds a summary.json is kept. `table` reads the run folders (estimates.csv against the file's truth) and
+writes the markdown table with the commands that produced it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data" / "persons"
+RUNS = ROOT / "outputs" / "persons"
+FILES = (
+    "rigid_n0",
+    "rigid_n5",
+    "rigid_delay5_n0",
+    "body1_n0",
+    "body1_n1",
+    "body1_n5",
+    "body1_n10",
+    "body2_n0",
+    "mixed_n5",
+)
+METHODS = {"rigid": "occupant_roadfree", "persons": "occupant_persons"}
+NOISE = {"n0": 0.0, "n1": 0.01, "n5": 0.05, "n10": 0.10}
+
+
+def _run_dir(name: str, method: str) -> Path:
+    return RUNS / (name if method == "persons" else f"{name}__{method}")
+
+
+def _command(name: str, method: str, n: int) -> list[str]:
+    return [
+        str(ROOT / ".venv" / "bin" / "qcm-estimate"),
+        f"experiment={METHODS[method]}",
+        f"data.path={DATA / (name + '.h5')}",
+        f"n_samples={n}",
+        f"hydra.run.dir={_run_dir(name, method)}",
+        "trainer=ddp",
+        "trainer.devices=2",
+        f"batch_size={max(1, n // 2)}",
+        "progress=false",
+        "plots=false",
+        "tensorboard=false",
+        "overwrite=true",
+    ]
+
+
+def run(args) -> None:
+    for name in args.files:
+        if not (DATA / f"{name}.h5").is_file():
+            sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
+        for method in METHODS:
+            if (_run_dir(name, method) / "summary.json").is_file() and not args.force:
+                print(f"{name} {method}: kept")
+                continue
+            print(f"{name} {method}: running", flush=True)
+            proc = subprocess.run(_command(name, method, args.n), capture_output=True, text=True)
+            if proc.returncode != 0:
+                sys.exit(f"{name} {method}: qcm-estimate failed: {proc.stderr.strip().splitlines()[-1:]}")
+
+
+def _truth(name: str) -> tuple[np.ndarray, dict]:
+    import h5py
+
+    with h5py.File(DATA / f"{name}.h5", "r") as f:
+        return f["test/truth_m3"][()], {k: f["test"][k][()] for k in ("truth_occupant",) if k in f["test"]}
+
+
+def score(name: str, method: str) -> dict | None:
+    folder = _run_dir(name, method)
+    if not (folder / "summary.json").is_file():
+        return None
+    with open(folder / "estimates.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    truth, _ = _truth(name)
+    idx = np.array([int(r["index"]) for r in rows])
+    m3 = np.array([float(r["m3"]) for r in rows])
+    low = np.array([float(r["m3_low"]) for r in rows])
+    high = np.array([float(r["m3_high"]) for r in rows])
+    status = np.array([r["status"] for r in rows])
+    true = truth[idx]
+    err = np.abs(m3 / true - 1)
+    inside = (low <= true) & (true <= high)
+    summary = json.loads((folder / "summary.json").read_text())
+    return {
+        "n": len(rows),
+        "mean": float(err.mean()),
+        "within2": float((err <= 0.02).mean()),
+        "within5": float((err <= 0.05).mean()),
+        "within10": float((err <= 0.10).mean()),
+        "coverage": float(inside.mean()),
+        "converged": float((status == "converged").mean()),
+        "dishonest": float(((status == "converged") & (err > 0.10) & ~inside).mean()),
+        "seconds": float(summary.get("seconds_solve", float("nan"))),
+    }
+
+
+def _bound(name: str) -> str:
+    path = DATA / f"crb_{name}.json"
+    if not path.is_file():
+        return "—"
+    data = json.loads(path.read_text())
+    level = NOISE[name.rsplit("_", 1)[-1]]
+    if level == 0:
+        return "0 (noise-free)"
+    entry = data["noise"].get(str(level)) or data["noise"].get(f"{level:g}")
+    if entry is None:
+        return "—"
+    cell = entry.get("matched_unknown") or next(iter(entry.values()))
+    return f"{100 * cell['mean_abs_error']:.2f} %"
+
+
+def _pct(x: float | None) -> str:
+    return "—" if x is None else f"{100 * x:.2f} %"
+
+
+def table(args) -> None:
+    lines = [
+        "# Seated persons and two clocks (issue 28): before and after",
+        "",
+        f"Generated by `bench/persons_table.py table` on {datetime.date.today()} from the runs of "
+        "`bench/persons_table.py run` (the first N recordings of each file of the second simulator, "
+        "`bench/foreign_sim.py`; `data/persons/`, 100 Hz, 512 samples, a3 on the seat pan and a2 on the chassis, "
+        "no road, no network). before: `qcm-estimate experiment=occupant_roadfree` (a rigid occupant on one "
+        "clock); after: `qcm-estimate experiment=occupant_persons`. Bound: the Cramér–Rao bound of the static "
+        "mass as E|error| (`bench/occupant_crb.py`, τ unknown, each recording's own occupant model). "
+        "dishonest: `converged`, more than 10 % off and the truth outside the 95 % interval.",
+        "",
+        "| file | recordings | method | m3 mean error | bound | within 2 % | within 5 % | within 10 % "
+        "| 95 % interval covers | converged | dishonest | solve time |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    ratios = []
+    for name in args.files:
+        scores = {m: score(name, m) for m in METHODS}
+        for method, s in scores.items():
+            if s is None:
+                continue
+            lines.append(
+                f"| {name} | {s['n']} | {'before' if method == 'rigid' else 'after'} | {_pct(s['mean'])} | "
+                f"{_bound(name)} | {_pct(s['within2'])} | {_pct(s['within5'])} | {_pct(s['within10'])} | "
+                f"{_pct(s['coverage'])} | {_pct(s['converged'])} | {_pct(s['dishonest'])} | {s['seconds']:.0f} s |"
+            )
+        if all(scores.values()):
+            ratios.append(scores["persons"]["seconds"] / scores["rigid"]["seconds"])
+    if ratios:
+        lines += [
+            "",
+            f"Time, after over before, the same recordings side by side on two processes: "
+            f"{min(ratios):.1f}–{max(ratios):.1f}× (median {float(np.median(ratios)):.1f}×; issue target ≤ 4×).",
+        ]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="estimate every file before and after")
+    r.add_argument("--n", type=int, default=100)
+    r.add_argument("--files", nargs="+", default=list(FILES))
+    r.add_argument("--force", action="store_true", help="run again where a summary.json exists")
+    t = sub.add_parser("table", help="write the markdown table")
+    t.add_argument("--files", nargs="+", default=list(FILES))
+    t.add_argument("--out", default=str(ROOT / "docs" / "results" / "persons.md"))
+    args = ap.parse_args(argv)
+    run(args) if args.command == "run" else table(args)
+
+
+if __name__ == "__main__":
+    main()
