@@ -5,6 +5,7 @@ Examples:
     qcm-simulate preset=small                      # data/small.h5 (continuous physics, windows mid-drive)
     qcm-simulate preset=small physics=euler                  # the source protocol: Euler from rest
     qcm-simulate h=0.002 n_steps=2560              # a 500 Hz logger (same 5.12 s window)
+    qcm-simulate preset=small occupant=body1       # seated persons: seat pan + one body mode
     qcm-simulate output=data/mine.h5 seed=7 prior=physical overwrite=true
     qcm-simulate --cfg job                         # show the resolved configuration
 """
@@ -31,10 +32,18 @@ from hybridqcm.apps.common import (
     print_table,
 )
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.data.simulate import DEFAULT_WARMUP_S, check_physics, check_warmup, kmh_to_mps, write_dataset
+from hybridqcm.data.simulate import (
+    DEFAULT_WARMUP_S,
+    check_occupant_physics,
+    check_physics,
+    check_warmup,
+    kmh_to_mps,
+    write_dataset,
+)
 from hybridqcm.physics.parameters import PARAM_NAMES, is_stable, reference_params, system_matrix
 from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.road import RoadProfile
+from hybridqcm.physics.seated import seated_system_matrix
 
 
 def _number(cfg: DictConfig, key: str, kind: type):
@@ -47,15 +56,31 @@ def _number(cfg: DictConfig, key: str, kind: type):
         raise ValueError(f"{key} must be {'an integer' if kind is int else 'a number'}, got {value!r}") from None
 
 
-def check_step(h: float, physics: str = "euler") -> None:
+def _reference_person(occupant: str) -> torch.Tensor:
+    """Body parameters [1, 3 n] of a light reference person: the heaviest body share (80 % of the
+    static mass, so the lightest pan), the fastest modes of the drawn ranges (6 and 12 Hz)."""
+    from hybridqcm.physics.occupant import N_MODES
+
+    n = N_MODES[occupant]
+    body = [(0.8 - 0.2 * (n == 2)) / 0.2, (2 * math.pi * 6.0) ** 2, 2 * 0.3 * 2 * math.pi * 6.0]
+    if n == 2:
+        body += [0.2 / 0.2, (2 * math.pi * 12.0) ** 2, 2 * 0.2 * 2 * math.pi * 12.0]
+    return torch.tensor([body[: 3 * n]], dtype=torch.float64)
+
+
+def check_step(h: float, physics: str = "euler", occupant: str = "rigid") -> None:
     """h must keep the reference vehicle's Euler step map stable (spectral radius < 1) for Euler
     physics — beyond that every prior draw is rejected as unstable and nothing could be simulated —
     and, for continuous physics, sample its fastest mode above the Nyquist rate; ValueError otherwise."""
     if physics == "continuous":
-        fastest = float(torch.linalg.eigvals(system_matrix(reference_params())).abs().max()) / (2 * math.pi)
+        A = system_matrix(reference_params()[None])
+        if occupant != "rigid":  # a seated person's light pan on the seat spring is faster still
+            A = seated_system_matrix(reference_params()[None], _reference_person(occupant))
+        fastest = float(torch.linalg.eigvals(A).abs().max()) / (2 * math.pi)
+        who = "reference vehicle" if occupant == "rigid" else f"reference vehicle with a light {occupant} person"
         if not h * fastest < 0.5:
             raise ValueError(
-                f"h={h}: sampling at {1 / h:g} Hz cannot resolve the reference vehicle's fastest mode "
+                f"h={h}: sampling at {1 / h:g} Hz cannot resolve the {who}'s fastest mode "
                 f"({fastest:.1f} Hz); use h < {0.5 / fastest:.3g} s"
             )
         return
@@ -94,9 +119,10 @@ def run(cfg: DictConfig) -> dict:
         if not _number(cfg, key, float) > 0:
             raise ValueError(f"{key} must be > 0, got {cfg[key]}")
     physics = check_physics(str(cfg.physics))
+    occupant = check_occupant_physics(cfg.get("occupant", "rigid"), physics)
     warmup_s = OmegaConf.to_container(cfg.window, resolve=True).get("warmup_s")
     warmup_s = check_warmup(DEFAULT_WARMUP_S[physics] if warmup_s is None else warmup_s)
-    check_step(float(cfg.h), physics)
+    check_step(float(cfg.h), physics, occupant)
     check_splits(OmegaConf.to_container(cfg.splits, resolve=True))
     summary_path = Path(cfg.paths.output_dir) / "summary.json"
     check_writable_dir(summary_path.parent)
@@ -126,6 +152,7 @@ def run(cfg: DictConfig) -> dict:
         compression=cfg.compression,
         physics=physics,
         warmup_s=warmup_s,
+        occupant=occupant,
     )
     summary = {split: s.as_dict() for split, s in summaries.items()}
     rows = []
@@ -152,6 +179,8 @@ def run(cfg: DictConfig) -> dict:
         for i, name in enumerate(PARAM_NAMES)
     ]
     print_table("parameter ranges", ["param", "min", "max"], ranges)
+    if occupant != "rigid":
+        print(f"occupant: {occupant} (seat pan + body modes; /<split>/occupant_params = (r_i, k_i, c_i) per mode)")
     atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
     return summary
 

@@ -6,11 +6,18 @@
     /<split>/road  float32 [M, n_steps]   u in metres     /<split>/params float64 [M, 10]
     /<split>/road_class int8 [M]                          /<split>/profile_id int32 [M]
     /<split>/state0 float64 [M, 6]  state at the window start (v3 v2 v1 q3 q2 q1)
+    optional: /<split>/occupant_params float64 [M, 3 n_modes]  a seated person's (r_i, k_i, c_i)
+              per body mode (physics/occupant.py), with the split attribute occupant
+              ("rigid" | "body1" | "body2"); a split without the attribute is a rigid occupant
+              for our generator's files (params keep p1 = C3/M, p2 = K3/M, M the static mass)
 
 Schema /1 files (no physics, no state0) still read. A file without `physics` from another
 producer (a real logger) is taken as continuous physics with an unknown initial state. Files
 may lack /road (nobody measures it) and accel may hold an all-NaN column (an unrecorded
 channel): readers check only what the task asks for.
+
+The optional key and attribute came with schema /2 unchanged: readers take any key they do not
+know (read_split checks only the shapes of LAYOUT's keys), so older readers still read new files.
 
 Readers accept any producer's file that has the keys the task needs. Writers never leave a
 half-written file that looks valid: they write to a temporary file beside the target and
@@ -172,6 +179,8 @@ def dataset_info(path: str | os.PathLike) -> dict:
                 "n_steps": int(first.shape[1]) if first is not None and first.ndim > 1 else None,
                 "keys": keys,
             }
+            if "occupant" in group.attrs:  # only where a producer wrote it (older files: none)
+                splits[name]["occupant"] = str(_attr_value(group.attrs["occupant"]))
     return {"path": str(path), "attrs": attrs, "splits": splits, "physics": physics, "initial_state": initial_state}
 
 
@@ -341,12 +350,21 @@ class DatasetWriter:
             self._lock.unlink(missing_ok=True)
             self._lock = None
 
-    def create_split(self, split: str, n_samples: int, n_steps: int, keys: Iterable[str] = tuple(LAYOUT)) -> None:
+    def create_split(
+        self,
+        split: str,
+        n_samples: int,
+        n_steps: int,
+        keys: Iterable[str] = tuple(LAYOUT),
+        extra: Mapping[str, tuple[np.dtype, tuple[int, ...]]] | None = None,
+    ) -> None:
+        """Create /<split> with LAYOUT's `keys` and the `extra` keys {key: (dtype, trailing shape)}."""
         assert self._handle is not None, "use DatasetWriter as a context manager"
         group = self._handle.create_group(split)
-        for key in keys:
-            dtype, _ = LAYOUT[key]
-            shape = (n_samples, *_trailing_shape(key, n_steps))
+        shapes = {key: (LAYOUT[key][0], _trailing_shape(key, n_steps)) for key in keys}
+        shapes.update({key: (np.dtype(dtype), tuple(tail)) for key, (dtype, tail) in (extra or {}).items()})
+        for key, (dtype, tail) in shapes.items():
+            shape = (n_samples, *tail)
             chunks = (max(1, min(self.chunk_samples, n_samples)), *shape[1:]) if n_samples else None
             group.create_dataset(
                 key,
@@ -382,6 +400,10 @@ class DatasetWriter:
                     f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}.."
                 )
             group[key][start : start + array.shape[0]] = array
+
+    def set_split_attr(self, split: str, key: str, value) -> None:
+        assert self._handle is not None
+        self._handle[split].attrs[key] = value
 
     def set_attr(self, key: str, value) -> None:
         assert self._handle is not None

@@ -22,8 +22,14 @@ from hybridqcm import __version__
 from hybridqcm.data.hdf5 import DatasetWriter
 from hybridqcm.physics.continuous import simulate_continuous, time_basis
 from hybridqcm.physics.integrators import METHODS, simulate
+from hybridqcm.physics.occupant import N_MODES
 from hybridqcm.physics.prior import _RejectionPrior
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index
+from hybridqcm.physics.seated import check_occupant, draw_body, is_stable_seated
+
+# redraws of a seated person's body parameters whose coupled system (with the vehicle's p) is not
+# stable, before giving up
+BODY_REDRAWS = 100
 
 PHYSICS = ("continuous", "euler")
 # seconds driven before a window when none is given: mid-drive for continuous data, the source's
@@ -49,6 +55,36 @@ def check_physics(physics: str) -> str:
     if physics not in PHYSICS:
         raise ValueError(f"physics = {physics!r} is not known; choose one of {list(PHYSICS)}")
     return physics
+
+
+def check_occupant_physics(occupant: str, physics: str) -> str:
+    """The occupant model, valid for `physics`; one-line ValueError otherwise."""
+    check_occupant(occupant)
+    if occupant != "rigid" and physics != "continuous":
+        raise ValueError(
+            f"occupant = {occupant!r} needs physics=continuous (physics={physics} keeps the source's rigid occupant)"
+        )
+    return occupant
+
+
+def body_generator(seed: int, split_index: int) -> torch.Generator:
+    """The generator of a split's body parameters: its own stream, so the vehicle's draws (roads, p,
+    warm-ups) of a seed are the same whatever the occupant."""
+    return torch.Generator().manual_seed((int(seed) * 1000 + split_index) ^ 0x5EA7ED0CC0FFEE)
+
+
+def _draw_stable_body(occupant: str, params: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Body parameters [M, 3 n_modes] for vehicles `params` [M, 10]; draws whose coupled system is
+    not stable are drawn again (at most BODY_REDRAWS times)."""
+    body = draw_body(occupant, params.shape[0], generator)
+    for _ in range(BODY_REDRAWS):
+        bad = ~is_stable_seated(params, body)
+        if not bad.any():
+            return body
+        body[bad] = draw_body(occupant, int(bad.sum()), generator)
+    raise ValueError(
+        f"occupant={occupant}: {int(bad.sum())} vehicle(s) stay unstable with every drawn body after {BODY_REDRAWS} tries"
+    )
 
 
 def _warmups(n: int, warmup_s: tuple[float, float], generator: torch.Generator) -> torch.Tensor:
@@ -104,6 +140,8 @@ def simulate_samples(
     physics: str = "euler",
     warmup_s: tuple[float, float] = (0.0, 0.0),
     basis: torch.Tensor | None = None,
+    occupant: str = "rigid",
+    body_rng: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor | int]:
     """Simulate `len(road_class) * samples_per_profile` samples.
 
@@ -116,8 +154,14 @@ def simulate_samples(
     (physics.continuous; `method` unused). Each sample drives U(warmup_s) seconds on its road
     from rest before the window (euler: rounded to whole steps). Random draws come in the
     order roads, parameters, warm-ups, so euler data with warm-up 0 are those of earlier versions.
+
+    occupant: "rigid" (m3 one rigid mass, as always) or "body1"/"body2" (continuous physics only): a
+    seated person (physics/seated.py) with body parameters drawn per sample from `body_rng` (a stream
+    of its own, so p, roads and warm-ups are those of the rigid occupant), returned as
+    `occupant_params` [M, 3 n_modes] (r_i, k_i, c_i); params keep p1 = C3/M, p2 = K3/M.
     """
     check_physics(physics)
+    check_occupant_physics(occupant, physics)
     road_class = torch.as_tensor(road_class, dtype=torch.long).reshape(-1)
     n_profiles = road_class.shape[0]
     profile = torch.arange(n_profiles).repeat_interleave(samples_per_profile)
@@ -158,6 +202,9 @@ def simulate_samples(
             )
             warmup = steps_before.to(torch.float64) * h
         else:
+            body = None
+            if occupant != "rigid":
+                body = _draw_stable_body(occupant, draw.params, body_rng or torch.Generator().manual_seed(0))
             response = simulate_continuous(
                 draw.params,
                 amplitude[profile],
@@ -167,6 +214,7 @@ def simulate_samples(
                 h,
                 warmup,
                 basis=basis,
+                body=body,
             )
             out = {
                 "accel": response.accel,
@@ -175,6 +223,8 @@ def simulate_samples(
                 "road": response.road,
                 "state0": response.state0,
             }
+            if body is not None:
+                out["occupant_params"] = body
         out["warmup"] = warmup
     return {
         **out,
@@ -263,11 +313,14 @@ def write_dataset(
     compression: str | None = "gzip",
     physics: str = "euler",
     warmup_s=(0.0, 0.0),
+    occupant: str = "rigid",
 ) -> dict[str, SplitSummary]:
     """Simulate every split and stream it into `output` (atomically). Returns a summary per split.
 
     physics: "euler" (the recursion `method`, the source protocol) or "continuous" (exact
     response); warmup_s: [low, high] seconds driven before each window (0 = from rest).
+    occupant: "rigid" | "body1" | "body2" (simulate_samples); a seated person's body parameters go
+    to /<split>/occupant_params [M, 3 n_modes], the model's name to the split's attribute `occupant`.
 
     splits: {split: {"profiles": {"A": 200, ...}}}. The same seed gives identical arrays: each
     split has its own generator seeded from (seed, split position).
@@ -282,6 +335,8 @@ def write_dataset(
     if method not in METHODS:
         raise ValueError(f"unknown integrator {method!r}; choose one of {METHODS}")
     check_physics(physics)
+    check_occupant_physics(occupant, physics)
+    n_body = 3 * N_MODES[occupant]
     warmup_s = check_warmup(warmup_s)
     prior_h = getattr(prior, "h", None)
     if physics == "euler" and prior_h is not None and abs(float(prior_h) - float(h)) > 1e-12 * float(h):
@@ -323,7 +378,14 @@ def write_dataset(
         for split_index, (split, classes) in enumerate(plan.items()):
             generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
             n_samples = len(classes) * samples_per_profile
-            writer.create_split(split, n_samples, n_steps)
+            writer.create_split(
+                split,
+                n_samples,
+                n_steps,
+                extra={"occupant_params": (np.dtype("float64"), (n_body,))} if n_body else None,
+            )
+            writer.set_split_attr(split, "occupant", occupant)
+            body_rng = body_generator(seed, split_index)
             summary = summaries.setdefault(split, SplitSummary())
             start_time = time.perf_counter()
             # Shuffle the class order so a prefix of the split is a fair mix of classes.
@@ -346,6 +408,8 @@ def write_dataset(
                     physics,
                     warmup_s,
                     basis,
+                    occupant,
+                    body_rng,
                 )
                 row = first * samples_per_profile
                 if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
@@ -361,6 +425,7 @@ def write_dataset(
                     state0=batch["state0"].numpy(),
                     road_class=batch["road_class"].numpy().astype(np.int8),
                     profile_id=(batch["profile"] + first).numpy().astype(np.int32),
+                    **({"occupant_params": batch["occupant_params"].numpy()} if n_body else {}),
                 )
                 summary.update(batch)
                 bar.advance(task, batch["params"].shape[0])
@@ -382,6 +447,7 @@ __all__ = [
     "kmh_to_mps",
     "check_warmup",
     "check_physics",
+    "check_occupant_physics",
     "PHYSICS",
     "DEFAULT_WARMUP_S",
 ]

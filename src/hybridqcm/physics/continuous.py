@@ -19,6 +19,11 @@ wave, [2 W, T], as in RoadProfile.evaluate; (Re Z, Im Z) interleaved is view_as_
 Homogeneous part: x(t) = x_p(t) + exp(A t)(x(0) - x_p(0)) with x(0) = 0, i.e.
 x_h(t) = -Re[V diag(e^{lambda t}) V^{-1} x_p(0)].
 
+Seated person (physics/seated.py): with `body` [b, 3 n] the state gains the n body modes,
+x = (v3, v2, v1, q3, q2, q1, y', y), n = 6 + 2 n states; the same algebra applies with A the
+seated system matrix, and a3 is the seat pan's acceleration. body = None (the rigid occupant) runs
+exactly today's arithmetic.
+
 A sample whose eigendecomposition reconstructs A poorly (a nearly defective A) falls back to a
 solve of (i w I - A) per frequency and to matrix exponentials for the homogeneous part; both
 paths are exact up to round-off, the fallback is only slower.
@@ -32,6 +37,7 @@ import torch
 from torch import Tensor
 
 from hybridqcm.physics.parameters import road_gain, system_matrix
+from hybridqcm.physics.seated import seated_system_matrix
 
 # relative reconstruction error ||V L V^-1 - A|| / ||A|| above which a sample takes the fallback
 EIG_TOL = 1e-9
@@ -40,7 +46,8 @@ EIG_TOL = 1e-9
 @dataclass
 class ContinuousResponse:
     """accel, vel, disp [b, T, 3] (order 3, 2, 1), road u [b, T] in metres, state0 x(t0) [b, 6]
-    (v3 v2 v1 q3 q2 q1), all float64; `n_fallback` samples used the per-frequency solve."""
+    (v3 v2 v1 q3 q2 q1), all float64; `n_fallback` samples used the per-frequency solve;
+    `body_state0` [b, 2 n] (y', y at t0) with a seated person's n body modes, else None."""
 
     accel: Tensor
     vel: Tensor
@@ -48,6 +55,7 @@ class ContinuousResponse:
     road: Tensor
     state0: Tensor
     n_fallback: int = 0
+    body_state0: Tensor | None = None
 
 
 def time_basis(omega_t: Tensor, n_steps: int, h: float) -> Tensor:
@@ -76,18 +84,18 @@ def _check(
 
 
 def _gains_eig(V: Tensor, lam: Tensor, Vinv: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
-    """G(w) [b, 6, W] complex = V diag(1/(i w - lambda)) V^{-1} e_v1 p_u."""
+    """G(w) [b, n, W] complex = V diag(1/(i w - lambda)) V^{-1} e_v1 p_u."""
     c = Vinv[:, :, 2] * gain[:, None].to(Vinv.dtype)  # [b, 6]
     modal = c[:, :, None] / (1j * omega_t[None, None, :] - lam[:, :, None])  # [b, 6, W]
     return V @ modal
 
 
 def _gains_solve(A: Tensor, gain: Tensor, omega_t: Tensor) -> Tensor:
-    """G(w) [b, 6, W] by one complex 6x6 solve per frequency (the fallback)."""
-    b, w = A.shape[0], omega_t.shape[0]
-    eye = torch.eye(6, dtype=torch.complex128)
-    lhs = 1j * omega_t[None, :, None, None] * eye - A[:, None].to(torch.complex128)  # [b, W, 6, 6]
-    rhs = torch.zeros(b, w, 6, 1, dtype=torch.complex128)
+    """G(w) [b, n, W] by one complex n x n solve per frequency (the fallback)."""
+    b, w, n = A.shape[0], omega_t.shape[0], A.shape[-1]
+    eye = torch.eye(n, dtype=torch.complex128)
+    lhs = 1j * omega_t[None, :, None, None] * eye - A[:, None].to(torch.complex128)  # [b, W, n, n]
+    rhs = torch.zeros(b, w, n, 1, dtype=torch.complex128)
     rhs[:, :, 2, 0] = gain[:, None]
     return torch.linalg.solve(lhs, rhs)[..., 0].transpose(1, 2)
 
@@ -103,18 +111,27 @@ def simulate_continuous(
     basis: Tensor | None = None,
     eig_tol: float = EIG_TOL,
     block: int = 256,
+    body: Tensor | None = None,
 ) -> ContinuousResponse:
     """Exact response, recorded at t_k = warmup + k h, for p [b, 10], road amplitudes/phases [b, W]
     (u(t) = sum_i amplitude_i sin(omega_t_i t - phase_i)), temporal frequencies omega_t [W] rad/s,
     warmup [b] seconds (the car starts from rest at t = 0). `basis` = time_basis(omega_t, n_steps, h)
     when the caller shares it across chunks. Samples go through in blocks of `block`: the
-    [block, 6, W] complex intermediates then stay small enough to be cheap to stream."""
+    [block, 6, W] complex intermediates then stay small enough to be cheap to stream.
+    `body` [b, 3 n] (r_i, k_i, c_i per mode, physics/occupant.py): a seated person with n = 1 or 2
+    body modes on the seat pan (physics/seated.py); None or [b, 0]: the rigid occupant."""
     p = p.to(torch.float64)
     b = p.shape[0]
     amplitude, phase, omega_t = amplitude.to(torch.float64), phase.to(torch.float64), omega_t.to(torch.float64)
     warmup = torch.as_tensor(warmup, dtype=torch.float64)
     warmup = warmup.expand(b).clone() if warmup.ndim == 0 else warmup
     _check(p, amplitude, phase, omega_t, n_steps, h, warmup)
+    if body is not None:
+        body = body.to(torch.float64)
+        if body.ndim != 2 or body.shape[0] != b or body.shape[1] not in (0, 3, 6):
+            raise ValueError(f"body must be [batch, 3 n_modes] = [{b}, 0|3|6], got {tuple(body.shape)}")
+        if body.shape[1] == 0:
+            body = None
     if basis is None:
         basis = time_basis(omega_t, n_steps, h)
     parts = [
@@ -128,6 +145,7 @@ def simulate_continuous(
             warmup[i : i + block],
             basis,
             eig_tol,
+            None if body is None else body[i : i + block],
         )
         for i in range(0, b, max(1, int(block)))
     ]
@@ -136,6 +154,7 @@ def simulate_continuous(
     return ContinuousResponse(
         *(torch.cat([getattr(r, k) for r in parts]) for k in ("accel", "vel", "disp", "road", "state0")),
         n_fallback=sum(r.n_fallback for r in parts),
+        body_state0=None if body is None else torch.cat([r.body_state0 for r in parts]),
     )
 
 
@@ -149,9 +168,11 @@ def _block(
     warmup: Tensor,
     basis: Tensor,
     eig_tol: float,
+    body: Tensor | None = None,
 ) -> ContinuousResponse:
     b = p.shape[0]
-    A = system_matrix(p)
+    A = system_matrix(p) if body is None else seated_system_matrix(p, body)
+    n = A.shape[-1]
     gain = road_gain(p)
     lam, V = torch.linalg.eig(A)
     Vinv = torch.linalg.inv(V)
@@ -168,23 +189,23 @@ def _block(
         states_z = V @ (modal * road_z[:, None, :])  # [b, 6, W]
         xp0 = (V @ (modal @ start_z[:, :, None]))[..., 0].imag  # [b, 6]
     else:
-        G = torch.empty(b, 6, omega_t.shape[0], dtype=torch.complex128)
+        G = torch.empty(b, n, omega_t.shape[0], dtype=torch.complex128)
         if good.any():
             G[good] = _gains_eig(V[good], lam[good], Vinv[good], gain[good], omega_t)
         G[bad] = _gains_solve(A[bad], gain[bad], omega_t)
         states_z = G * road_z[:, None, :]
-        xp0 = (G * start_z[:, None, :]).imag.sum(-1)  # x_p(0) [b, 6]
+        xp0 = (G * start_z[:, None, :]).imag.sum(-1)  # x_p(0) [b, n]
 
     # Particular part at the window: the warm-up folded into the phases, one GEMM for states and road.
-    Z = torch.cat([states_z, road_z[:, None, :]], 1)  # [b, 7, W]
-    series = (torch.view_as_real(Z).reshape(b * 7, -1) @ basis).reshape(b, 7, n_steps)
-    x = series[:, :6]  # [b, 6, T]
-    road = series[:, 6]  # [b, T]
+    Z = torch.cat([states_z, road_z[:, None, :]], 1)  # [b, n + 1, W]
+    series = (torch.view_as_real(Z).reshape(b * (n + 1), -1) @ basis).reshape(b, n + 1, n_steps)
+    x = series[:, :n]  # [b, n, T]
+    road = series[:, n]  # [b, T]
 
     # Homogeneous part from rest at t = 0: x(t) = x_p(t) - exp(A t) x_p(0).
     t = warmup[:, None] + h * torch.arange(n_steps, dtype=torch.float64)[None, :]  # [b, T]
     if all_good:
-        d = Vinv @ (-xp0).to(torch.complex128)[:, :, None]  # V^{-1}(-x_p(0)) [b, 6, 1]
+        d = Vinv @ (-xp0).to(torch.complex128)[:, :, None]  # V^{-1}(-x_p(0)) [b, n, 1]
         x += (V @ (d * torch.exp(lam[:, :, None] * t[:, None, :]))).real
     elif good.any():
         d = Vinv[good] @ (-xp0[good]).to(torch.complex128)[:, :, None]
@@ -193,23 +214,26 @@ def _block(
         A_bad, t_bad = A[bad], t[bad]
         start = torch.matrix_exp(A_bad * t_bad[:, :1, None])  # exp(A t0)
         step = torch.matrix_exp(A_bad * h)
-        state = start @ (-xp0[bad])[:, :, None]  # [n, 6, 1]
+        state = start @ (-xp0[bad])[:, :, None]  # [bad, n, 1]
         columns = []
         for _ in range(n_steps):
             columns.append(state[..., 0])
             state = step @ state
         x[bad] += torch.stack(columns, -1)
 
-    vel, disp = x[:, :3].transpose(1, 2), x[:, 3:].transpose(1, 2)  # [b, T, 3]
-    accel = vel @ A[:, :3, :3].transpose(1, 2) + disp @ A[:, :3, 3:].transpose(1, 2)
+    vel, disp = x[:, :3].transpose(1, 2), x[:, 3:6].transpose(1, 2)  # [b, T, 3]
+    accel = vel @ A[:, :3, :3].transpose(1, 2) + disp @ A[:, :3, 3:6].transpose(1, 2)
+    if n > 6:  # the body modes pull on the seat pan
+        accel = accel + x[:, 6:].transpose(1, 2) @ A[:, :3, 6:].transpose(1, 2)
     accel[..., 2] += gain[:, None] * road
     return ContinuousResponse(
         accel=accel,
         vel=vel.contiguous(),
         disp=disp.contiguous(),
         road=road,
-        state0=x[:, :, 0].clone(),
+        state0=x[:, :6, 0].clone(),
         n_fallback=int(bad.sum()),
+        body_state0=x[:, 6:, 0].clone() if n > 6 else None,
     )
 
 
