@@ -97,18 +97,14 @@ class OccupantSelection:
             + ["rigid_kg"]
             + [c for i in range(1, self.max_modes + 1) for c in (f"f{i}_hz", f"zeta{i}", f"mass{i}_kg")]
         )
-        self.stages = next(iter(self.candidates.values())).stages
-        self._batches: list[dict] = []
 
     @staticmethod
     def _modes(refinement) -> int:
         return sum(1 for n in refinement.response.theta_names if n.startswith("r") and n[1:].isdigit())
 
     def refine_block(self, outputs: Mapping, module, block: int) -> dict:
-        """The block's record, nothing kept after it (apps.estimate_shards.BlockRefinement's contract)."""
-        record = self.refine(outputs, module)
-        self._batches.clear()
-        return record
+        """The block's record (apps.estimate_shards.BlockRefinement's contract: nothing is kept)."""
+        return self.refine(outputs, module)
 
     def refine(self, outputs: Mapping, module=None) -> dict:
         init = outputs["init"].double()[:, :2]
@@ -117,8 +113,10 @@ class OccupantSelection:
         for name, refinement in self.candidates.items():
             extra = self.starts.get(name, torch.zeros(0, dtype=torch.float64))
             start = torch.cat([init, extra.expand(b, -1)], 1)
-            record = refinement.refine({**outputs, "init": start}, module)
-            refinement._batches.clear()
+            if hasattr(refinement, "refine_block"):  # keeps nothing between calls
+                record = refinement.refine_block({**outputs, "init": start}, module, 0)
+            else:
+                record = refinement.refine({**outputs, "init": start}, module)
             records[name] = record
             bic.append(self._bic(refinement, outputs, record))
             status = record["final"].status
@@ -146,7 +144,6 @@ class OccupantSelection:
             for key in (f"f{i}_hz", f"zeta{i}", f"mass{i}_kg"):
                 extra[key] = torch.where(modes >= i, extra[key], torch.full_like(extra[key], math.nan))
         record["extra"] = extra
-        self._batches.append(record)
         return record
 
     def _bic(self, refinement: GaussNewtonRefinement, outputs: Mapping, record: dict) -> Tensor:
