@@ -175,3 +175,14 @@ def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
     (tmp_path / "occ0.0" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match="occ0.0/summary.json"):
         results.render([_manifest(tmp_path, stages)], tmp_path / "R.md", copy_plots=False)
+
+
+def test_bench_tables_are_included_under_their_own_heading(tmp_path):
+    """A table a bench script generated (docs/results/persons.md) joins the results page as it is."""
+    from hybridqcm.apps.results import _generated_tables
+
+    assert _generated_tables(tmp_path) == []
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "persons.md").write_text("# Seated persons\n\n| a | b |\n|---|---|\n| 1 | 2 |\n")
+    parts = _generated_tables(tmp_path)
+    assert parts[0] == "## Seated persons" and "| 1 | 2 |" in parts and "bench/persons_table.py" in parts[2]
