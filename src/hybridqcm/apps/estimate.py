@@ -120,13 +120,20 @@ def build_refinement(cfg, plan):
     centre = reference if plan["restarts_around"] == "reference" else None
     if plan.get("occupant") is not None:
         return build_selection(
-            cfg, plan, plan["occupant"], lambda r, k, prior: _refinement(cfg, plan, r, k, prior, None)
+            cfg,
+            plan,
+            plan["occupant"],
+            lambda r, k, prior, restarts=True: _refinement(cfg, plan, r, k, prior, None, True, restarts),
         )
     return _refinement(cfg, plan, response, known_mask, param_prior, centre)
 
 
-def _refinement(cfg, plan, response, known_mask, param_prior, restart_center) -> BlockRefinement:
-    """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings."""
+def _refinement(
+    cfg, plan, response, known_mask, param_prior, restart_center, noise_leverage: bool = False, restarts: bool = True
+) -> BlockRefinement:
+    """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings
+    (``noise_leverage``: the noise variances corrected for the fit's leverage, the occupant models';
+    ``restarts`` false: a single attempt, the occupant selection's candidates, restarted only where chosen)."""
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
         for s in plan["stages"]
@@ -150,18 +157,19 @@ def _refinement(cfg, plan, response, known_mask, param_prior, restart_center) ->
         reweight=reweight,
         peer_factor=cfg.get("misfit_peer_factor", 10.0),
         log_dir=None,  # the merged stage losses are logged once, after the merge
-        restarts=int(cfg.restarts.count),
+        restarts=int(cfg.restarts.count) if restarts else 0,
         restart_threshold=threshold,
         restart_sigma=float(cfg.restarts.sigma),
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
         restart_batch=int(cfg.restarts.get("batch", 64)),
         # the exact model's extra attempts for wrong basins; the Euler reproduction keeps the source's protocol
-        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" else 0,
+        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" and restarts else 0,
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,
         restart_center=restart_center,
+        noise_leverage=noise_leverage,
     )
 
 
