@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -226,7 +227,8 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     @functools.wraps(entry)
     def job(cfg):
         quiet_third_party()
-        return entry(cfg)
+        with run_folder(f"qcm-{config_name}"):
+            return entry(cfg)
 
     try:
         hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(job)()
@@ -235,8 +237,45 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
 
 
 def check_task_name_overrides(args: Sequence[str]) -> None:
-    """Refuse task_name=../x before Hydra builds (and creates) a run folder from it."""
+    """Refuse task_name=../x, and a hydra.run.dir another live run holds, before Hydra builds (and
+    writes into) a run folder."""
+    from hybridqcm import runfiles
+
     for arg in args:
         key, sep, value = arg.partition("=")
         if sep and key.lstrip("+~") == "task_name":
             check_task_name(value)
+        if sep and key.lstrip("+~") == "hydra.run.dir" and value:
+            runfiles.check_free(value)
+
+
+def _process_rank() -> int:
+    """This process's global rank as launchers set it (Lightning's order of variables); 0 when alone."""
+    for key in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        value = os.environ.get(key)
+        if value is not None and value.strip().isdigit():
+            return int(value)
+    return 0
+
+
+@contextlib.contextmanager
+def run_folder(app: str):
+    """The Hydra job's run folder held for this job: locked against a second run (one line naming
+    the holder), its file manifest frozen on the way out (hybridqcm/runfiles.py). Only the process
+    of global rank zero holds it (the ranks of one job share the folder)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from hybridqcm import runfiles
+
+    if not HydraConfig.initialized() or _process_rank() != 0:
+        yield None
+        return
+    run_dir = HydraConfig.get().runtime.output_dir
+    try:
+        runfiles.lock(run_dir, app)
+    except ConfigError as error:
+        fail(error)
+    try:
+        yield run_dir
+    finally:
+        runfiles.release(run_dir)
