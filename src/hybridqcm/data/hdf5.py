@@ -36,6 +36,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
 from hybridqcm.interrupt import check_stop
 
 SCHEMA = "hybridqcm.dataset/2"
@@ -310,6 +311,7 @@ class DatasetWriter:
         self.chunk_samples = chunk_samples
         self.overwrite = bool(overwrite)
         self._handle: h5py.File | None = None
+        self._guard: GuardedFile | None = None
         self._tmp: Path | None = None
         self._lock: Path | None = None
         self.stale: list[Path] = []
@@ -332,7 +334,8 @@ class DatasetWriter:
         os.close(fd)
         self._tmp = Path(tmp)
         try:
-            self._handle = h5py.File(self._tmp, "w")
+            # through a GuardedFile: a full disk is one DatasetError, never HDF5's segfault (data/h5file.py)
+            self._handle, self._guard = open_guarded(self._tmp)
             self._handle.attrs["schema"] = SCHEMA
             for key, value in self.attrs.items():
                 self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
@@ -340,6 +343,8 @@ class DatasetWriter:
             if self._handle is not None:
                 self._handle.close()
                 self._handle = None
+            if self._guard is not None:
+                self._guard.close()
             self._tmp.unlink(missing_ok=True)
             self._release()
             raise
@@ -400,6 +405,8 @@ class DatasetWriter:
                     f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}.."
                 )
             group[key][start : start + array.shape[0]] = array
+        if self._guard is not None:
+            raise_if_failed(self._guard, self.path)  # the disk is full: stop now, not at the end
 
     def set_split_attr(self, split: str, key: str, value) -> None:
         assert self._handle is not None
@@ -416,7 +423,12 @@ class DatasetWriter:
             self._handle.close()
         finally:
             self._handle = None
+            if self._guard is not None:
+                self._guard.close()
         try:
+            if self._guard is not None and (self._guard.error is not None or self._guard.interrupted is not None):
+                self._tmp.unlink(missing_ok=True)
+                raise_if_failed(self._guard, self.path)  # whatever else was raised, a full disk is the cause
             if exc_type is None:
                 os.chmod(self._tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
                 if self.overwrite:
