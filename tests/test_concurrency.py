@@ -15,7 +15,6 @@ import pytest
 
 from hybridqcm.apps import runfolder
 from hybridqcm.data.hdf5 import DatasetWriter, acquire_write_lock, read_split
-from hybridqcm.errors import ConfigError
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 ENV = {**os.environ, "PYTHONPATH": SRC}

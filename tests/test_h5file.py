@@ -27,7 +27,9 @@ def _limited():
 
 def _run(command, tmp_path):
     env = {**os.environ, "COLUMNS": "200"}
-    return subprocess.run(command, capture_output=True, text=True, timeout=300, preexec_fn=_limited, env=env, cwd=tmp_path)
+    return subprocess.run(
+        command, capture_output=True, text=True, timeout=300, preexec_fn=_limited, env=env, cwd=tmp_path
+    )
 
 
 def _assert_one_line_and_nothing_left(result, out: Path):
@@ -57,7 +59,9 @@ def test_import_on_a_full_disk(tmp_path):
     np.savetxt(csv, rows, delimiter=",", header="t,a3,a2", comments="", fmt="%.6f")
     out = tmp_path / "data" / "drive.h5"
     out.parent.mkdir()
-    result = _run([str(BIN / "qcm-import"), f"input={csv}", f"output={out}", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    result = _run(
+        [str(BIN / "qcm-import"), f"input={csv}", f"output={out}", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path
+    )
     _assert_one_line_and_nothing_left(result, out)
 
 

@@ -321,11 +321,15 @@ def test_duplicate_columns_beyond_float32_and_rate_of_ms_read_as_s_are_refused(t
     path, lines = _drive(tmp_path)
     dup = tmp_path / "dup.csv"  # before: the second a2 was read, silently
     dup.write_text("\n".join(["t,a3,a2,a2"] + [f"{line},0" for line in lines[1:]]) + "\n")
-    with pytest.raises(RecordingError, match=r"dup.csv: header \(line 1\): column 'a2' appears 2 times \(fields 3, 4\)"):
+    with pytest.raises(
+        RecordingError, match=r"dup.csv: header \(line 1\): column 'a2' appears 2 times \(fields 3, 4\)"
+    ):
         read_recordings(dup)
     big = tmp_path / "big.csv"  # before: stored as inf
     big.write_text("\n".join(lines[:41] + [lines[41].rsplit(",", 1)[0] + ",1e40"] + lines[42:]) + "\n")
-    with pytest.raises(RecordingError, match=r"big.csv: column 'a2', row 41 \(line 42\): value 1e\+40 is beyond the float32"):
+    with pytest.raises(
+        RecordingError, match=r"big.csv: column 'a2', row 41 \(line 42\): value 1e\+40 is beyond the float32"
+    ):
         read_recordings(big)
     g = tmp_path / "g.csv"  # in g the limit is 9.81 times lower
     g.write_text("\n".join(lines[:2] + [lines[2].rsplit(",", 1)[0] + ",1e38"] + lines[3:]) + "\n")
@@ -333,7 +337,9 @@ def test_duplicate_columns_beyond_float32_and_rate_of_ms_read_as_s_are_refused(t
     with pytest.raises(RecordingError, match=r"row 2 \(line 3\): value 1e\+38 is beyond"):
         read_recordings(g, units="g")
     ms = tmp_path / "ms.csv"  # time in milliseconds: before, h = 10 s silently
-    ms.write_text("\n".join(["t,a3,a2"] + [f"{10 * k},{line.split(',', 1)[1]}" for k, line in enumerate(lines[1:])]) + "\n")
+    ms.write_text(
+        "\n".join(["t,a3,a2"] + [f"{10 * k},{line.split(',', 1)[1]}" for k, line in enumerate(lines[1:])]) + "\n"
+    )
     with pytest.raises(
         RecordingError, match=r"ms.csv: column 't': sampling rate 0.1 Hz .* if the time is in ms, pass time_unit=ms"
     ):
@@ -359,7 +365,9 @@ def test_encodings_and_stray_quotes_are_named_for_what_they_are(tmp_path):
         read_recordings(binary)
     quote = tmp_path / "quote.csv"  # before: "column 'a2', row 300 (line 301): cell is empty"
     quote.write_text("\n".join(lines[:51] + ['0.50,"0.1,0.2'] + lines[52:]) + "\n")
-    with pytest.raises(RecordingError, match=r'quote.csv: line 52: a double quote \(\"\) opens a field that runs over lines 52-301'):
+    with pytest.raises(
+        RecordingError, match=r"quote.csv: line 52: a double quote \(\"\) opens a field that runs over lines 52-301"
+    ):
         read_recordings(quote)
     header = tmp_path / "header.csv"  # before: "no acceleration column ... ['t', 'a3,a2']"
     header.write_text('t,"a3,a2\n' + "\n".join(lines[1:]) + "\n")
@@ -379,7 +387,10 @@ def test_task_name_cannot_put_the_run_folder_outside_the_project(tmp_path):
         cwd=tmp_path / "..",
     )
     assert result.returncode == 2
-    assert result.stderr.strip() == "error: task_name='../../../escaped' must be a plain folder name (no '/', '..' or empty)"
+    assert (
+        result.stderr.strip()
+        == "error: task_name='../../../escaped' must be a plain folder name (no '/', '..' or empty)"
+    )
     assert not (tmp_path / "o.h5").exists() and not list(tmp_path.parents[2].glob("escaped*"))
 
 
@@ -393,7 +404,14 @@ def test_sigterm_and_ctrl_c_during_the_write_leave_no_partial_and_one_line(tmp_p
     out = tmp_path / "out" / "long.h5"
     script = Path(sys.executable).parent / "qcm-import"
     # overlapping windows make the write the long part (40 MB through gzip)
-    command = [str(script), f"input={big}", f"output={out}", "window=1000", "stride=10", f"hydra.run.dir={tmp_path / 'run'}"]
+    command = [
+        str(script),
+        f"input={big}",
+        f"output={out}",
+        "window=1000",
+        "stride=10",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
     deadline = time.monotonic() + 120
     while not list(out.parent.glob(".long.h5.*.partial")) if out.parent.exists() else True:

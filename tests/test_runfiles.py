@@ -96,7 +96,9 @@ def _holder(run_dir: Path) -> subprocess.Popen:
 def test_a_folder_is_one_runs_at_a_time_and_a_dead_runs_lock_is_taken_over(tmp_path):
     proc = _holder(tmp_path)
     try:
-        with pytest.raises(ConfigError, match=rf"hydra.run.dir={tmp_path} is in use by another run \(qcm-x, pid {proc.pid}"):
+        with pytest.raises(
+            ConfigError, match=rf"hydra.run.dir={tmp_path} is in use by another run \(qcm-x, pid {proc.pid}"
+        ):
             runfiles.lock(tmp_path, "test")
     finally:
         proc.kill()
