@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -260,14 +259,13 @@ def session(run_dir: str | os.PathLike, app: str) -> Iterator[Path]:
         release(run_dir)
 
 
-def remove_tree_files(folder: str | os.PathLike, pattern: str) -> None:
-    """Remove the files matching ``pattern`` in ``folder`` and the folder if that leaves it empty."""
+def remove_tree_files(folder: str | os.PathLike, *patterns: str) -> None:
+    """Remove the files matching ``patterns`` in ``folder``, and the folder if that leaves it empty."""
     folder = Path(folder)
-    for path in folder.glob(pattern):
-        if path.is_file() or path.is_symlink():
-            path.unlink(missing_ok=True)
-        elif path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
+    for pattern in patterns:
+        for path in folder.glob(pattern):
+            if path.is_file() or path.is_symlink():
+                path.unlink(missing_ok=True)
     with contextlib.suppress(OSError):
         folder.rmdir()
 
