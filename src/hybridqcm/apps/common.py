@@ -74,6 +74,41 @@ def check_task_name(name) -> None:
         raise ConfigError(f"task_name={text!r} must be a plain folder name (no '/', '..' or empty)")
 
 
+def _devices_ok(devices) -> bool:
+    """Lightning's `devices`: a count >= 1, -1 (all), "auto", or device indices (a list, or "0,1")."""
+    if isinstance(devices, str):
+        text = devices.strip()
+        if text == "auto":
+            return True
+        parts = [p.strip() for p in text.split(",") if p.strip()]
+        if not parts or not all(p.lstrip("-").isdigit() for p in parts):
+            return False
+        devices = [int(p) for p in parts] if "," in text else int(parts[0])
+    if isinstance(devices, bool):
+        return False
+    if isinstance(devices, int):
+        return devices >= 1 or devices == -1
+    try:
+        items = list(devices)
+    except TypeError:
+        return False
+    return bool(items) and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in items)
+
+
+def check_trainer_settings(group, prefix: str = "trainer") -> None:
+    """trainer.devices and trainer.num_nodes as Lightning takes them, in one line naming the key and
+    value, before any work (Lightning's own message came wrapped in Hydra's, or as a traceback)."""
+    group = group or {}
+    if not _devices_ok(group.get("devices", 1)):
+        raise ConfigError(
+            f"{prefix}.devices={group.get('devices')!r}: give a number of devices >= 1, -1 (all), auto, "
+            f"or device indices such as [0,1]"
+        )
+    nodes = group.get("num_nodes", 1)
+    if isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1:
+        raise ConfigError(f"{prefix}.num_nodes={nodes!r}: give a number of nodes >= 1")
+
+
 def _markdown_cell(value) -> str:
     return str(value).replace("|", "\\|").replace("\n", " ")
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hybridqcm.apps.estimate_plan import CHANNELS
+from hybridqcm.apps.estimate_plan import CHANNELS, window_check_settings
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
@@ -61,15 +61,6 @@ class InputSettings:
             noise_weighting=bool(cfg.noise_weighting),
             window_check=window_check_settings(cfg),
         )
-
-
-def window_check_settings(cfg) -> WindowCheck:
-    """skip_windows.{min_std, clip_samples} as a WindowCheck; ConfigError naming the key and value."""
-    group = cfg.get("skip_windows") or {}
-    try:
-        return WindowCheck(min_std=group.get("min_std", 0.0), clip_samples=group.get("clip_samples", 5))
-    except ValueError as error:
-        raise ConfigError(f"skip_windows: {error}") from None
 
 
 class _Streams:
@@ -241,6 +232,5 @@ __all__ = [
     "block_rows",
     "RecordingBlocks",
     "RankBlocks",
-    "window_check_settings",
     "without_skipped",
 ]
