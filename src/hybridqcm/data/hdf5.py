@@ -43,6 +43,7 @@ SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
 SUPPORTED_SCHEMAS = ("hybridqcm.dataset/1", SCHEMA)
 ACCEL_CHANNELS = ("a3", "a2", "a1")
+PHYSICS = ("continuous", "euler")  # the values of the `physics` attribute (absent: continuous, another producer)
 
 # key -> (dtype, trailing shape given n_steps); the leading dimension is the sample count M.
 LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
@@ -70,9 +71,57 @@ def _open(path: str | os.PathLike) -> h5py.File:
     if not path.exists():
         raise DatasetError(f"{path}: dataset file does not exist (create one with `qcm-simulate output={path}`)")
     try:
-        return h5py.File(path, "r")
+        handle = h5py.File(path, "r")
     except OSError as error:
         raise DatasetError(f"{path}: not a readable HDF5 file ({error})") from None
+    try:
+        _check_links(path, handle)
+    except BaseException:
+        handle.close()
+        raise
+    return handle
+
+
+def _check_links(path: Path, handle: h5py.File) -> None:
+    """Data must be stored in the file itself: a run's fingerprint (shards, completion markers) is the
+    file's size and time, which a linked file's change does not touch. An external link, a virtual
+    dataset mapping another file, or a soft link that leads nowhere is one DatasetError naming it
+    (before: h5py's KeyError traceback for a missing target or a loop, silent data from elsewhere)."""
+
+    def problem(name: str, link) -> str | None:  # a message stops the visit (raising inside it cannot)
+        if isinstance(link, h5py.ExternalLink):
+            target = Path(link.filename) if Path(link.filename).is_absolute() else path.parent / link.filename
+            if not target.exists():
+                state = "a file that does not exist"
+            elif target.resolve() == path.resolve():
+                state = "this file itself: a loop"
+            else:
+                state = "another file, whose changes would not be noticed"
+            return (
+                f"{path}: /{name} is an external link to {link.filename}:{link.path} ({state}); "
+                f"copy the data into the file (e.g. h5copy) so it holds what it is read for"
+            )
+        if isinstance(link, h5py.SoftLink):
+            try:
+                target = handle.get(name)
+            except (KeyError, RuntimeError, OSError):  # "too many links": a loop
+                target = None
+            if target is None:
+                return f"{path}: /{name} is a soft link to {link.path}, which leads nowhere or in a loop"
+        if isinstance(link, h5py.HardLink):
+            obj = handle.get(name)
+            if isinstance(obj, h5py.Dataset) and obj.is_virtual:
+                others = sorted({s.file_name for s in obj.virtual_sources() if s.file_name != "."})
+                if others:
+                    return (
+                        f"{path}: /{name} is a virtual dataset mapping {others[0]}; copy the data into the file "
+                        f"so it holds what it is read for"
+                    )
+        return None
+
+    message = handle.visititems_links(problem)
+    if message:
+        raise DatasetError(message)
 
 
 def _check_schema(path: Path, handle: h5py.File) -> None:
@@ -164,6 +213,8 @@ def dataset_info(path: str | os.PathLike) -> dict:
         _check_schema(path, handle)
         attrs = {k: _attr_value(v) for k, v in handle.attrs.items()}
         physics, initial_state = _physics(attrs)
+        if physics not in PHYSICS:  # before: taken for continuous physics, silently
+            raise DatasetError(f"{path}: attribute physics = {physics!r} is not one of {list(PHYSICS)}")
         splits = {}
         for name, group in handle.items():
             if not isinstance(group, h5py.Group):
