@@ -14,11 +14,43 @@ from typing import NoReturn
 
 
 def _register_resolvers() -> None:
-    """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes."""
+    """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes;
+    ${hybridqcm_groups:NAME}: the config groups app NAME takes, for its --help."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("hybridqcm_pid"):
         OmegaConf.register_new_resolver("hybridqcm_pid", lambda: os.getpid())
+    if not OmegaConf.has_resolver("hybridqcm_groups"):
+        OmegaConf.register_new_resolver("hybridqcm_groups", lambda name: app_groups_help(str(name)))
+
+
+def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
+    """One line per config group the app's defaults list names (not Hydra's own), with its options;
+    experiments: only those for this app (`task:`). Hydra's default --help listed every folder of
+    configs/, the groups of the other apps included, which this app then refuses."""
+    import yaml
+
+    root = Path(config_dir or CONFIG_DIR)
+    data = yaml.safe_load((root / f"{config_name}.yaml").read_text()) or {}
+    lines = []
+    for entry in data.get("defaults") or []:
+        if not isinstance(entry, dict):
+            continue
+        group = str(next(iter(entry))).split("@")[0].removeprefix("override ").strip()
+        folder = root / group
+        if group == "hydra" or not folder.is_dir():
+            continue
+        if group == "experiment":
+            options = experiments_for(str(data.get("task")), root) if data.get("task") else []
+        else:
+            options = sorted(p.stem for p in folder.glob("*.yaml"))
+        lines.append(f"{group}: {', '.join(options)}")
+        lines += [
+            f"{group}/{sub.name}: {', '.join(sorted(p.stem for p in sub.glob('*.yaml')))}"
+            for sub in sorted(folder.iterdir())
+            if sub.is_dir() and any(sub.glob("*.yaml"))
+        ]
+    return "\n".join(lines) or "(none)"
 
 
 _register_resolvers()
