@@ -108,3 +108,21 @@ def test_the_guarded_file_writes_what_h5py_writes(tmp_path):
         plain.create_dataset("test/accel", data=data, compression="gzip", chunks=(8, 100, 3))
     for name in ("guarded.h5", "plain.h5"):
         np.testing.assert_array_equal(read_split(tmp_path / name, "test", ("accel",))["accel"], data)
+
+
+def test_estimate_on_a_full_disk_is_one_line(tiny_dataset, tmp_path):
+    """Any output (a plot, TensorBoard's events) that cannot be written: one line, no traceback, and no
+    summary or completion marker that would call the run done."""
+    global LIMIT
+    run_dir = tmp_path / "run"
+    command = [str(BIN / "qcm-estimate"), "experiment=occupant_roadfree", f"data.path={tiny_dataset}", "n_samples=4"]
+    old, LIMIT = LIMIT, 20 * 1024  # Hydra's own files fit, a plot does not
+    try:
+        result = _run([*command, "progress=false", f"hydra.run.dir={run_dir}"], tmp_path)
+    finally:
+        LIMIT = old
+    assert result.returncode == 2, result.stderr[-2000:]
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith(f"error: an output in hydra.run.dir={run_dir}: could not be written: File too large")
+    assert line.endswith("the run is incomplete (no summary or completion marker): rerun it")
+    assert not (run_dir / "summary.json").exists() and not (run_dir / ".hybridqcm-done.json").exists()

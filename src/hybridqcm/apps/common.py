@@ -294,7 +294,7 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     @functools.wraps(entry)
     def job(cfg):
         quiet_third_party()
-        with run_folder(f"qcm-{config_name}"):
+        with run_folder(f"qcm-{config_name}"), disk_full_is_one_line():
             return entry(cfg)
 
     try:
@@ -314,6 +314,25 @@ def check_task_name_overrides(args: Sequence[str]) -> None:
             check_task_name(value)
         if sep and key.lstrip("+~") == "hydra.run.dir" and value:
             runfiles.check_free(value)
+
+
+@contextlib.contextmanager
+def disk_full_is_one_line():
+    """A write that failed for want of room (ENOSPC, EDQUOT, EFBIG of `ulimit -f`) ends the app with one
+    line naming the file; outputs are written atomically, so none is left half-written."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from hybridqcm.data.h5file import DISK_FULL, disk_error_message
+
+    try:
+        yield
+    except OSError as error:
+        if error.errno not in DISK_FULL:
+            raise
+        run_dir = HydraConfig.get().runtime.output_dir if HydraConfig.initialized() else "."
+        where = error.filename or f"an output in hydra.run.dir={run_dir}"
+        after = "the run is incomplete (no summary or completion marker): rerun it"
+        fail(disk_error_message(where, error, after, folder=run_dir))
 
 
 def _process_rank() -> int:

@@ -254,7 +254,7 @@ def main() -> None:
 
     def job(cfg):
         common.quiet_third_party()
-        with common.run_folder("qcm-sbi"):
+        with common.run_folder("qcm-sbi"), common.disk_full_is_one_line():
             return _hydra_entry(cfg)
 
     try:

@@ -103,17 +103,20 @@ def open_guarded(path: str | os.PathLike, **kwargs) -> tuple[h5py.File, GuardedF
         raise
 
 
-def disk_error_message(path: str | os.PathLike, error: OSError) -> str:
-    """One line: which file could not be written, why, and how much room the disk has."""
+def disk_error_message(
+    path: str | os.PathLike, error: OSError, after: str = "nothing was written", folder: str | os.PathLike | None = None
+) -> str:
+    """One line: which file could not be written, why, how much room the disk has (that of `folder`,
+    default the file's), and what was left."""
     path = Path(path)
     try:
-        free = f"{shutil.disk_usage(path.parent).free / 2**20:.0f} MiB free on its disk"
+        free = f"{shutil.disk_usage(folder or path.parent).free / 2**20:.0f} MiB free on its disk"
     except OSError:
         free = "free space unknown"
     reason = error.strerror or str(error)
     if error.errno == errno.EFBIG:
         reason += " (the file-size limit: ulimit -f)"
-    return f"{path}: could not be written: {reason}; {free}; nothing was written"
+    return f"{path}: could not be written: {reason}; {free}; {after}"
 
 
 def raise_if_failed(guard: GuardedFile, target: str | os.PathLike) -> None:
