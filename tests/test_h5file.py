@@ -21,14 +21,15 @@ BIN = Path(sys.executable).parent
 LIMIT = 256 * 1024  # bytes any one file of the process may have
 
 
-def _limited():
-    resource.setrlimit(resource.RLIMIT_FSIZE, (LIMIT, LIMIT))
-
-
-def _run(command, tmp_path):
+def _run(command, tmp_path, limit: int = LIMIT):
+    """The command with every file it writes limited to `limit` bytes (stdout and stderr are pipes)."""
     env = {**os.environ, "COLUMNS": "200"}
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
     return subprocess.run(
-        command, capture_output=True, text=True, timeout=300, preexec_fn=_limited, env=env, cwd=tmp_path
+        command, capture_output=True, text=True, timeout=300, preexec_fn=limited, env=env, cwd=tmp_path
     )
 
 
@@ -113,14 +114,10 @@ def test_the_guarded_file_writes_what_h5py_writes(tmp_path):
 def test_estimate_on_a_full_disk_is_one_line(tiny_dataset, tmp_path):
     """Any output (a plot, TensorBoard's events) that cannot be written: one line, no traceback, and no
     summary or completion marker that would call the run done."""
-    global LIMIT
     run_dir = tmp_path / "run"
     command = [str(BIN / "qcm-estimate"), "experiment=occupant_roadfree", f"data.path={tiny_dataset}", "n_samples=4"]
-    old, LIMIT = LIMIT, 20 * 1024  # Hydra's own files fit, a plot does not
-    try:
-        result = _run([*command, "progress=false", f"hydra.run.dir={run_dir}"], tmp_path)
-    finally:
-        LIMIT = old
+    # 20 KiB: Hydra's own files fit, a plot does not
+    result = _run([*command, "progress=false", f"hydra.run.dir={run_dir}"], tmp_path, limit=20 * 1024)
     assert result.returncode == 2, result.stderr[-2000:]
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith(f"error: an output in hydra.run.dir={run_dir}: could not be written: File too large")
