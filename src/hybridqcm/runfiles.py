@@ -190,7 +190,7 @@ def begin(
                 f"move them away or choose another folder"
             )
     ours_top = {rel.split("/", 1)[0] for rel in ours}
-    outputs = sorted(n for n in named if n in ours_top)
+    outputs = sorted((n for n in named if n in ours_top), key=lambda n: (n.startswith("."), n))  # markers last
     if outputs and not overwrite:
         shown = ", ".join(outputs[:4]) + (" ..." if len(outputs) > 4 else "")
         raise ConfigError(
