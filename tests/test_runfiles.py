@@ -61,6 +61,22 @@ def test_a_killed_runs_files_are_what_changed_since_it_began(tmp_path):
     assert keep.read_text() == "user" and (tmp_path / "estimates.csv").read_text() == "new"
 
 
+def test_a_run_claims_only_files_under_its_own_output_names(tmp_path):
+    """hydra.run.dir=. (a project folder): a file of the user's written meanwhile is never the run's."""
+    runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, False, scratch=("shards",), app="test")
+    _write(tmp_path / "estimates.csv", "new")
+    _write(tmp_path / "shards" / "block-000000.csv", "new")
+    _write(tmp_path / "src" / "module.py", "the user's edit during the run")
+    _write(tmp_path / "notes.txt", "the user's")
+    assert runfiles.recorded_files(tmp_path) == ["estimates.csv", "shards/block-000000.csv"]  # killed now: these
+    runfiles.finish(tmp_path)
+    runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, True, scratch=("shards",), app="test")
+    assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file() and not p.name.startswith(".")) == [
+        "module.py",
+        "notes.txt",
+    ]
+
+
 def test_outputs_no_run_recorded_are_never_removed(tmp_path):
     """An older version's folder (or a user's files named like ours): refused, overwrite or not."""
     old = _write(tmp_path / "estimates.csv", "old")

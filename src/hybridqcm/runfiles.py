@@ -7,8 +7,10 @@
 plots/ or another model in checkpoints/ stays. The list is what changed under the folder while a
 run ran (size, mtime or inode differs from the snapshot taken when it began), so it covers what
 third-party writers create too (TensorBoard event files, Lightning checkpoints, matplotlib
-figures). A run that was killed leaves state "running" and its snapshot: what changed since then
-is counted as that run's files (so a file added by hand after such a crash, before the next
+figures). Only files under the app's own output names count (`begin`'s artefacts, globs and
+scratch names): a user's file changed elsewhere in the folder meanwhile is never listed. A run
+that was killed leaves state "running" and its snapshot: what changed since then under those
+names is counted as that run's files (so a file added by hand after such a crash, before the next
 overwrite, is taken for the run's; a finished run's list is frozen). Hydra's own files
 (.hydra/, the top-level <task>.log) are never listed: Hydra rewrites them for every run.
 
@@ -19,6 +21,7 @@ or somebody else's files) is refused, with overwrite too: nothing is removed on 
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import json
 import os
 import time
@@ -142,8 +145,21 @@ def recorded_files(run_dir: str | os.PathLike) -> list[str]:
     files = set(manifest.get("files") or [])
     if manifest.get("state") == "running":
         before = manifest.get("before") or {}
-        files |= {rel for rel, sig in snapshot(run_dir).items() if before.get(rel) != sig}
+        names, globs = manifest.get("names"), manifest.get("globs") or []
+        files |= {
+            rel
+            for rel, sig in snapshot(run_dir).items()
+            if before.get(rel) != sig and (names is None or _owned(rel, names, globs))
+        }
     return sorted(rel for rel in files if _listed(rel) and (run_dir / rel).is_file())
+
+
+def _owned(rel: str, names: Sequence[str], globs: Sequence[str]) -> bool:
+    """Under one of the app's output names (a file or folder at the top), or a top-level file matching
+    one of its patterns: the bound on what a run can claim (a file of the user's changed meanwhile elsewhere
+    in the folder, say with hydra.run.dir=., is never listed)."""
+    top = rel.split("/", 1)[0]
+    return top in names or ("/" not in rel and any(fnmatch.fnmatchcase(rel, g) for g in globs))
 
 
 def _remove(run_dir: Path, files: Iterable[str]) -> None:
@@ -165,10 +181,13 @@ def begin(
     artefacts: Sequence[str],
     globs: Sequence[str] = (),
     inputs: Iterable[str | os.PathLike | None] = (),
+    scratch: Sequence[str] = (),
 ) -> Path:
     """Start a run in the folder: refuse another run's outputs (unless overwrite), remove them
     (only the files a manifest lists) when overwriting, and record the snapshot this run's files
-    are told apart by. ``artefacts`` / ``globs``: names (top level) of the app's final outputs.
+    are told apart by. ``artefacts`` / ``globs``: names (top level) of the app's final outputs;
+    ``scratch``: names it also writes under that are no final output (shards, a logger's folder).
+    A run's files are those changed since its start under these names only.
 
     inputs: files the run reads; removing one of them (a checkpoint inside the folder) is refused.
     Raises ConfigError (one line) before any work."""
@@ -215,6 +234,8 @@ def begin(
         "pid": os.getpid(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "files": kept,
+        "names": sorted({*artefacts, *scratch}),
+        "globs": list(globs),
         "before": snapshot(run_dir),
     }
     atomic_write_text(run_dir / MANIFEST, json.dumps(record) + "\n")

@@ -236,7 +236,12 @@ def run(cfg) -> dict:
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
     store = ShardStore(run_dir, run_fingerprint(cfg, inputs_used))
     if rank_zero_only.rank == 0:  # under a cluster launcher every rank runs this: one clears
-        runfolder.prepare_run_dir(run_dir, runfolder.ESTIMATE_ARTEFACTS, bool(cfg.get("overwrite", False)))
+        runfolder.prepare_run_dir(
+            run_dir,
+            runfolder.ESTIMATE_ARTEFACTS,
+            bool(cfg.get("overwrite", False)),
+            scratch=runfolder.ESTIMATE_SCRATCH,
+        )
         if cfg.get("overwrite", False):
             store.remove()
     n_samples, n_params = plan["n_samples"], plan["n_params"]

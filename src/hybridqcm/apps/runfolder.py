@@ -47,6 +47,8 @@ TRAIN_ARTEFACTS = (
     MARKER,
 )
 TRAIN_GLOBS = ("sorted_predictions_*.png", "mse_hist_*.png")
+ESTIMATE_SCRATCH = ("shards",)  # written under the run folder, no final output (a resumed run keeps them)
+TRAIN_SCRATCH = ("csv", "mlruns")  # the csv and mlflow loggers' folders
 
 
 def prepare_run_dir(
@@ -56,13 +58,15 @@ def prepare_run_dir(
     globs: Sequence[str] = (),
     inputs: Iterable[str | os.PathLike | None] = (),
     app: str | None = None,
+    scratch: Sequence[str] = (),
 ) -> Path:
     """Refuse a folder holding another run's outputs (unless overwrite); when overwriting, remove only
     the files earlier runs recorded writing there (hybridqcm/runfiles.py), never the user's own.
 
-    names / globs: the app's final outputs (top level); inputs: files this run reads (clearing one of
-    them, a checkpoint inside the folder, is refused). Raises ConfigError (one line) before any work."""
-    return runfiles.begin(run_dir, app or Path(sys.argv[0]).name, overwrite, names, globs, inputs)
+    names / globs: the app's final outputs (top level); scratch: what else it writes there (shards, a
+    logger's folder); inputs: files this run reads (clearing one of them, a checkpoint inside the folder,
+    is refused). Raises ConfigError (one line) before any work."""
+    return runfiles.begin(run_dir, app or Path(sys.argv[0]).name, overwrite, names, globs, inputs, scratch)
 
 
 def fingerprint(paths: Iterable[str | os.PathLike | None]) -> dict[str, list[int] | None]:
@@ -124,6 +128,8 @@ __all__ = [
     "ESTIMATE_ARTEFACTS",
     "TRAIN_ARTEFACTS",
     "TRAIN_GLOBS",
+    "ESTIMATE_SCRATCH",
+    "TRAIN_SCRATCH",
     "prepare_run_dir",
     "write_completion_marker",
     "read_completion_marker",

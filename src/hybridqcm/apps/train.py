@@ -275,6 +275,7 @@ def train(cfg) -> dict[str, float]:
         bool(cfg.get("overwrite", False)),
         runfolder.TRAIN_GLOBS,
         inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")],
+        scratch=runfolder.TRAIN_SCRATCH,
     )
 
     callbacks = _instantiate_group(cfg.get("callbacks"))
