@@ -17,14 +17,17 @@ file is incomplete already and will be deleted), HDF5 closes cleanly, and the wr
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import os
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
 
+from hybridqcm import interrupt
 from hybridqcm.errors import DatasetError
 
 # errnos of a write that can never succeed on this disk: the caller is told in one line
@@ -103,6 +106,16 @@ def open_guarded(path: str | os.PathLike, **kwargs) -> tuple[h5py.File, GuardedF
         raise
 
 
+@contextlib.contextmanager
+def writing(path: str | os.PathLike) -> Iterator[tuple[h5py.File, GuardedFile]]:
+    """(h5py.File, GuardedFile) of a new file at `path`, both closed when the block ends. A stop request
+    (Ctrl-C, SIGTERM) waits for the block and is raised after it: never inside h5py's C code."""
+    with interrupt.deferred():
+        handle, guard = open_guarded(path)
+        with guard, handle:
+            yield handle, guard
+
+
 def disk_error_message(
     path: str | os.PathLike, error: OSError, after: str = "nothing was written", folder: str | os.PathLike | None = None
 ) -> str:
@@ -128,4 +141,4 @@ def raise_if_failed(guard: GuardedFile, target: str | os.PathLike) -> None:
         raise DatasetError(disk_error_message(target, guard.error))
 
 
-__all__ = ["DISK_FULL", "GuardedFile", "open_guarded", "disk_error_message", "raise_if_failed"]
+__all__ = ["DISK_FULL", "GuardedFile", "open_guarded", "writing", "disk_error_message", "raise_if_failed"]

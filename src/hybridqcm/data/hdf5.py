@@ -37,7 +37,7 @@ import h5py
 import numpy as np
 
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
-from hybridqcm.interrupt import check_stop
+from hybridqcm.interrupt import check_stop, deferred, pending
 
 SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
@@ -455,7 +455,8 @@ class DatasetWriter:
                 raise DatasetError(
                     f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}.."
                 )
-            group[key][start : start + array.shape[0]] = array
+            with deferred():  # a stop request waits for h5py's write (see interrupt.deferred)
+                group[key][start : start + array.shape[0]] = array
         if self._guard is not None:
             raise_if_failed(self._guard, self.path)  # the disk is full: stop now, not at the end
 
@@ -469,13 +470,18 @@ class DatasetWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         assert self._handle is not None and self._tmp is not None
-        try:
-            self._handle.flush()
-            self._handle.close()
-        finally:
-            self._handle = None
-            if self._guard is not None:
-                self._guard.close()
+        with deferred(raise_on_exit=False):  # a stop request during the close: raised below
+            try:
+                self._handle.flush()
+                self._handle.close()
+            finally:
+                self._handle = None
+                if self._guard is not None:
+                    self._guard.close()
+        if exc_type is None and pending() is not None:
+            self._tmp.unlink(missing_ok=True)
+            self._release()
+            check_stop()
         try:
             if self._guard is not None and (self._guard.error is not None or self._guard.interrupted is not None):
                 self._tmp.unlink(missing_ok=True)

@@ -39,7 +39,7 @@ import numpy as np
 
 from hybridqcm.data import csv_checks
 from hybridqcm.data.csv_checks import RecordingError
-from hybridqcm.data.h5file import open_guarded, raise_if_failed
+from hybridqcm.data.h5file import raise_if_failed, writing
 from hybridqcm.data.hdf5 import DatasetError  # noqa: F401 - importable here
 
 SCHEMA_V2 = "hybridqcm.dataset/2"
@@ -424,8 +424,8 @@ def write_recordings(
     tmp = Path(tmp)
     guard = None
     try:
-        handle, guard = open_guarded(tmp)  # a full disk: one DatasetError, not HDF5's segfault (data/h5file.py)
-        with guard, handle:
+        # a full disk: one DatasetError, not HDF5's segfault; Ctrl-C / SIGTERM after h5py's calls (data/h5file.py)
+        with writing(tmp) as (handle, guard):
             attrs = {
                 "schema": SCHEMA_V2,
                 "h": float(data.h),
