@@ -92,6 +92,23 @@ def test_outputs_no_run_recorded_are_never_removed(tmp_path):
     assert runfiles.recorded_files(fresh) == []
 
 
+def test_a_finished_run_of_a_version_without_manifests_is_told_by_its_completion_marker(tmp_path):
+    """outputs/ of runs made before manifests: overwrite removes what the run wrote before its marker."""
+    import os
+
+    run = [_write(tmp_path / n, "old") for n in ("estimates.csv", "plots/sorted_p1.png", "tb/events.1")]
+    mine = _write(tmp_path / "plots" / "paper_figure.png", "user")  # put there after the run finished
+    marker = runfolder.write_completion_marker(tmp_path, "qcm-estimate", [])
+    done = marker.stat().st_mtime_ns
+    for path in run:
+        os.utime(path, ns=(done - 10**9, done - 10**9))
+    os.utime(mine, ns=(done + 10**9, done + 10**9))
+    with pytest.raises(ConfigError, match=r"already holds another run's outputs \(estimates.csv, plots, tb"):
+        runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, False)
+    runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, True)
+    assert [p for p in run + [marker] if p.exists()] == [] and mine.read_text() == "user"
+
+
 def test_overwrite_never_clears_an_input_of_the_run(tmp_path):
     runfolder.prepare_run_dir(tmp_path, runfolder.TRAIN_ARTEFACTS, False, app="test")
     ckpt = _write(tmp_path / "checkpoints" / "last.ckpt", "weights")
@@ -142,7 +159,11 @@ def seat_file(tmp_path_factory):
 
 def _estimate(run_dir, data, *extra):
     command = [str(BIN / "qcm-estimate"), "experiment=occupant_roadfree", f"data.path={data}", "n_steps=100"]
-    command += ["progress=false", "tensorboard=false", f"hydra.run.dir={run_dir}", *extra]
+    command += [
+        "progress=false",
+        f"hydra.run.dir={run_dir}",
+        *extra,
+    ]  # tensorboard on: it read plots/ (PIL on a user file)
     return subprocess.run(command, capture_output=True, text=True, timeout=300)
 
 

@@ -14,8 +14,11 @@ names is counted as that run's files (so a file added by hand after such a crash
 overwrite, is taken for the run's; a finished run's list is frozen). Hydra's own files
 (.hydra/, the top-level <task>.log) are never listed: Hydra rewrites them for every run.
 
-A folder without a manifest holding files named like an app's outputs (an older version's run,
-or somebody else's files) is refused, with overwrite too: nothing is removed on a guess.
+A folder without a manifest (a version before them): a finished run's files are told by its
+completion marker, written last — the files of our output names no later than it; files added
+after it (a figure put in plots/ afterwards) stay. Without a marker either (a killed run of such
+a version, or somebody else's files named like ours) the folder is refused, with overwrite too:
+nothing is removed on a guess.
 """
 
 from __future__ import annotations
@@ -174,6 +177,24 @@ def _remove(run_dir: Path, files: Iterable[str]) -> None:
             folder.rmdir()  # only when empty: a user's file keeps its folder
 
 
+def _finished_before_manifests(run_dir: Path, named: Iterable[str], marker: Path) -> list[str]:
+    """A finished run of a version without manifests: its outputs (top-level files of our names, and
+    files under our folders) written no later than its completion marker, the marker included."""
+    done = marker.stat().st_mtime_ns
+    files = [marker.name]
+    for name in named:
+        path = run_dir / name
+        if path.is_file():
+            files.append(name)
+        elif path.is_dir():
+            files += [
+                p.relative_to(run_dir).as_posix()
+                for p in path.rglob("*")
+                if p.is_file() and not p.is_symlink() and p.stat().st_mtime_ns <= done
+            ]
+    return sorted({f for f in files if _listed(f)})
+
+
 def begin(
     run_dir: str | os.PathLike,
     app: str,
@@ -182,6 +203,7 @@ def begin(
     globs: Sequence[str] = (),
     inputs: Iterable[str | os.PathLike | None] = (),
     scratch: Sequence[str] = (),
+    marker: str | None = None,
 ) -> Path:
     """Start a run in the folder: refuse another run's outputs (unless overwrite), remove them
     (only the files a manifest lists) when overwriting, and record the snapshot this run's files
@@ -190,7 +212,9 @@ def begin(
     A run's files are those changed since its start under these names only.
 
     inputs: files the run reads; removing one of them (a checkpoint inside the folder) is refused.
-    Raises ConfigError (one line) before any work."""
+    marker: the app's completion marker, written last by a finished run: in a folder of a version
+    without manifests, the files it names are that run's if no later than the marker (a file added
+    to plots/ afterwards is the user's). Raises ConfigError (one line) before any work."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     has_manifest = (run_dir / MANIFEST).exists()
@@ -198,7 +222,9 @@ def begin(
     named = {n for n in artefacts if (run_dir / n).exists() and n not in (LOCK, MANIFEST)}
     for pattern in globs:
         named |= {p.name for p in run_dir.glob(pattern)}
-    if not has_manifest:  # files named like our outputs, but no run recorded writing them (folders of
+    if not has_manifest and marker and (run_dir / marker).is_file():
+        ours = _finished_before_manifests(run_dir, named, run_dir / marker)
+    elif not has_manifest:  # files named like our outputs, but no run recorded writing them (folders of
         # our names, plots/ or checkpoints/, may be the user's own: they are no evidence)
         unknown = sorted(n for n in named if not (run_dir / n).is_dir())
         if unknown:

@@ -66,7 +66,7 @@ def prepare_run_dir(
     names / globs: the app's final outputs (top level); scratch: what else it writes there (shards, a
     logger's folder); inputs: files this run reads (clearing one of them, a checkpoint inside the folder,
     is refused). Raises ConfigError (one line) before any work."""
-    return runfiles.begin(run_dir, app or Path(sys.argv[0]).name, overwrite, names, globs, inputs, scratch)
+    return runfiles.begin(run_dir, app or Path(sys.argv[0]).name, overwrite, names, globs, inputs, scratch, MARKER)
 
 
 def fingerprint(paths: Iterable[str | os.PathLike | None]) -> dict[str, list[int] | None]:
