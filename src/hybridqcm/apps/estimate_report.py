@@ -320,34 +320,27 @@ def write_metrics(
     summary["m3_mean_rel_err_converged"] = float(done.mean()) if done.numel() else None
     summary["m3_max_rel_err_converged"] = float(done.max()) if done.numel() else None
     summary["m3_interval_median_rel_width"] = float(m3_width[m3_ok].median()) if bool(m3_ok.any()) else math.inf
+    pictures = []  # this run's plots only: a figure of the user's in plots/ is not ours to log
     if cfg.plots:
         from hybridqcm.plots import close, plot_sorted_predictions  # matplotlib: only when plotting
 
         for j, name in zip(free, free_names):
+            pictures.append(run_dir / "plots" / f"sorted_{name}.png")
             close(
                 plot_sorted_predictions(
-                    params[:, j].numpy(),
-                    true[:, j].numpy(),
-                    name,
-                    run_dir / "plots" / f"sorted_{name}.png",
-                    title=f"{cfg.experiment_name}: {name}",
+                    params[:, j].numpy(), true[:, j].numpy(), name, pictures[-1], title=f"{cfg.experiment_name}: {name}"
                 )
             )
+        pictures.append(run_dir / "plots" / "sorted_m3.png")
         close(
             plot_sorted_predictions(
-                m3.numpy(),
-                true_m3.numpy(),
-                "m3 [kg]",
-                run_dir / "plots" / "sorted_m3.png",
-                title=f"{cfg.experiment_name}: occupant mass",
+                m3.numpy(), true_m3.numpy(), "m3 [kg]", pictures[-1], title=f"{cfg.experiment_name}: occupant mass"
             )
         )
     if cfg.tensorboard:  # the table and the plots beside the GN losses, in one TensorBoard run
         from hybridqcm.tracking import log_estimation_to_tensorboard
 
-        log_estimation_to_tensorboard(
-            run_dir / "tb", table_rows, sorted((run_dir / "plots").glob("*.png")), title=title
-        )
+        log_estimation_to_tensorboard(run_dir / "tb", table_rows, sorted(pictures), title=title)
     return summary, table_rows
 
 
