@@ -56,9 +56,11 @@ from hybridqcm.apps.estimate_report import (
     coverage_95,
     estimates_header,
     log_stage_losses,
+    merge_block_tables,
     merge_stage_stats,
     noise_label,
     print_report,
+    skipped_tables,
     write_metrics,
 )
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
@@ -242,7 +244,12 @@ def run(cfg) -> dict:
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
     store = ShardStore(run_dir, run_fingerprint(cfg, inputs_used))
     if rank_zero_only.rank == 0:  # under a cluster launcher every rank runs this: one clears
-        runfolder.prepare_run_dir(run_dir, runfolder.ESTIMATE_ARTEFACTS, bool(cfg.get("overwrite", False)))
+        runfolder.prepare_run_dir(
+            run_dir,
+            runfolder.ESTIMATE_ARTEFACTS,
+            bool(cfg.get("overwrite", False)),
+            scratch=runfolder.ESTIMATE_SCRATCH,
+        )
         if cfg.get("overwrite", False):
             store.remove()
     n_samples, n_params = plan["n_samples"], plan["n_params"]
@@ -260,6 +267,10 @@ def run(cfg) -> dict:
         STATUS_HEADER,
         functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra),
         block_stage_stats,
+        functools.partial(
+            skipped_tables, header=estimates_header(theta_names, n_theta_params, extra), n_scored=n_params
+        ),
+        merge_block_tables,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:

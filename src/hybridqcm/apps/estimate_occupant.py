@@ -173,11 +173,13 @@ def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
     import scipy.signal
 
     from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
     from hybridqcm.physics.occupant import normalised_apparent_mass
     from hybridqcm.plots import close, plot_apparent_mass
 
     with open(estimates_csv, newline="") as handle:
-        rows = [row for _, row in zip(range(count), csv.DictReader(handle))]
+        fitted = (r for r in csv.DictReader(handle) if r["status"] not in WINDOW_STATUS_LABELS.values())
+        rows = [row for _, row in zip(range(count), fitted)]
     if not rows:
         return []
     index = np.array([int(r["index"]) for r in rows])

@@ -503,6 +503,11 @@ def load_manifest(path: str | Path) -> dict:
         raise ValueError(f"{path}: malformed manifest ({error})") from None
     if not isinstance(manifest, dict) or not isinstance(manifest.get("stages"), list):
         raise ValueError(f"{path}: malformed manifest (no 'stages' list)")
+    if not isinstance(manifest.get("pipeline"), str) or not manifest["pipeline"]:
+        raise ValueError(f"{path}: malformed manifest: pipeline = {manifest.get('pipeline')!r}, expected its name")
+    for i, stage in enumerate(manifest["stages"]):
+        if not isinstance(stage, dict) or "name" not in stage:
+            raise ValueError(f"{path}: malformed manifest: stages[{i}] = {stage!r} is not a stage record")
     return manifest
 
 
