@@ -311,7 +311,9 @@ def run(cfg) -> dict:
             from hybridqcm.tracking import log_estimation_to_tensorboard
 
             log_estimation_to_tensorboard(run_dir / "tb", [], pictures, prefix="occupant")
-    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], [s["name"] for s in plan["stages"]])
+    stage_names = [s["name"] for s in plan["stages"]]
+    stage_names += [k for k in dict.fromkeys(k for m in markers for k in m["stages"]) if k not in stage_names]
+    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], stage_names)
     if cfg.tensorboard:
         log_stage_losses(run_dir / "tb", stage_loss)
     summary = {

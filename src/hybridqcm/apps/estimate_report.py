@@ -197,6 +197,8 @@ def merge_stage_stats(blocks: Sequence[Mapping], stage_names: Sequence[str]) -> 
     stage_loss, stage_status = {}, {}
     for name in stage_names:
         parts = [b[name] for b in blocks if name in b]
+        if not parts:  # (an occupant selection's stages are its candidates' "<model>/<stage>")
+            continue
         length = max((len(p["loss_total"]) for p in parts), default=0)
         total = torch.zeros(length, dtype=torch.float64)
         count = 0
