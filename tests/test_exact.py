@@ -539,7 +539,9 @@ def test_modal_evaluation_matches_the_step_recursion(case, hold):
         old = exact_sensitivities(model, p, x, w, H, method="recursion", **kwargs)
         new = exact_sensitivities(model, p, x, w, H, **kwargs)
         assert new.shape == old.shape
-        assert _column_error(new, old) <= 1e-10, (with_x0, start, n_steps)
+        # two float64 evaluation orders of 130 steps: ~1e-10 of a column (1.8e-10 seen on the quarter car's
+        # spline hold with one BLAS build); a wrong modal term is off by O(1)
+        assert _column_error(new, old) <= 1e-9, (with_x0, start, n_steps)
 
 
 @pytest.mark.parametrize("delta", [0.0, 1e-7, -1e-7, 1e-4, 1e-2])

@@ -483,7 +483,9 @@ def validate(cfg) -> dict:
             raise DatasetError(f"{path}: n_steps=max leaves {n_steps} steps of the {stored} stored")
     if str(margin) == "auto":  # the exact model interpolates the input: give it what the file holds around the window
         margin = (
-            (0, 0) if model == "euler" else (min(lead, stored - n_steps), max(0, min(tail, stored - n_steps - lead)))
+            (0, 0)  # the Euler recursion reads no input beyond its window; the road-free models are exact
+            if model == "euler" and base is None
+            else (min(lead, stored - n_steps), max(0, min(tail, stored - n_steps - lead)))
         )
     try:
         margin = tuple(int(m) for m in margin)
@@ -494,6 +496,11 @@ def validate(cfg) -> dict:
     if margin[0] + n_steps > stored:
         raise DatasetError(
             f"{path}: input_margin before = {margin[0]} + n_steps = {n_steps} exceed the {stored} stored steps"
+        )
+    if occupant is not None and occupant["delay"] is not None and min(margin) < 1:
+        raise ConfigError(
+            f"{path}: delay={cfg.get('delay')!r} reads the input beyond the window's ends, and n_steps={n_steps} of the "
+            f"{stored} stored steps leaves input_margin={list(margin)}: give n_steps <= {stored - 2 * lead} or delay=null"
         )
     needed = max(needed, min(stored, margin[0] + n_steps + margin[1]))
     if base is not None:  # the road-free models are continuous-time, with their initial state estimated
