@@ -190,6 +190,16 @@ def check_known_keys(cfg) -> None:
     walk(cfg, _known_key_tree(), "")
 
 
+def check_spline_degree(cfg) -> int:
+    """spline_degree (configs/estimate.yaml): 3, 5 or 7; ConfigError otherwise."""
+    from hybridqcm.estimation.exact import SPLINE_DEGREES
+
+    degree = cfg.get("spline_degree", 5)
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree not in SPLINE_DEGREES:
+        raise ConfigError(f"spline_degree={degree!r}: choose one of {list(SPLINE_DEGREES)}")
+    return int(degree)
+
+
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
@@ -456,6 +466,7 @@ def validate(cfg) -> dict:
         raise ConfigError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
+    check_spline_degree(cfg)
     return {
         "path": path,
         "split": split,
