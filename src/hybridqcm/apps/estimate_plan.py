@@ -347,7 +347,10 @@ def validate(cfg) -> dict:
     split = str(cfg.data.split)
     if split not in info["splits"]:
         raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
-    keys = info["splits"][split]["keys"]
+    from hybridqcm.apps.estimate_seat import seat_view_plan
+
+    seat_view = seat_view_plan(cfg, path, split, info, base)  # a seat of a half / full car file (issue 30)
+    keys = info["splits"][split]["keys"] if seat_view is None else seat_view["keys"]
     for key in ("accel",) + (("road",) if base is None else ()):
         if key not in keys:
             raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
@@ -377,7 +380,7 @@ def validate(cfg) -> dict:
                 f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
                 f"(use n_samples<={n_total} or null for all)"
             )
-        if has_params:
+        if has_params and seat_view is None:  # a seat view's p1, p2 come from checked physical parameters
             check_positive_params(
                 path, split, handle[split]["params"], n_total if cfg.n_samples is None else int(cfg.n_samples)
             )
@@ -422,6 +425,11 @@ def validate(cfg) -> dict:
         )
     margin = cfg.get("input_margin", "auto")
     occupant = occupant_plan(cfg, base)
+    if seat_view is not None and occupant is not None:
+        raise ConfigError(
+            f"{path}: occupant.models / delay on a seat of a {seat_view['vehicle']} file: its seats hold rigid "
+            f"occupants on one clock (use the defaults of experiment=occupant_roadfree)"
+        )
     # a channel delay reads the input that far beyond the window's ends too
     lead = max(4, delay_margin(cfg, h_file or 0.01)) if occupant is not None else 4
     tail = max(8, lead)
@@ -487,6 +495,7 @@ def validate(cfg) -> dict:
         "base_excitation": base,
         "n_params": n_params,
         "occupant": occupant,
+        "seat": None if seat_view is None else seat_view["seat"],
         "sensor": sensor,
         "input_margin": margin,
         "n_steps": n_steps,

@@ -7,9 +7,10 @@ Random draws per split generator, in the order roads, vehicles, warm-ups.
 
 Layout of a split (data/hdf5.py reads it; the names attributes make every column explicit):
 
-    /<split>/accel, vel, disp  float32 [M, T, n_dof]   attribute dofs   (z3[_<seat>]..., z2, z1<w>..., pitch[, roll])
-    /<split>/road              float32 [M, T, n_wheels] attribute wheels (f, b | fl, fr, bl, br) in metres
-    /<split>/road_vel          float32 [M, T, n_wheels] attribute wheels (only where tyres are damped) m/s
+    /<split>/accel             float32 [M, T, n_dof]    attribute dofs   (z3[_<seat>]..., z2, z1<w>..., pitch[, roll])
+    /<split>/vel, disp         float64 [M, T, n_dof]    attribute dofs
+    /<split>/road              float64 [M, T, n_wheels] attribute wheels (f, b | fl, fr, bl, br) in metres
+    /<split>/road_vel          float64 [M, T, n_wheels] attribute wheels (only where tyres are damped) m/s
     /<split>/physical          float64 [M, P]           attribute names  (physics/vehicle_geometry.py)
     /<split>/state0            float64 [M, 2 n_dof]     attribute names  (v_<dof>..., q_<dof>...) at the window start
     /<split>/road_class int8 [M], profile_id int32 [M]
@@ -146,16 +147,19 @@ def write_vehicle_dataset(
     }
     n, n_w, P = layout.n_dof, len(layout.wheels), len(layout.param_names)
     model = VehicleModel(layout)
+    # accel as the quarter car's (float32: a logger's resolution); vel, disp and the road in float64: the
+    # tyre's deflection z1 - u is a small difference of large numbers (long road waves lift wheel and road
+    # by decimetres), and float32 would leave ~1e-5 of the wheel's acceleration in its equation of motion
     extra = {
         "accel": (np.dtype("float32"), (n_steps, n)),
-        "vel": (np.dtype("float32"), (n_steps, n)),
-        "disp": (np.dtype("float32"), (n_steps, n)),
-        "road": (np.dtype("float32"), (n_steps, n_w)),
+        "vel": (np.dtype("float64"), (n_steps, n)),
+        "disp": (np.dtype("float64"), (n_steps, n)),
+        "road": (np.dtype("float64"), (n_steps, n_w)),
         "physical": (np.dtype("float64"), (P,)),
         "state0": (np.dtype("float64"), (2 * n,)),
     }
     if layout.tyre_damping:
-        extra["road_vel"] = (np.dtype("float32"), (n_steps, n_w))
+        extra["road_vel"] = (np.dtype("float64"), (n_steps, n_w))
     column_names = {
         **{key: list(layout.dofs) for key in ("accel", "vel", "disp")},
         "road": list(layout.wheels),
@@ -205,9 +209,9 @@ def write_vehicle_dataset(
                 )
                 if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp", "road")):
                     raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
-                arrays = {key: batch[key].float().numpy() for key in ("accel", "vel", "disp", "road")}
+                arrays = {key: batch[key].numpy().astype(extra[key][0]) for key in ("accel", "vel", "disp", "road")}
                 if layout.tyre_damping:
-                    arrays["road_vel"] = batch["road_vel"].float().numpy()
+                    arrays["road_vel"] = batch["road_vel"].numpy()
                 writer.write(
                     split,
                     first * samples_per_profile,

@@ -291,8 +291,9 @@ def physical_problems(layout: VehicleLayout, physical: Tensor, where: str = "phy
         if bool(bad.any()):
             i = int(bad.nonzero()[0])
             kind = _QUANTITY.get(name[0], "value")
+            article = "an" if kind[0] in "aeiou" else "a"
             problems.append(
-                f"{where}[{i}, {j}] ({name}) = {float(column[i])!r}: a {kind} must be {need} "
+                f"{where}[{i}, {j}] ({name}) = {float(column[i])!r}: {article} {kind} must be {need} "
                 f"({int(bad.sum())} such row(s))"
             )
     if problems:
