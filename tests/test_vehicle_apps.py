@@ -49,19 +49,29 @@ def _one_line_error(proc: subprocess.CompletedProcess, message: str) -> None:
     assert message in lines[-1], lines[-1]
 
 
+def _simulate(folder: Path, *overrides: str) -> dict:
+    """qcm-simulate's run() in this process (its config composed as the console composes it)."""
+    from hybridqcm.apps.simulate import run
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(
+            "simulate",
+            overrides=[*overrides, f"paths.root_dir={folder}", f"paths.output_dir={folder}", "progress=false"],
+        )
+    return run(cfg)
+
+
 @pytest.fixture(scope="module")
 def files(tmp_path_factory) -> dict[str, Path]:
-    """A half car (the source's seat) and a full car (driver + rear_left, damped tyres) from qcm-simulate."""
+    """A half car (the source's seat) and a full car (driver + rear_left, damped tyres) from qcm-simulate's run()."""
     root = tmp_path_factory.mktemp("vehicles")
     out = {}
     for key, overrides in {
         "hcm": ["vehicle=half_car"],
         "fcm": ["vehicle=full_car", "seats=[driver,rear_left]", "tyre_damping=true"],
     }.items():
-        path = root / f"{key}.h5"
-        proc = _run("qcm-simulate", root / f"sim_{key}", *overrides, *SMALL, f"output={path}")
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        out[key] = path
+        out[key] = root / f"{key}.h5"
+        _simulate(root, *overrides, *SMALL, f"output={out[key]}")
     return out
 
 
@@ -103,8 +113,7 @@ def test_quarter_car_files_are_unchanged(tmp_path):
     from hybridqcm.physics.road import RoadProfile
 
     cli = tmp_path / "cli.h5"
-    proc = _run("qcm-simulate", tmp_path / "sim", "preset=tiny", f"output={cli}", "n_steps=64")
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    _simulate(tmp_path, "preset=tiny", f"output={cli}", "n_steps=64")
     direct = tmp_path / "direct.h5"
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("simulate", overrides=["preset=tiny", "n_steps=64"])
@@ -157,8 +166,8 @@ def test_hcm_full_observation_run(files, tmp_path):
     assert (tmp_path / "run" / "calibration.csv").exists() and (tmp_path / "run" / "error_distribution.md").exists()
 
 
-def test_road_free_seat_of_a_full_car(files, tmp_path):
-    """occupant_roadfree seat=<name>: the seat's z3 driven by its base z2 + x_s pitch + y_s roll."""
+def test_road_free_seat_of_a_full_car(files):
+    """occupant_roadfree seat=<name> reads the seat's z3 and its base z2 + x_s pitch + y_s roll."""
     seat = read_seat_split(files["fcm"], "test", "rear_left", ("accel", "params"))
     raw = read_split(files["fcm"], "test", ("accel", "physical"))
     with h5py.File(files["fcm"]) as f:
@@ -175,6 +184,25 @@ def test_road_free_seat_of_a_full_car(files, tmp_path):
     np.testing.assert_array_equal(seat["accel"][..., 0], raw["accel"][..., dofs.index("z3_rear_left")])
     assert np.isnan(seat["accel"][..., 2]).all() and np.isnan(seat["params"][:, 2:]).all()
     np.testing.assert_allclose(seat["params"][:, 1], P["k3_rear_left"] / P["m3_rear_left"], rtol=1e-12)
+    # the quarter car's road-free pipeline reads it: the plan names the seat, the batch is the seat's
+    from hybridqcm.apps.estimate_inputs import build_inputs
+
+    cfg = _cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2")
+    plan = validate(cfg)
+    assert plan["seat"] == "rear_left" and plan["has_params"] and plan["base_excitation"] == "seat"
+    batch = build_inputs(cfg, plan)
+    T = plan["n_read_steps"]
+    torch.testing.assert_close(batch["accel"][:, :, :2], torch.as_tensor(seat["accel"][:2, :T, :2]).double())
+    torch.testing.assert_close(batch["true"][:, :2], torch.as_tensor(seat["params"][:2, :2]))
+
+
+@pytest.mark.slow
+def test_road_free_seat_run(files, tmp_path):
+    """experiment=occupant_roadfree seat=rear_left from the console: the seat's occupant within 0.5 %."""
+    raw = read_split(files["fcm"], "test", ("physical",))
+    with h5py.File(files["fcm"]) as f:
+        names = _names(f["test/physical"].attrs["names"])
+    P = {n: raw["physical"][:, j] for j, n in enumerate(names)}
     proc = _run(
         "qcm-estimate",
         tmp_path / "run",
@@ -258,6 +286,7 @@ def test_bad_vehicle_inputs_are_one_line(files, tmp_path, tiny_dataset):
             "holds a full_car (attribute vehicle), but experiment exp5 fits the quarter car",
         ),
         (validate_vehicle, ["experiment=hcm_full_observation", hcm, "known=[k9]"], "known: 'k9' is not a parameter"),
+        (validate_vehicle, ["experiment=hcm_full_observation", hcm, "known=[l_f]"], "one common factor of every mass"),
         (
             validate_vehicle,
             ["experiment=fcm_full_observation", fcm, "sensor=additive", "sensor.sigma=[0.01,0.02,0.03]"],
@@ -310,8 +339,6 @@ def test_bad_vehicle_inputs_on_the_console(files, tmp_path):
         ),
         "seat 'far' at (x, y) = (3, 0) m is outside the chassis",
     )
-    _one_line_error(
-        _run("qcm-simulate", tmp_path / "s2", "vehicle=van", *SMALL, f"output={tmp_path / 'y.h5'}"),
-        "vehicle='van': choose one of ['quarter_car', 'half_car', 'full_car']",
-    )
+    with pytest.raises(ValueError, match=r"vehicle='van': choose one of \['quarter_car', 'half_car', 'full_car'\]"):
+        _simulate(tmp_path, "vehicle=van", *SMALL, f"output={tmp_path / 'y.h5'}")
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "y.h5").exists()

@@ -78,6 +78,12 @@ def _known_names(cfg, layout: VehicleLayout, model: VehicleModel) -> list[str]:
         out += [n for n in matches if n not in out]
     if len(out) == len(model.param_names):
         raise ConfigError(f"known lists all {len(out)} parameters of the {layout.kind}: nothing left to estimate")
+    if not any(n not in layout.signed_names and not n.startswith(("l_", "w_")) for n in out):
+        # docs/notes/vehicles.md, "What the data identify": M, C, K, F times one factor leave every acceleration
+        raise ConfigError(
+            f"known={out}: one common factor of every mass, inertia, stiffness and damping is not in the data; "
+            f"hold one of them known (the experiments hold the seats' k3: known=[k3])"
+        )
     return out
 
 
@@ -183,7 +189,7 @@ def validate_vehicle(cfg) -> dict:
             settings = {**interval_settings(cfg), **settings}
             if settings.get("covariance") == "auto":  # the road is known and the residual whitened: model
                 settings["covariance"] = "model"
-        if window is not None and int(window) < 30 and initial != "rest":
+        if window is not None and int(window) < int(cfg.get("min_window_unknown_state", 30)) and initial != "rest":
             continue  # x0 unknown: short continuation windows hold more unknowns than data (as the quarter car)
         stages.append(
             {
@@ -366,6 +372,8 @@ def run_vehicle(cfg, build_trainer) -> dict:
         block_stage_stats,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
+    if trainer.world_size > 1:  # as apps/estimate.py: tensors to spawned ranks through the file system
+        torch.multiprocessing.set_sharing_strategy("file_system")
     t_solve = time.perf_counter()
     if pending:
         if len(pending) < len(blocks):
