@@ -474,7 +474,11 @@ def validate(cfg) -> dict:
         raise ConfigError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
-    check_spline_degree(cfg)
+    if check_spline_degree(cfg) != 5 and occupant is not None:  # estimate_occupant builds its own (quintic) models
+        raise ConfigError(
+            f"spline_degree={cfg.spline_degree}: the occupant models and the channel delay use the quintic hold; "
+            f"leave spline_degree=5"
+        )
     return {
         "path": path,
         "split": split,
