@@ -287,6 +287,7 @@ def test_bad_vehicle_inputs_are_one_line(files, tmp_path, tiny_dataset):
         ),
         (validate_vehicle, ["experiment=hcm_full_observation", hcm, "known=[k9]"], "known: 'k9' is not a parameter"),
         (validate_vehicle, ["experiment=hcm_full_observation", hcm, "known=[l_f]"], "one common factor of every mass"),
+        (validate_vehicle, ["experiment=hcm_full_observation", hcm, "init.equation_error=maybe"], "choose false, true"),
         (
             validate_vehicle,
             ["experiment=fcm_full_observation", fcm, "sensor=additive", "sensor.sigma=[0.01,0.02,0.03]"],

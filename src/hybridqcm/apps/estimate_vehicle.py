@@ -120,6 +120,8 @@ def validate_vehicle(cfg) -> dict:
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     degree = check_spline_degree(cfg)
+    if cfg.init.get("equation_error", False) not in (False, True, "seats"):
+        raise ConfigError(f"init.equation_error={cfg.init.equation_error!r}: choose false, true (every row) or seats")
     initial = str(cfg.initial_state)
     if initial not in ("auto", "unknown", "rest"):
         raise ConfigError(f"initial_state={initial!r}: choose auto, unknown or rest")
@@ -384,7 +386,12 @@ def run_vehicle(cfg, build_trainer) -> dict:
         loader = torch.utils.data.DataLoader(
             VehicleBlocks(settings, plan, pending), batch_size=None, sampler=RankBlocks(len(pending))
         )
-        module = VehicleFront(plan["n_steps"], plan["input_margin"])
+        start = None
+        mode = cfg.init.get("equation_error", False)  # the rows of the equations of motion by least squares
+        if mode:
+            known = torch.tensor([n in plan["known"] for n in model.param_names])
+            start = (layout, tuple(model.param_names), known, plan["h"], str(mode) == "seats")
+        module = VehicleFront(plan["n_steps"], plan["input_margin"], start)
         module.allow_zero_length_dataloader_with_multiple_devices = True
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Couldn't infer the batch indices")

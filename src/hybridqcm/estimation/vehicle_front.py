@@ -22,14 +22,19 @@ from torch import Tensor
 
 
 class VehicleFront(LightningModule):
-    """Batches of vehicle recordings -> GN problems (module docstring); no trainable part."""
+    """Batches of vehicle recordings -> GN problems (module docstring); no trainable part.
 
-    def __init__(self, n_steps: int, input_margin: Sequence[int] = (4, 8)) -> None:
+    ``equation_error``: (layout, param_names, known [P] bool, h, seats_only) — the start moved from the
+    batch's init to the equation-error estimate of the GN window (estimation/vehicle_init.py; seats_only:
+    the seats' quantities only); None: the init as given."""
+
+    def __init__(self, n_steps: int, input_margin: Sequence[int] = (4, 8), equation_error: tuple | None = None) -> None:
         super().__init__()
         self.n_steps = int(n_steps)
         self.input_margin = tuple(int(m) for m in input_margin)
         if self.n_steps < 2 or len(self.input_margin) != 2 or min(self.input_margin) < 0:
             raise ValueError(f"VehicleFront: n_steps >= 2 and two margins >= 0, got {n_steps}, {list(input_margin)}")
+        self.equation_error = equation_error
 
     @torch.no_grad()
     def prepare(self, batch: Mapping[str, Tensor]) -> dict:
@@ -45,6 +50,14 @@ class VehicleFront(LightningModule):
             "index": batch["index"],
             "input_offset": before,
         }
+        if self.equation_error is not None:
+            from .vehicle_init import equation_error_start
+
+            layout, names, known, h, seats_only = self.equation_error
+            window = inputs[:, before : before + self.n_steps]
+            problem["init"] = equation_error_start(
+                layout, names, problem["targets"], window, h, problem["init"], known, seats_only=seats_only
+            )
         if batch.get("noise_std") is not None:  # a known sensor noise floor per channel
             problem["weights"] = 1.0 / batch["noise_std"].double()
         return problem
