@@ -176,3 +176,31 @@ def test_equation_error_start_reads_the_rows(recordings, key):
     )
     torch.testing.assert_close(only[:, seat], ee[:, seat])
     assert torch.equal(only[:, ~seat], start[:, ~seat])
+
+
+def test_a_stage_without_its_uncertainty_pass(recordings):
+    """SolverConfig.uncertainty=False: the same estimate, no covariance (std inf), residual tests not run."""
+    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+
+    layout, model, a, inputs, true = recordings["half"]
+    response = ExactResponse(model, 0.01, "spline", 16, "unknown", 7)
+    x0 = torch.cat([a["vel"][:, 4], a["disp"][:, 4]], -1)
+    known = torch.tensor([n.startswith("k3") for n in model.param_names] + [False] * model.n_state)
+    problem = LeastSquaresProblem(
+        a["accel"][:, 4:64],
+        inputs[:, :72],
+        model=response,
+        known=known,
+        input_offset=4,
+        observed=(True,) * model.n_output,
+    )
+    start = torch.cat([true * 1.02, x0], -1)
+    start[:, : model.n_params][:, known[: model.n_params]] = true[:, known[: model.n_params]]
+    full = build_solver("gauss_newton", max_iterations=5).solve(problem, start)
+    quick = build_solver("gauss_newton", max_iterations=5, uncertainty=False).solve(problem, start)
+    torch.testing.assert_close(quick.params, full.params, rtol=0, atol=0)
+    judged = (full.status != 2) & (full.status != 5)  # singular / misfit come from the uncertainty pass
+    assert torch.equal(quick.status[judged], full.status[judged])
+    assert bool(torch.isinf(quick.std[:, ~known]).all()) and bool((quick.std[:, known] == 0).all())
+    assert bool(torch.isfinite(full.std[:, ~known]).all())
+    assert bool(torch.isinf(quick.whiteness).all())
