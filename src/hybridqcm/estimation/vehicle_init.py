@@ -21,8 +21,8 @@ chains them into every physical parameter:
 
 (averaged in the least-squares sense where several rows give the same quantity). Noise-free it lands
 within the integration error of the truth; with sensor noise the integrated noise biases it (errors in
-variables), which GN then removes. A value that is not finite, of the wrong sign, or more than a factor
-``max_ratio`` from the previous start keeps the previous start's (usually the reference vehicle's).
+variables), which GN then removes. A value that is not finite, of the wrong sign, or out of the prior's
+reach of the previous start (equation_error_start) keeps the previous start's (the reference vehicle's).
 """
 
 from __future__ import annotations
@@ -68,13 +68,17 @@ def equation_error_start(
     h: float,
     start: Tensor,
     known: Tensor,
-    max_ratio: float = 5.0,
+    max_ratio: float = 1.5,
     seats_only: bool = False,
 ) -> Tensor:
     """Parameters [b, P] (``param_names``, a VehicleModel's) from accelerations accel [b, T, n_dof] and
     road inputs [b, T, n_in] (heights, then velocities with damped tyres) of one window. ``start``
     [b, P] is the previous start: its known entries (``known`` [P] bool) are kept and give the scale
-    (the seats' k3), and it is the fallback for any value the regressions cannot give.
+    (the seats' k3), and it is the fallback for any value the regressions cannot give, or give out
+    of the prior's reach of it: a vehicle quantity more than ``max_ratio`` (a length more than 20 %)
+    from the start, an occupant mass more than 3x, a seat more than 0.5 m away (under sensor noise a
+    row can come out far off; GN started there may settle in a wrong basin that restarts around the
+    start do not leave).
     ``seats_only``: take only the seats' m3, c3, x_s, y_s from the regressions (their rows stay sharp
     under sensor noise; the body's and wheels' rows regress on doubly integrated noise and come out
     biased by tens of per cent at 5 % noise, worse than a start from the reference vehicle)."""
@@ -148,10 +152,11 @@ def equation_error_start(
             continue
         new, old = derived[name], start[:, j]
         if name.startswith(("x_s", "y_s")):
-            ok = torch.isfinite(new) & ((new - old).abs() <= 1.0)  # metres: a seat stays on the car
+            ok = torch.isfinite(new) & ((new - old).abs() <= 0.5)  # metres
         else:
+            bound = 3.0 if name.startswith("m3") else (1.2 if name.startswith(("l_", "w_")) else max_ratio)
             ratio = new / old
-            ok = torch.isfinite(ratio) & (ratio > 1 / max_ratio) & (ratio < max_ratio)
+            ok = torch.isfinite(ratio) & (ratio > 1 / bound) & (ratio < bound)
         out[:, j] = torch.where(ok, new, old)
     return out
 
