@@ -190,10 +190,52 @@ def test_road_free_seat_of_a_full_car(files):
     cfg = _cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2")
     plan = validate(cfg)
     assert plan["seat"] == "rear_left" and plan["has_params"] and plan["base_excitation"] == "seat"
+    # occupant_roadfree's default: the persons' selection (rigid, body1, body2, delay auto) on a seat too
+    assert plan["occupant"]["models"] == ["rigid", "body1", "body2"] and plan["occupant"]["delay"] == "auto"
     batch = build_inputs(cfg, plan)
     T = plan["n_read_steps"]
     torch.testing.assert_close(batch["accel"][:, :, :2], torch.as_tensor(seat["accel"][:2, :T, :2]).double())
     torch.testing.assert_close(batch["true"][:, :2], torch.as_tensor(seat["params"][:2, :2]))
+
+
+def test_apparent_mass_plot_of_a_seat(files, tmp_path, monkeypatch):
+    """The occupant selection's plots on a seat view show the seat's z3 over its base z2 + x_s pitch + y_s
+    roll (composed here from the stored chassis motion), not the file's first two columns."""
+    import scipy.signal
+
+    import hybridqcm.plots
+    from hybridqcm.apps.estimate_occupant import plot_first_recordings
+
+    plan = validate(_cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2"))
+    raw = read_split(files["fcm"], "test", ("accel", "physical"), index=slice(1, 2))
+    with h5py.File(files["fcm"]) as f:
+        dofs = _names(f["test/accel"].attrs["dofs"])
+        names = _names(f["test/physical"].attrs["names"])
+    P = {n: raw["physical"][0, j] for j, n in enumerate(names)}
+    a = raw["accel"][0].astype(np.float64)
+    a3 = a[:, dofs.index("z3_rear_left")]
+    a2 = (
+        a[:, dofs.index("z2")]
+        + P["x_s_rear_left"] * a[:, dofs.index("pitch")]
+        + P["y_s_rear_left"] * a[:, dofs.index("roll")]
+    )
+    p2 = P["k3_rear_left"] / P["m3_rear_left"]
+    table = tmp_path / "estimates.csv"
+    table.write_text(
+        "index,status,p1,p2,m3,m3_low,m3_high\n"
+        + f"1,converged,{P['c3_rear_left'] / P['m3_rear_left']},{p2},{P['m3_rear_left']},0,1000\n"
+    )
+    seen = []
+    monkeypatch.setattr(hybridqcm.plots, "plot_apparent_mass", lambda f, measured, *rest: seen.append((f, measured)))
+    monkeypatch.setattr(hybridqcm.plots, "close", lambda figure: None)
+    plot_first_recordings(tmp_path, plan, table)
+    assert len(seen) == 1
+    nper = min(256, a2.shape[0])
+    freq, s22 = scipy.signal.welch(a2, fs=1 / plan["h"], nperseg=nper)
+    _, s23 = scipy.signal.csd(a2, a3, fs=1 / plan["h"], nperseg=nper)
+    band = (freq >= 0.5) & (freq <= 15)
+    np.testing.assert_allclose(seen[0][0], freq[band])
+    np.testing.assert_allclose(seen[0][1], (s23 / s22)[band], rtol=1e-4)
 
 
 @pytest.mark.slow
@@ -214,8 +256,11 @@ def test_road_free_seat_run(files, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     with open(tmp_path / "run" / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
+    assert len(rows) == 4
     for i, row in enumerate(rows):
         assert abs(float(row["m3"]) / P["m3_rear_left"][i] - 1) < 0.005
+        assert row["occupant_model"] == "rigid"  # the simulated seats hold rigid occupants: the selection says so
+    assert len(list((tmp_path / "run" / "plots").glob("apparent_mass_*.png"))) == 4
 
 
 def test_seat_view_trains_a_cnn(files):
@@ -305,7 +350,9 @@ def test_bad_vehicle_inputs_are_one_line(files, tmp_path, tiny_dataset):
             "is a quarter-car file",
         ),
         (validate, ["experiment=occupant_roadfree", fcm, "seat=driver", "K3=1000"], "pass K3=98935.0"),
-        (validate, ["experiment=occupant_persons", hcm], "hold rigid occupants on one clock"),
+        # main's setting checks hold for the vehicles' runs too
+        (validate_vehicle, ["experiment=hcm_full_observation", hcm, "n_samples=abc"], "n_samples='abc': give a whole"),
+        (validate_vehicle, ["experiment=hcm_full_observation", hcm, "trainer.devices=0"], "trainer.devices=0: give"),
     ]
     edits = {
         "dofs": (_rename("test/accel", "dofs", "pitch", "yaw"), "attribute dofs = ["),
@@ -322,6 +369,8 @@ def test_bad_vehicle_inputs_are_one_line(files, tmp_path, tiny_dataset):
             check(_cfg(*overrides))
         text = str(error.value)
         assert message in text and "\n" not in text, (overrides, text)
+    # init.equation_error takes `seats` besides true and false on a vehicle (not a switch's type error)
+    assert validate_vehicle(_cfg("experiment=hcm_full_observation", hcm, "init.equation_error=seats"))["known"]
 
 
 def test_bad_vehicle_inputs_on_the_console(files, tmp_path):

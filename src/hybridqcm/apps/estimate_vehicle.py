@@ -30,7 +30,13 @@ from lightning.fabric.utilities.rank_zero import rank_zero_only
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError
 from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows
-from hybridqcm.apps.estimate_plan import check_known_keys, check_spline_degree, interval_settings, solver_settings
+from hybridqcm.apps.estimate_plan import (
+    check_known_keys,
+    check_setting_types,
+    check_spline_degree,
+    interval_settings,
+    solver_settings,
+)
 from hybridqcm.apps.estimate_report import STATUS_HEADER, block_stage_stats, log_stage_losses, merge_stage_stats
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.apps.estimate_vehicle_report import (
@@ -90,6 +96,8 @@ def _known_names(cfg, layout: VehicleLayout, model: VehicleModel) -> list[str]:
 def validate_vehicle(cfg) -> dict:
     """Every setting and input checked before any work; returns the plan. ConfigError/DatasetError otherwise."""
     check_known_keys(cfg)
+    check_setting_types(cfg, own=("init.equation_error",))  # true, false or seats: checked below
+    common.check_trainer_settings(cfg.get("trainer"))
     common.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
@@ -354,7 +362,12 @@ def run_vehicle(cfg, build_trainer) -> dict:
     common.check_writable_dir(run_dir)
     store = ShardStore(run_dir, run_fingerprint(cfg, [plan["path"]]))
     if rank_zero_only.rank == 0:
-        runfolder.prepare_run_dir(run_dir, runfolder.ESTIMATE_ARTEFACTS, bool(cfg.get("overwrite", False)))
+        runfolder.prepare_run_dir(
+            run_dir,
+            runfolder.ESTIMATE_ARTEFACTS,
+            bool(cfg.get("overwrite", False)),
+            scratch=runfolder.ESTIMATE_SCRATCH,
+        )
         if cfg.get("overwrite", False):
             store.remove()
     n_samples = plan["n_samples"]
