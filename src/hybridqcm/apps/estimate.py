@@ -104,11 +104,22 @@ def build_refinement(cfg, plan):
     known_mask[plan["known"]] = True
     if plan["base_excitation"] is None:
         response = quarter_car_response(
-            plan["model"], plan["h"], bool(cfg.pu_known), plan["initial_state"], str(cfg.hold), int(cfg.substeps)
+            plan["model"],
+            plan["h"],
+            bool(cfg.pu_known),
+            plan["initial_state"],
+            str(cfg.hold),
+            int(cfg.substeps),
+            int(cfg.get("spline_degree", 5)),
         )
     else:
         response = base_excitation_response(
-            plan["base_excitation"], plan["h"], plan["initial_state"], str(cfg.hold), int(cfg.substeps)
+            plan["base_excitation"],
+            plan["h"],
+            plan["initial_state"],
+            str(cfg.hold),
+            int(cfg.substeps),
+            int(cfg.get("spline_degree", 5)),
         )
     # The reference vehicle (vehicle:) on the model's own p: the vehicle prior's mean, the restarts' centre.
     names = response.theta_names[: response.n_params]
@@ -237,6 +248,10 @@ def build_trainer(cfg, callbacks, run_dir: Path) -> lightning.Trainer:
 
 # --------------------------------------------------------------------------------------------------
 def run(cfg) -> dict:
+    if str(cfg.get("vehicle_model", "quarter_car")) != "quarter_car":  # the half and full car (issue 30)
+        from hybridqcm.apps.estimate_vehicle import run_vehicle
+
+        return run_vehicle(cfg, build_trainer)
     t_start = time.perf_counter()
     plan = validate(cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")

@@ -83,7 +83,16 @@ def build_inputs(cfg, plan: Mapping, rows: slice | None = None, streams: _Stream
     road_free = plan["base_excitation"] is not None
     keys = ["accel"] + ([] if road_free else ["road"]) + (["params"] if plan["has_params"] else [])
     try:
-        arrays = read_split(plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(start, stop))
+        if plan.get("seat") is not None:  # one seat of a half / full car, in the quarter car's layout
+            from hybridqcm.data.vehicle_files import read_seat_split
+
+            arrays = read_seat_split(
+                plan["path"], plan["split"], plan["seat"], keys, n_steps=plan["n_read_steps"], index=slice(start, stop)
+            )
+        else:
+            arrays = read_split(
+                plan["path"], plan["split"], keys, n_steps=plan["n_read_steps"], index=slice(start, stop)
+            )
     except DatasetError as error:
         if start == 0:
             raise

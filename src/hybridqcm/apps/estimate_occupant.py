@@ -183,7 +183,13 @@ def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
     if not rows:
         return []
     index = np.array([int(r["index"]) for r in rows])
-    accel = read_split(plan["path"], plan["split"], ("accel",), index=index, check_finite=False)["accel"]
+    if plan.get("seat") is not None:  # a seat of a half / full car, in the quarter car's layout (a3, a2, a1)
+        from hybridqcm.data.vehicle_files import read_seat_split
+
+        accel = read_seat_split(plan["path"], plan["split"], plan["seat"], ("accel",), index=index, check_finite=False)
+        accel = accel["accel"]
+    else:
+        accel = read_split(plan["path"], plan["split"], ("accel",), index=index, check_finite=False)["accel"]
     h = plan["h"]
     modes = max((int(k[1:]) for k in rows[0] if k[:1] == "r" and k[1:].isdigit()), default=0)
     names = ["p1", "p2"] + [f"{k}{i}" for i in range(1, modes + 1) for k in ("r", "k", "c")]

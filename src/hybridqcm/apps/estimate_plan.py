@@ -190,6 +190,16 @@ def check_known_keys(cfg) -> None:
     walk(cfg, _known_key_tree(), "")
 
 
+def check_spline_degree(cfg) -> int:
+    """spline_degree (configs/estimate.yaml): 3, 5 or 7; ConfigError otherwise."""
+    from hybridqcm.estimation.exact import SPLINE_DEGREES
+
+    degree = cfg.get("spline_degree", 5)
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree not in SPLINE_DEGREES:
+        raise ConfigError(f"spline_degree={degree!r}: choose one of {list(SPLINE_DEGREES)}")
+    return int(degree)
+
+
 def window_check_settings(cfg):
     """skip_windows.{min_std, clip_samples} as an estimation.window_check.WindowCheck; ConfigError naming key and value."""
     from hybridqcm.estimation.window_check import WindowCheck
@@ -227,12 +237,15 @@ def _setting_types() -> dict[str, set[str]]:
     return types
 
 
-def check_setting_types(cfg) -> None:
+def check_setting_types(cfg, own: tuple[str, ...] = ()) -> None:
     """A number or a switch given as something else (`n_samples=abc`, `plots=maybe`): one line naming
-    key and value, before any work. The type is the one every default of the key has."""
+    key and value, before any work. The type is the one every default of the key has; ``own``: keys the
+    caller checks itself (the vehicle's init.equation_error also takes `seats`)."""
     from omegaconf import OmegaConf
 
     for key, names in _setting_types().items():
+        if key in own:
+            continue
         value = OmegaConf.select(cfg, key, default=None)
         if value is None and "NoneType" in names:
             continue
@@ -396,7 +409,10 @@ def validate(cfg) -> dict:
     split = str(cfg.data.split)
     if split not in info["splits"]:
         raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
-    keys = info["splits"][split]["keys"]
+    from hybridqcm.apps.estimate_seat import seat_view_plan
+
+    seat_view = seat_view_plan(cfg, path, split, info, base)  # a seat of a half / full car file (issue 30)
+    keys = info["splits"][split]["keys"] if seat_view is None else seat_view["keys"]
     for key in ("accel",) + (("road",) if base is None else ()):
         if key not in keys:
             raise DatasetError(f"{path}: /{split} lacks dataset {key!r}, which GN needs (it has {keys})")
@@ -426,7 +442,7 @@ def validate(cfg) -> dict:
                 f"n_samples={cfg.n_samples} but {path} /{split} holds {n_total} samples "
                 f"(use n_samples<={n_total} or null for all)"
             )
-        if has_params:
+        if has_params and seat_view is None:  # a seat view's p1, p2 come from checked physical parameters
             check_positive_params(
                 path, split, handle[split]["params"], n_total if cfg.n_samples is None else int(cfg.n_samples)
             )
@@ -522,6 +538,11 @@ def validate(cfg) -> dict:
         raise ConfigError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
     if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
+    if check_spline_degree(cfg) != 5 and occupant is not None:  # estimate_occupant builds its own (quintic) models
+        raise ConfigError(
+            f"spline_degree={cfg.spline_degree}: the occupant models and the channel delay use the quintic hold; "
+            f"leave spline_degree=5"
+        )
     return {
         "path": path,
         "split": split,
@@ -542,6 +563,7 @@ def validate(cfg) -> dict:
         "base_excitation": base,
         "n_params": n_params,
         "occupant": occupant,
+        "seat": None if seat_view is None else seat_view["seat"],
         "sensor": sensor,
         "input_margin": margin,
         "n_steps": n_steps,

@@ -6,6 +6,7 @@ Examples:
     qcm-simulate preset=small physics=euler                  # the source protocol: Euler from rest
     qcm-simulate h=0.002 n_steps=2560              # a 500 Hz logger (same 5.12 s window)
     qcm-simulate preset=small occupant=body1       # seated persons: seat pan + one body mode
+    qcm-simulate vehicle=full_car seats=[driver,rear_left] output=data/fcm.h5   # the full car (issue 30)
     qcm-simulate output=data/mine.h5 seed=7 prior=physical overwrite=true
     qcm-simulate --cfg job                         # show the resolved configuration
 """
@@ -123,6 +124,19 @@ def run(cfg: DictConfig) -> dict:
     occupant = check_occupant_physics(cfg.get("occupant", "rigid"), physics)
     warmup_s = OmegaConf.to_container(cfg.window, resolve=True).get("warmup_s")
     warmup_s = check_warmup(DEFAULT_WARMUP_S[physics] if warmup_s is None else warmup_s)
+    vehicle = str(cfg.get("vehicle", "quarter_car"))
+    if vehicle not in ("quarter_car", "half_car", "full_car"):
+        raise ValueError(f"vehicle={vehicle!r}: choose one of ['quarter_car', 'half_car', 'full_car']")
+    if vehicle != "quarter_car":  # the half and full car (issue 30): apps/simulate_vehicle.py
+        from hybridqcm.apps.simulate_vehicle import run_vehicle_simulation
+
+        check_splits(OmegaConf.to_container(cfg.splits, resolve=True))
+        summary_path = Path(cfg.paths.output_dir) / "summary.json"
+        check_writable_dir(summary_path.parent)
+        splits = OmegaConf.to_container(cfg.splits, resolve=True)
+        summary = run_vehicle_simulation(cfg, output, warmup_s, splits, kmh_to_mps(cfg.speed_kmh))
+        atomic_write_text(summary_path, json.dumps({"output": str(output), "vehicle": vehicle, **summary}, indent=2))
+        return summary
     check_step(float(cfg.h), physics, occupant)
     check_splits(OmegaConf.to_container(cfg.splits, resolve=True))
     summary_path = Path(cfg.paths.output_dir) / "summary.json"

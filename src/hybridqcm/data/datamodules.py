@@ -302,10 +302,14 @@ class HDF5DataModule(_BaseDataModule):
         val_fraction: float = 0.1,
         limit_train: int | None = None,
         limit_test: int | None = None,
+        seat: str | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
         self.path = Path(str(path))
+        # a half / full car file: the channels of this seat, in the quarter car's layout (a3 the seat, a2 its
+        # base; p1, p2 its c3/m3, k3/m3; data/vehicle_files.read_seat_split); None: a quarter-car file
+        self.seat = None if seat is None else str(seat)
         self.train_split, self.test_split = train_split, test_split
         if not 0 <= float(val_fraction) < 1:
             raise ValueError(f"HDF5DataModule: val_fraction must be in [0, 1), got {val_fraction}")
@@ -324,7 +328,7 @@ class HDF5DataModule(_BaseDataModule):
                 raise DatasetError(
                     f"{self.path}: split {split!r} not found; available splits: {sorted(info['splits'])}"
                 )
-            have = info["splits"][split]["keys"]
+            have = self._keys(info, split)
             missing = sorted(needed - set(have))
             if missing:
                 raise DatasetError(
@@ -338,13 +342,29 @@ class HDF5DataModule(_BaseDataModule):
                 )
         return info
 
+    def _keys(self, info: dict, split: str) -> list[str]:
+        """The keys /<split> offers: the file's, or its seat view's (data/vehicle_files.py)."""
+        from hybridqcm.data.vehicle_files import QUARTER_CAR, seat_split_info, vehicle_of
+
+        if vehicle_of(info) == QUARTER_CAR:
+            if self.seat is not None:
+                raise DatasetError(f"{self.path}: data.seat={self.seat!r} but this is a quarter-car file (one seat)")
+            return info["splits"][split]["keys"]
+        return seat_split_info(self.path, split, self.seat)["keys"]
+
     def _read(self, split: str, limit: int | None, info: dict) -> dict[str, torch.Tensor]:
         needed, optional = self.spec.keys()
-        have = set(info["splits"][split]["keys"])
+        have = set(self._keys(info, split))
         keys = sorted(needed | (optional & have))
         n = info["splits"][split]["n_samples"]
         index = slice(0, min(n, limit)) if limit is not None else None
-        arrays = read_split(self.path, split, keys, n_steps=self.window, index=index)
+        from hybridqcm.data.vehicle_files import QUARTER_CAR, read_seat_split, vehicle_of
+
+        if vehicle_of(info) != QUARTER_CAR:  # a seat of a half / full car
+            arrays = read_seat_split(self.path, split, self.seat, keys, n_steps=self.window, index=index)
+            arrays.pop("k3", None)
+        else:
+            arrays = read_split(self.path, split, keys, n_steps=self.window, index=index)
         m = arrays[keys[0]].shape[0]
         tensors = self.spec.build(arrays, torch.arange(m))
         for part, names in (("x", self.spec.inputs), ("aux", self.spec.aux), ("y", self.spec.targets)):

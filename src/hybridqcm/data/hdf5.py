@@ -236,6 +236,16 @@ def dataset_info(path: str | os.PathLike) -> dict:
     return {"path": str(path), "attrs": attrs, "splits": splits, "physics": physics, "initial_state": initial_state}
 
 
+def column_names(data: h5py.Dataset) -> list[str] | None:
+    """The names of a stored array's last axis, where its producer wrote them: the ``dofs`` of a
+    half-car / full-car file's accel/vel/disp, the ``wheels`` of its road, the ``names`` of its
+    physical parameters; None for the quarter car's fixed layout."""
+    for attr in ("dofs", "wheels", "names"):
+        if attr in data.attrs:
+            return [v.decode() if isinstance(v, bytes) else str(v) for v in np.atleast_1d(data.attrs[attr])]
+    return None
+
+
 def recorded_channels(path: str | os.PathLike, split: str = "test") -> list[str]:
     """Accelerometer channels of /<split>/accel (of a3, a2, a1) that hold any finite value."""
     arrays = read_split(path, split, ("accel",))
@@ -286,12 +296,16 @@ def read_split(
                 rows, inverse = _row_selection(path, split, index, n_samples)
             elif data.shape[0] != n_samples:
                 raise DatasetError(f"{path}: /{split}/{key} has {data.shape[0]} samples, other keys have {n_samples}")
-            if key in TIME_KEYS:
+            if key in TIME_KEYS or key == "road_vel":
                 stored = data.shape[1] if data.ndim > 1 else 0
                 expected_tail = (3,) if key != "road" else ()
+                named = column_names(data)  # a half-car / full-car file names its columns (dofs, wheels)
+                if named is not None:
+                    expected_tail = (len(named),)
                 if data.ndim != 2 + len(expected_tail) or tuple(data.shape[2:]) != expected_tail:
                     raise DatasetError(
-                        f"{path}: /{split}/{key} has shape {data.shape}, expected [M, n_steps{', 3' if expected_tail else ''}]"
+                        f"{path}: /{split}/{key} has shape {data.shape}, expected "
+                        f"[M, n_steps{''.join(f', {d}' for d in expected_tail)}]"
                     )
                 window = stored if n_steps is None else int(n_steps)
                 if window < 1 or window > stored:
@@ -463,6 +477,14 @@ class DatasetWriter:
     def set_split_attr(self, split: str, key: str, value) -> None:
         assert self._handle is not None
         self._handle[split].attrs[key] = value
+
+    def set_dataset_attr(self, split: str, key: str, name: str, value) -> None:
+        """An attribute of /<split>/<key> (a list of strings is stored as a string array: the column
+        names of a half-car / full-car file, e.g. accel's ``dofs``)."""
+        assert self._handle is not None
+        if isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            value = np.array(value, dtype=h5py.string_dtype())
+        self._handle[split][key].attrs[name] = value
 
     def set_attr(self, key: str, value) -> None:
         assert self._handle is not None

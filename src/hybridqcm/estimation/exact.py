@@ -74,7 +74,7 @@ from ._modal import modal_outputs, modal_sensitivities
 HOLDS = ("spline", "foh", "zoh")
 METHODS = ("modal", "recursion")
 OUTPUT_METHODS = ("auto",) + METHODS
-SPLINE_DEGREES = (3, 5)
+SPLINE_DEGREES = (3, 5, 7)  # 7: for inputs with content near a quarter of the sampling rate (stiff tyres)
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
 _TAYLOR_THETA = 0.25
@@ -200,7 +200,7 @@ def _cubic_spline_matrix(T: int, m: int) -> Tensor:
 
 def spline_matrix(n_samples: int, substeps: int, degree: int = 5) -> Tensor:
     """[(T-1) m + 1, T] map from T uniform samples to the interpolating spline of odd ``degree``
-    (3 or 5, not-a-knot end conditions) at m sub-steps per interval (row k m + j is t_k + j h/m).
+    (3, 5 or 7, not-a-knot end conditions) at m sub-steps per interval (row k m + j is t_k + j h/m).
     Degree 5 is scipy's make_interp_spline(k=5) applied to the identity; with fewer than 6 samples
     it falls back to the cubic, which is natural for T = 3 and linear for T <= 2. Cached per (T, m, k).
     A spline of degree k reproduces polynomials of degree <= k exactly."""

@@ -141,6 +141,7 @@ class ExactResponse(ResponseModel):
         hold: str = "spline",
         substeps: int = 4,
         initial_state: str = "unknown",
+        spline_degree: int = 5,
     ) -> None:
         if initial_state not in INITIAL_STATES:
             raise ValueError(f"initial_state={initial_state!r}: choose one of {list(INITIAL_STATES)}")
@@ -149,12 +150,22 @@ class ExactResponse(ResponseModel):
         if not h > 0:
             raise ValueError(f"h must be > 0, got {h}")
         self.model, self.h, self.hold, self.substeps = model, float(h), hold, int(substeps)
+        self.spline_degree = int(spline_degree)  # of the spline hold (estimation/exact.py)
         self.with_x0 = initial_state == "unknown"
         self.n_params = len(model.param_names)
         self.theta_names = tuple(model.param_names) + (
             tuple(f"x0_{s}" for s in model.state_names) if self.with_x0 else ()
         )
         self.output_names = tuple(model.output_names)
+
+    @property
+    def positive(self) -> Tensor:
+        """As ResponseModel's, less the parameters the model says may take either sign (its
+        ``signed_params``, e.g. a seat's coordinates on a vehicle)."""
+        mask = super().positive
+        for name in getattr(self.model, "signed_params", ()):
+            mask[self.theta_names.index(name)] = False
+        return mask
 
     def _split(self, theta: Tensor) -> tuple[Tensor, Tensor | None]:
         return theta[:, : self.n_params], (theta[:, self.n_params :] if self.with_x0 else None)
@@ -165,19 +176,38 @@ class ExactResponse(ResponseModel):
             return inputs
         samples = _as_3d(inputs).to(torch.float64)
         n_steps = samples.shape[1] - start if n_steps is None else int(n_steps)
-        held = held_input(samples, self.hold, self.substeps, start, n_steps)  # [W, m, b]
+        held = held_input(samples, self.hold, self.substeps, start, n_steps, self.spline_degree)  # [W, m, b]
         return PreparedInputs(samples, held.permute(2, 1, 0).contiguous(), int(start), n_steps)
 
     def outputs(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
         samples, window = self._unpack(inputs, start, n_steps)
-        return exact_outputs(self.model, params, x0, samples, self.h, self.hold, self.substeps, **window)
+        return exact_outputs(
+            self.model,
+            params,
+            x0,
+            samples,
+            self.h,
+            self.hold,
+            self.substeps,
+            spline_degree=self.spline_degree,
+            **window,
+        )
 
     def sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, x0 = self._split(theta)
         samples, window = self._unpack(inputs, start, n_steps)
         return exact_sensitivities(
-            self.model, params, x0, samples, self.h, self.hold, self.substeps, with_x0=self.with_x0, **window
+            self.model,
+            params,
+            x0,
+            samples,
+            self.h,
+            self.hold,
+            self.substeps,
+            with_x0=self.with_x0,
+            spline_degree=self.spline_degree,
+            **window,
         )
 
     @staticmethod
@@ -207,14 +237,20 @@ def _as_3d(inputs: Tensor) -> Tensor:
 
 
 def quarter_car_response(
-    model: str, h: float, scaled_road: bool, initial_state: str = "unknown", hold: str = "spline", substeps: int = 4
+    model: str,
+    h: float,
+    scaled_road: bool,
+    initial_state: str = "unknown",
+    hold: str = "spline",
+    substeps: int = 4,
+    spline_degree: int = 5,
 ) -> ResponseModel:
     """The road-driven quarter car as the solver's model: ``model="euler"`` (source protocol, from rest)
     or ``"exact"`` (continuous-time physics)."""
     if model == "euler":
         return EulerResponse(h, scaled_road, initial_state)
     if model == "exact":
-        return ExactResponse(QuarterCarRoad(scaled_road=scaled_road), h, hold, substeps, initial_state)
+        return ExactResponse(QuarterCarRoad(scaled_road=scaled_road), h, hold, substeps, initial_state, spline_degree)
     raise ValueError(f"model={model!r}: choose exact or euler")
 
 
@@ -222,10 +258,10 @@ BASE_MODELS = {"seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}
 
 
 def base_excitation_response(
-    name: str, h: float, initial_state: str = "unknown", hold: str = "spline", substeps: int = 4
+    name: str, h: float, initial_state: str = "unknown", hold: str = "spline", substeps: int = 4, spline_degree: int = 5
 ) -> ResponseModel:
     """A road-free model driven by a measured acceleration (SPEC §9): ``seat`` (a2 -> a3; p1, p2) or
     ``sprung`` (a1 -> a3, a2; p1..p6), always continuous-time (exact discretisation)."""
     if name not in BASE_MODELS:
         raise ValueError(f"base excitation model {name!r}: choose one of {sorted(BASE_MODELS)}")
-    return ExactResponse(BASE_MODELS[name](), h, hold, substeps, initial_state)
+    return ExactResponse(BASE_MODELS[name](), h, hold, substeps, initial_state, spline_degree)

@@ -118,6 +118,10 @@ class SolverConfig:
     #               (correlations of "model"). The app chooses per model (intervals.covariance: auto in
     #               configs/estimate.yaml; apps/estimate_plan.resolve_covariance).
     covariance: str = "model"
+    # False: skip the final Jacobian pass (standard deviations, covariance, misfit test) — for a stage whose
+    # result only starts the next one (window continuation); its std is then inf and its residual tests
+    # unevaluated (inf), never a status it did not earn.
+    uncertainty: bool = True
     covariance_band: int = 1
     covariance_dof: bool = True  # jackknife: Student-t quantile at its Satterthwaite degrees of freedom
     lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
@@ -495,7 +499,33 @@ class NonlinearLeastSquares:
         status[outside] = SolverStatus.DIVERGED
         history_t = torch.stack(history)
         history_t = torch.where(torch.isfinite(history_t), history_t, torch.zeros_like(history_t))
+        if not cfg.uncertainty:
+            return self._unfinished(problem, params, status, iterations, loss, history_t, seconds, free)
         return self._finish(problem, params, targets, road, free, status, iterations, loss, history_t, seconds)
+
+    @staticmethod
+    def _unfinished(problem, params, status, iterations, loss, history, seconds, free) -> SolverResult:
+        """The result without its final Jacobian pass (SolverConfig.uncertainty = False): std inf (not
+        evaluated; 0 for known entries), no covariance, residual tests not run (inf)."""
+        batch, n_theta = params.shape[0], problem.n_theta
+        std = torch.full((batch, n_theta), math.inf, dtype=params.dtype)
+        std[:, problem.known] = 0.0
+        unknown = torch.full((batch,), math.inf, dtype=params.dtype)
+        return SolverResult(
+            params=params,
+            status=status,
+            iterations=iterations,
+            loss=loss,
+            loss_history=history,
+            std=std,
+            covariance=torch.zeros(batch, n_theta, n_theta, dtype=params.dtype),
+            singular_values=torch.zeros(batch, free.numel(), dtype=params.dtype),
+            residual_variance=torch.zeros(batch, dtype=params.dtype),
+            seconds=seconds,
+            relative_residual=unknown,
+            whiteness=unknown.clone(),
+            model_std=std.clone(),
+        )
 
     # --- pieces -------------------------------------------------------------------------
     def _prior_terms(self, problem, free_params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
