@@ -35,6 +35,7 @@ from omegaconf import DictConfig
 
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm.apps.estimate_drive import aggregate_drives, drive_columns, drive_plan, model_names
 from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
 from hybridqcm.apps.estimate_occupant import build_selection, plot_first_recordings
 from hybridqcm.apps.estimate_plan import (
@@ -229,6 +230,7 @@ def build_trainer(cfg, callbacks, run_dir: Path) -> lightning.Trainer:
 def run(cfg) -> dict:
     t_start = time.perf_counter()
     plan = validate(cfg)
+    drive = drive_plan(cfg, plan)  # aggregate=drive: the file's drives checked now (None: per window only)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     common.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
@@ -245,12 +247,15 @@ def run(cfg) -> dict:
     theta_names = list(refinement.response.theta_names)
     n_theta_params = refinement.response.n_params  # with body modes and a delay: more than the n_params scored
     extra = list(getattr(refinement, "extra_columns", []))
+    tables = functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra)
+    if drive is not None:  # each window's shared parameters and covariance travel with its block
+        tables = drive_columns(tables, refinement, n_theta_params)
     writer = ShardWriter(
         store,
         refinement,
         estimates_header(theta_names, n_theta_params, extra),
         STATUS_HEADER,
-        functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra),
+        tables,
         block_stage_stats,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
@@ -329,6 +334,8 @@ def run(cfg) -> dict:
         cfg, columns, columns.get("true"), plan["known"], run_dir, plan["n_steps"], noise=noise
     )
     summary.update(metrics)
+    if drive is not None:
+        summary["drive_aggregate"] = aggregate_drives(cfg, plan, drive, columns, run_dir, model_names(refinement))
     summary["noise"] = noise
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).

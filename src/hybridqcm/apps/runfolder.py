@@ -27,6 +27,8 @@ ESTIMATE_ARTEFACTS = (
     "error_distribution.csv",
     "error_distribution.md",
     "calibration.csv",
+    "drives.csv",
+    "drive_progress.csv",
     "summary.json",
     "plots",
     "tb",
