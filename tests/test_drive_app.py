@@ -42,6 +42,7 @@ def _plan(profile_id, t_start, names, window_s=5.0, **settings):
         outlier_alpha=0.01,
         neighbours=2,
         plots=1,
+        per_window=("tau",),
     )
     defaults.update(settings)
     return DrivePlan(

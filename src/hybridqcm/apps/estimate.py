@@ -335,7 +335,9 @@ def run(cfg) -> dict:
     )
     summary.update(metrics)
     if drive is not None:
-        summary["drive_aggregate"] = aggregate_drives(cfg, plan, drive, columns, run_dir, model_names(refinement))
+        summary["drive_aggregate"] = aggregate_drives(
+            cfg, plan, drive, columns, run_dir, model_names(refinement), theta_names[:n_theta_params]
+        )
     summary["noise"] = noise
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).

@@ -108,6 +108,7 @@ class DrivePlan:
     outlier_alpha: float
     neighbours: int
     plots: int
+    per_window: tuple[str, ...]
     profile_id: np.ndarray
     t_start: np.ndarray
     names: tuple[str, ...]
@@ -126,6 +127,14 @@ def _count(settings, key: str, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ConfigError(f"drive.{key}={value!r}: give an integer >= {low}")
     return int(value)
+
+
+def _names(settings, key: str) -> tuple[str, ...]:
+    value = settings.get(key, ["tau"])
+    value = [] if value is None else [value] if isinstance(value, str) else list(value)
+    if any(str(v) in ("p1", "p2") for v in value):
+        raise ConfigError(f"drive.{key}={value}: p1 and p2 (the occupant) are what the windows share")
+    return tuple(str(v) for v in value)
 
 
 def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
@@ -185,6 +194,7 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         outlier_alpha=_fraction(settings, "outlier_alpha"),
         neighbours=_count(settings, "neighbours", 1),
         plots=_count(settings, "plots", 0),
+        per_window=_names(settings, "per_window"),
         profile_id=profile_id,
         t_start=t_start,
         names=tuple(names),
@@ -264,12 +274,14 @@ def _mass_form(columns: Mapping, rows: np.ndarray, K3: float) -> tuple[torch.Ten
     return m3[:, None], (sd**2)[:, None, None]
 
 
-def _drive_gaussians(columns: Mapping, rows: np.ndarray, drive: DrivePlan, K3: float):
-    """(combiner, mass_index, K3 or None, model label) for the usable windows ``rows`` of one drive."""
+def _drive_gaussians(columns: Mapping, rows: np.ndarray, drive: DrivePlan, K3: float, names: Sequence[str]):
+    """(combiner, index of p2 or of the mass, K3 or None) for the usable windows ``rows`` of one drive:
+    the parameters every window estimated and none keeps for itself (drive.per_window), or the mass."""
     models = columns["drive_model"][rows]
     theta, cov = columns["drive_theta"][rows], columns["drive_cov"][rows]
     weight_cov = columns["drive_model_cov"][rows] if drive.weights == "model" else None
-    finite = _present(theta, cov).all(0)
+    shared = torch.tensor([n not in drive.per_window for n in names[: theta.shape[1]]], dtype=torch.bool)
+    finite = _present(theta, cov).all(0) & shared
     same = bool((models == models[0]).all()) and bool(finite[1])
     if same:
         keep = finite.nonzero().squeeze(1)
@@ -289,9 +301,16 @@ def _label(models: torch.Tensor, names: Sequence[str]) -> str:
 
 
 def aggregate_drives(
-    cfg, plan: Mapping, drive: DrivePlan, columns: Mapping, run_dir: Path, names: Sequence[str]
+    cfg,
+    plan: Mapping,
+    drive: DrivePlan,
+    columns: Mapping,
+    run_dir: Path,
+    names: Sequence[str],
+    param_names: Sequence[str] = ("p1", "p2"),
 ) -> dict:
     """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
+    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...).
     Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
     K3 = float(cfg.K3)
     status = columns["status"]
@@ -345,7 +364,7 @@ def aggregate_drives(
             for r in rows:
                 progress_rows.append([name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0])
             continue
-        combiner, index, k3 = _drive_gaussians(columns, good, drive, K3)
+        combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
         local = list(range(good.size))  # positions in `good`, time order
         outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
         for o in outliers:
