@@ -695,6 +695,8 @@ def make_drives(args) -> None:
     rng = np.random.default_rng(args.seed)
     v = draw_vehicles(args.n, rng)
     v["C1"] = np.zeros(args.n)
+    if tuple(args.m3_range) != (30.0, 150.0):  # the same stream; occupants mapped into the range asked for
+        v["m3"] = args.m3_range[0] + (v["m3"] - 30.0) / 120.0 * (args.m3_range[1] - args.m3_range[0])
     two = bool(args.two_files)
     stop = None
     if args.stop_s > 0:  # the stop half-way, the drive's length is driving time
@@ -958,6 +960,7 @@ def main(argv=None) -> None:
     dr.add_argument("--drift-ppm", type=float, default=100.0, help="two files: largest relative clock drift")
     dr.add_argument("--start-spread-s", type=float, default=30.0, help="two files: loggers start this far apart")
     dr.add_argument("--horizontal", type=float, default=0.2, help="two files: horizontal acceleration RMS [m/s²]")
+    dr.add_argument("--m3-range", type=float, nargs=2, default=[30.0, 150.0], help="occupant mass U(A, B) [kg]")
     dr.add_argument("--whole", action="store_true", help="also whole.h5: each drive clean, for occupant_crb.py")
     dr.add_argument("--seed", type=int, default=0)
     sd = sub.add_parser("score-drives", help="score a qcm-estimate aggregate=drive run folder")

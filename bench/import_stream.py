@@ -39,6 +39,7 @@ def _child(reader: str, csv: str, out: str, window: int, old_source: str | None)
     else:
         spec = importlib.util.spec_from_file_location("old_importer", old_source)
         old = importlib.util.module_from_spec(spec)
+        sys.modules["old_importer"] = old  # dataclasses look their module up there
         spec.loader.exec_module(old)
         data = old.read_recordings(csv, **kwargs)
         old.write_recordings(out, data, overwrite=True)

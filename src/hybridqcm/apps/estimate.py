@@ -240,7 +240,11 @@ def run(cfg) -> dict:
         if cfg.get("overwrite", False):
             store.remove()
     n_samples, n_params = plan["n_samples"], plan["n_params"]
-    blocks = block_rows(n_samples, int(cfg.batch_size))
+    # a block holds at most block_samples time steps (recordings x steps read): long windows, fewer per block
+    per_block = int(cfg.batch_size)
+    if cfg.get("block_samples"):
+        per_block = min(per_block, max(1, int(cfg.block_samples) // int(plan["n_read_steps"])))
+    blocks = block_rows(n_samples, per_block)
     pending = store.pending(blocks)  # a finished block (matching marker) of an interrupted run is kept
 
     refinement = build_refinement(cfg, plan)

@@ -27,7 +27,7 @@ import numpy as np
 
 from hybridqcm.errors import DatasetError
 
-BLOCK_BYTES = 4 << 20  # 4 MiB of text per block: ~100 000 rows of t, a3, a2
+BLOCK_BYTES = 1 << 20  # 1 MiB of text per block: ~30 000 rows of t, a3, a2 (4 MiB: no faster, 80 MB more peak memory)
 
 
 class CsvStreamError(DatasetError):
