@@ -549,8 +549,17 @@ GRAVITY = 9.80665  # m/s², what an accelerometer at rest reads along the vertic
 PHONE_HEADER = "Time (s),Acceleration x (m/s^2),Acceleration y (m/s^2),Acceleration z (m/s^2)"
 
 
+def _active(A: np.ndarray, B: np.ndarray):
+    """(A, B) without the bodies that nothing links (a person's unused body: mass 1, no springs): their
+    states never move, and their zero eigenvalues (a Jordan block) have no eigen-decomposition."""
+    nb = A.shape[0] // 2
+    used = [j for j in range(nb) if np.any(A[nb + j] != 0) or np.any(A[nb:, j] != 0) or np.any(A[nb:, nb + j] != 0)]
+    keep = used + [nb + j for j in used]
+    return A[np.ix_(keep, keep)], B[keep]
+
+
 def impulse_responses(v, dt: float, n_max: int) -> np.ndarray:
-    """[n, L, 3] accelerations (a3, a2, a1) of each rigid-occupant vehicle of `v` to a unit triangular road
+    """[n, L, 3] accelerations (a3, a2, a1) of each vehicle of `v` (rigid occupant or person) to a unit triangular road
     pulse u_j = δ_j0 on the fine step dt (the road linear between fine points: _foh's first-order hold,
     exact). A drive's response is the causal convolution with u (an LTI system from rest). With
     x_{j+1} = Ad x_j + G0 u_j + G1 u_{j+1}: x_0 = G1, x_1 = Ad G1 + G0, x_j = Ad^(j-1) x_1, so h_0 = Ac G1 + Bc
@@ -558,16 +567,17 @@ def impulse_responses(v, dt: float, n_max: int) -> np.ndarray:
     mode has decayed to 1e-12, at most n_max (a longer tail never reaches a drive of n_max steps). The
     reference vehicle's chassis bounce is barely damped (the soft tyre spring in series: Re λ ≈ -0.04/s), so
     L is minutes, not seconds."""
-    if np.any(v["C1"] != 0) or "occupant" in v:
-        raise ValueError("impulse_responses: drives take a rigid occupant without a tyre damper")
+    if np.any(v["C1"] != 0):
+        raise ValueError("impulse_responses: drives take no tyre damper (the road's slope is not an input here)")
     n = len(v["m3"])
-    systems = [_state_space(v, i) for i in range(n)]
+    systems = [_active(*_state_space(v, i)) for i in range(n)]
     mats = [_foh(A, B, dt) for A, B in systems]
     slowest = max(np.max(np.real(np.linalg.eigvals(A))) for A, _ in systems)
     L = int(min(n_max, np.ceil(np.log(1e-12) / (slowest * dt)) + 1))
     out = np.empty((n, L, 3))
     for i, ((A, B), (Ad, G0, G1)) in enumerate(zip(systems, mats)):
-        Ac, Bc = A[3:6], B[3:6, 0]  # accelerations from the state and from u (the tyre spring on the wheel)
+        nb = A.shape[0] // 2  # bodies: seat (pan), chassis, wheel[, person's a, b]
+        Ac, Bc = A[nb : nb + 3], B[nb : nb + 3, 0]  # accelerations from the state and from u (the tyre spring)
         out[i, 0] = Ac @ G1[:, 0] + Bc
         lam, V = np.linalg.eig(Ad)
         weights = (Ac @ V) * np.linalg.solve(V, Ad @ G1[:, 0] + G0[:, 0])[None, :]  # [3, 6]
@@ -697,6 +707,10 @@ def make_drives(args) -> None:
     v["C1"] = np.zeros(args.n)
     if tuple(args.m3_range) != (30.0, 150.0):  # the same stream; occupants mapped into the range asked for
         v["m3"] = args.m3_range[0] + (v["m3"] - 30.0) / 120.0 * (args.m3_range[1] - args.m3_range[0])
+    if args.occupant != "rigid":
+        if args.change:
+            sys.exit("foreign_sim drives: --change takes rigid occupants")
+        draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]))
     two = bool(args.two_files)
     stop = None
     if args.stop_s > 0:  # the stop half-way, the drive's length is driving time
@@ -746,6 +760,8 @@ def make_drives(args) -> None:
     for i in range(args.n):
         name = f"drive{i:0{width}d}"
         record = {"m3": float(v["m3"][i]), "p1": float(params[i, 0]), "p2": float(params[i, 1])}
+        if "occupant" in v:  # the static mass on the seat spring (pan + person), as `make` reports it
+            record["occupant"] = OCCUPANTS[int(v["occupant"][i])]
         record["road_class"] = ISO_CLASSES[int(cls[i])]
         if stop is not None:
             record["stop_s"] = [stop[0], stop[1]]
@@ -961,6 +977,7 @@ def main(argv=None) -> None:
     dr.add_argument("--start-spread-s", type=float, default=30.0, help="two files: loggers start this far apart")
     dr.add_argument("--horizontal", type=float, default=0.2, help="two files: horizontal acceleration RMS [m/s²]")
     dr.add_argument("--m3-range", type=float, nargs=2, default=[30.0, 150.0], help="occupant mass U(A, B) [kg]")
+    dr.add_argument("--occupant", choices=(*OCCUPANTS, "mixed"), default="rigid", help="rigid mass or seated person")
     dr.add_argument("--whole", action="store_true", help="also whole.h5: each drive clean, for occupant_crb.py")
     dr.add_argument("--seed", type=int, default=0)
     sd = sub.add_parser("score-drives", help="score a qcm-estimate aggregate=drive run folder")

@@ -33,8 +33,10 @@ is split with probability ≤ α per test), and each side is searched again.
 
 **Isolated outliers** (:func:`isolated_outliers`). A single window that disagrees with the windows on
 *both* sides of it (its ``neighbours`` nearest used windows each side; at a drive's end, with the one
-side it has) beyond the χ²_d quantile at α / n is a wrong answer (a local minimum, a bump), not a new
-occupant: it is rejected, the worst first, one at a time. A change of occupant agrees with one side.
+side it has) and with all the others together, beyond the χ²_d quantile at α / n, is a wrong answer (a
+stop's noise fitted, a local minimum, a bump), not a new occupant: it is rejected, the worst first, one
+at a time. A change of occupant agrees with one side; a precise window among imprecise neighbours agrees
+with the rest of the drive.
 
 **Time to decision** (:func:`time_to_precision`): the driving time after which the 95 % interval of the
 drive's running estimate stays within ±x of that estimate.
@@ -164,7 +166,7 @@ def segment(combiner: Combiner, windows: Sequence[int], min_windows: int = 2, al
 
 
 def isolated_outliers(
-    combiner: Combiner, windows: Sequence[int], alpha: float = 0.01, neighbours: int = 2
+    combiner: Combiner, windows: Sequence[int], alpha: float = 0.001, neighbours: int = 2
 ) -> list[int]:
     """The windows (in time order) rejected as isolated outliers (module docstring), in rejection order."""
     kept, rejected = list(windows), []
@@ -172,9 +174,9 @@ def isolated_outliers(
         threshold = _quantile(alpha, len(kept), combiner.dim)
         worst, which = threshold, None
         for i, w in enumerate(kept):
-            sides = [kept[max(0, i - neighbours) : i], kept[i + 1 : i + 1 + neighbours]]
+            sides = [kept[max(0, i - neighbours) : i], kept[i + 1 : i + 1 + neighbours], kept[:i] + kept[i + 1 :]]
             stats = [wald(combiner.combine([w]), combiner.combine(side)) for side in sides if side]
-            if stats and min(stats) > worst:
+            if min(stats) > worst:
                 worst, which = min(stats), i
         if which is None:
             break
