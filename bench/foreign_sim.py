@@ -4,6 +4,8 @@
     .venv/bin/python bench/foreign_sim.py make --out data/foreign.csv --n 1 --steps 6000   (one drive, qcm-import)
     .venv/bin/python bench/foreign_sim.py make --out data/persons.h5 --n 400 --occupant mixed --delay-ms-range -20 20
     .venv/bin/python bench/foreign_sim.py score RUN_DIR [--data data/foreign.h5] [--json score.json]
+    .venv/bin/python bench/foreign_sim.py drives --out data/drives --n 300 [--stop-s 10 --change | --two-files]
+    .venv/bin/python bench/foreign_sim.py score-drives RUN_DIR --truth data/drives/truth.json   (aggregate=drive)
 
 Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and differs from
 `physics/continuous.py` wherever a real car's simulator could:
@@ -57,6 +59,12 @@ Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and di
 mass hung on the pan; body2 hangs a on the pan and b on a; unused columns 0; also the dataset's attr
 `columns`), and with a delay `/test/truth_delay_s`. With a `.csv` output it writes one long drive of the
 first vehicle in the layout `qcm-import` reads (t, a3, a2, a1 in m/s²), its truth in a `.json` beside.
+`drives` writes drives of any length (minutes to an hour) of one vehicle each, for qcm-import: one CSV with
+a recording column (t, a3, a2 on one clock), or per drive a seat and a floor logger's CSV (phone-app columns,
+own clock, rate, jitter, tilt, gravity), and truth.json; made by the exact convolution of the road with each
+vehicle's first-order-hold impulse response (impulse_responses; see docs/notes/drives.md). `score-drives`
+scores a qcm-estimate aggregate=drive run folder against it (mean / worst drive error, coverage, time to
+±5 / ±2 %, splits at an occupant change and without one).
 `score` reads a qcm-estimate run folder and prints the occupant mass error and status counts, how many
 answers more than a tolerance off are still called `converged`, the chosen occupant models, the 95 %
 interval coverage of m3, and the honesty count: `converged`, more than 10 % off and the truth outside

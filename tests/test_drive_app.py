@@ -153,8 +153,8 @@ def test_drive_plan_needs_the_drives_layout(tmp_path):
 
 def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path):
     """Two 32 s drives (2 % noise) with a 6 s stop half-way and another occupant after it: imported with
-    4 s windows, estimated (no restarts: the stop's windows would only cost time), each split at the stop
-    (± one window), each segment within 3 % of its occupant."""
+    4 s windows, estimated in blocks of at most 2 000 steps (no restarts: the stop's windows would only cost
+    time), each split at the stop (± one window), each segment within 3 % of its occupant."""
     out = tmp_path / "drives"
     fs.main(["drives", "--out", str(out), "--n", "2", "--duration", "32", "--stop-s", "6", "--change"]
             + ["--noise", "0.02", "--seed", "4"])  # fmt: skip
@@ -163,7 +163,7 @@ def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree", f"data.path={h5}"]
     proc = subprocess.run(
-        cmd + ["aggregate=drive", "restarts.count=0", f"hydra.run.dir={run}", "progress=false"],
+        cmd + ["aggregate=drive", "restarts.count=0", "block_samples=2000", f"hydra.run.dir={run}", "progress=false"],
         capture_output=True,
         text=True,
         timeout=600,
@@ -181,6 +181,7 @@ def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path):
             assert abs(float(seg["m3"]) / m3 - 1) < 0.03
     summary = json.loads((run / "summary.json").read_text())
     assert summary["drive_aggregate"]["drives_split"] == 2
+    assert summary["blocks"] == 4  # block_samples: 5 windows of 400 steps read per block at most, 18 windows
     assert len(_rows(run / "drive_progress.csv")) == data.n_samples
 
 

@@ -19,8 +19,10 @@ Outputs in the run folder:
                         driving time t_s since the segment's start
     plots/drive_*.png   mass and 95 % band against driving time (also in TensorBoard, tb/, tag drive/...)
 
-What is combined: θ = the chosen occupant model's parameters (p1, p2, and τ or body modes where fitted)
-when every used window of the drive chose the same model; m3 = K3/p2 with its interval mapped from p2's.
+What is combined: θ = the chosen occupant model's parameters (p1, p2, body modes where fitted) when every
+used window of the drive chose the same model, less those each window keeps for itself (drive.per_window,
+default the channel delay τ: with two loggers it drifts with their clocks, so it is marginalised like the
+initial state); m3 = K3/p2 with its interval mapped from p2's.
 Where the windows chose different models (a person fitted with body1 here and body2 there) their
 parameters mean different things, and the static mass m3 alone is combined: per window m3 with the
 standard deviation of its reported 95 % interval, (m3_high − m3_low)/3.92 (an occupant-model selection's
