@@ -5,6 +5,7 @@ from the simulator that is not ours (bench/foreign_sim.py) through qcm-import.""
 import csv
 import importlib.util
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,7 @@ from hybridqcm.apps.estimate_drive import DrivePlan, aggregate_drives, drive_pla
 from hybridqcm.data.importer import read_recordings, write_recordings
 from hybridqcm.errors import DatasetError
 from hybridqcm.estimation.solver import SolverStatus
+from hybridqcm.estimation.window_check import WindowStatus
 
 REPO = Path(__file__).resolve().parents[1]
 K3 = 98935.0
@@ -138,6 +140,30 @@ def test_windows_of_different_models_combine_the_static_mass(tmp_path):
     assert float(row["m3"]) == pytest.approx(expected, rel=1e-12)
 
 
+def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
+    """no_signal / clipped windows (kept from the fit: NaN estimates, estimation/window_check.py) are never
+    combined and are counted apart from the rejected ones; a drive of nothing else has no estimate."""
+    rng = np.random.default_rng(3)
+    status = [0, int(WindowStatus.NO_SIGNAL), 0, 0, int(SolverStatus.MISFIT), 0]
+    status += [int(WindowStatus.CLIPPED), int(WindowStatus.NO_SIGNAL)]
+    columns = _columns([70.0] * 6 + [90.0] * 2, 0.01, rng, status)
+    for key in ("drive_theta", "drive_cov", "drive_model_cov", "m3_low", "m3_high"):
+        columns[key][[1, 6, 7]] = math.nan  # as drive_skipped_columns / skipped_tables write them
+    plan = _plan([0] * 6 + [1] * 2, [5.0 * k for k in range(6)] + [0.0, 5.0], ["A", "B"])
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"])
+    a, b = _rows(tmp_path / "drives.csv")
+    assert (a["windows"], a["windows_used"], a["windows_skipped"], a["windows_rejected"]) == ("6", "4", "1", "1")
+    assert abs(float(a["m3"]) / 70.0 - 1) < 0.02 and a["status"] == "ok"
+    assert (b["status"], b["windows_skipped"], b["windows_rejected"]) == ("no_usable_window", "2", "0")
+    assert "drive B: every one of its 2 window(s)" in capsys.readouterr().out
+    used_column = [r["used"] for r in _rows(tmp_path / "drive_progress.csv")]
+    assert used_column == ["used", "skipped:no_signal", "used", "used", "rejected:misfit", "used"] + [
+        "skipped:clipped",
+        "skipped:no_signal",
+    ]
+
+
 def test_drive_plan_needs_the_drives_layout(tmp_path):
     path = tmp_path / "no_t.h5"
     with h5py.File(path, "w") as f:
@@ -151,19 +177,31 @@ def test_drive_plan_needs_the_drives_layout(tmp_path):
         drive_plan(cfg, {"path": path, "split": "test", "n_samples": 3, "h": 0.01})
 
 
-def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path):
+@pytest.mark.parametrize(
+    "occupant",
+    [
+        pytest.param(["occupant.models=[rigid]", "delay=null"], id="rigid"),
+        # occupant_roadfree's default: rigid, body1, body2 by evidence, delay auto (191 s on 2 shared cores)
+        pytest.param([], id="default-models", marks=pytest.mark.slow),
+    ],
+)
+def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path, occupant):
     """Two 32 s drives (2 % noise) with a 6 s stop half-way and another occupant after it: imported with
     4 s windows, estimated in blocks of at most 2 000 steps (no restarts: the stop's windows would only cost
-    time), each split at the stop (± one window), each segment within 3 % of its occupant."""
+    time), each split at the stop (± one window), each segment within 3 % of its occupant. One window of the
+    first drive is all zeros (a logger standing still): skipped (no_signal), counted, not combined."""
     out = tmp_path / "drives"
     fs.main(["drives", "--out", str(out), "--n", "2", "--duration", "32", "--stop-s", "6", "--change"]
             + ["--noise", "0.02", "--seed", "4"])  # fmt: skip
     data = read_recordings(out / "drives.csv", recording_column="recording", window=400)
+    data.accel[1, :, :2] = 0.0
     h5 = write_recordings(tmp_path / "drives.h5", data)
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree", f"data.path={h5}"]
     proc = subprocess.run(
-        cmd + ["aggregate=drive", "restarts.count=0", "block_samples=2000", f"hydra.run.dir={run}", "progress=false"],
+        cmd
+        + occupant
+        + ["aggregate=drive", "restarts.count=0", "block_samples=2000", f"hydra.run.dir={run}", "progress=false"],
         capture_output=True,
         text=True,
         timeout=600,
@@ -182,7 +220,13 @@ def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["drive_aggregate"]["drives_split"] == 2
     assert summary["blocks"] == 4  # block_samples: 5 windows of 400 steps read per block at most, 18 windows
-    assert len(_rows(run / "drive_progress.csv")) == data.n_samples
+    progress = _rows(run / "drive_progress.csv")
+    assert len(progress) == data.n_samples
+    assert _rows(run / "estimates.csv")[1]["status"] == "no_signal" and data.profile_id[1] == 0
+    assert [r["used"] for r in progress if r["index"] == "1"] == ["skipped:no_signal"]
+    first = [r for r in rows if r["drive"] == data.recordings[0]]
+    assert (first[0]["windows_skipped"], first[1]["windows_skipped"]) == ("1", "0")
+    assert summary["skipped_windows"]["no_signal"] == 1
 
 
 def test_foreign_drives_agree_with_dop853():

@@ -1,7 +1,8 @@
 """qcm-import's streaming reader (data/csv_stream.py, importer.scan_recordings / iter_windows /
 import_recordings): the windows written block by block against numpy's own cutting of the numbers the test
 wrote, row numbering across blocks and blank lines, and the checks issue 32 added (a clock that restarts,
-a drive shorter than one window)."""
+a drive shorter than one window), and main's text checks (data/csv_checks.py) where only a stream reaches:
+past the encoding probe, in a later block, in a column the import does not read."""
 
 from __future__ import annotations
 
@@ -123,3 +124,37 @@ def test_an_error_in_the_second_pass_leaves_no_file(tmp_path):
     with pytest.raises(RecordingError, match=r"column 'a2', row 251 \(line 252\): cell = 'nan' \(NaN or infinite"):
         import_recordings(csv, tmp_path / "out" / "late.h5", window=100)
     assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_stray_quotes_and_foreign_bytes_past_the_first_block_are_named_by_line(tmp_path, monkeypatch):
+    """pyarrow, like the csv module, lets a stray quote swallow lines, silently: in a column read, in a column
+    not read (rows lost, the drive cut short), or in a later block; and bytes that are not UTF-8 beyond the
+    encoding probe's 64 KiB. Each is one line naming where it starts, as the csv-module reader named it."""
+    monkeypatch.setattr(csv_stream, "BLOCK_BYTES", 4096)
+    t, a3, a2 = _drive(3000, 0.01)
+    rows = [f"{t[k]:.2f},{a3[k]:.6f},{a2[k]:.6f},note" for k in range(3000)]
+    read = {"columns": {"a1": False}, "time_column": "t"}
+    clean = _csv(tmp_path / "clean.csv", "t,a3,a2,comment", rows)
+    assert read_recordings(clean, **read).n_steps == 3000
+    for k in (999, 2995):  # a quote in the comment column, not imported: across blocks, or within the last
+        unread = list(rows)
+        unread[k] = unread[k].replace("note", '"note')
+        csv = _csv(tmp_path / "unread.csv", "t,a3,a2,comment", unread)
+        with pytest.raises(RecordingError) as caught:
+            read_recordings(csv, **read)
+        assert str(caught.value).startswith(
+            f'{csv}: line {k + 2}: a double quote (") opens a field that runs over lines {k + 2}-3001: a stray quote?'
+        )
+    late = list(rows)  # in a column read, blocks after the first
+    late[2000] = late[2000].replace(",", ',"', 2).replace(',"', ",", 1)
+    csv = _csv(tmp_path / "late.csv", "t,a3,a2,comment", late)
+    with pytest.raises(RecordingError, match=r"late.csv: line 2002: a double quote \(\"\) opens a field that runs"):
+        read_recordings(csv, **read)
+    latin = tmp_path / "latin.csv"  # 0xb2 (Latin-1 '²') in a2 at line 2 502: past the probe of the first 64 KiB
+    text = ("t,a3,a2,comment\n" + "\n".join(rows) + "\n").encode()
+    assert text.index(rows[2500].encode()) > 1 << 16
+    bad = rows[2500].rsplit(",", 1)[0].encode() + b"\xb2,note"  # a2 with a unit glued on, in Latin-1
+    latin.write_bytes(text.replace(rows[2500].encode(), bad))
+    with pytest.raises(RecordingError) as caught:
+        read_recordings(latin, **read)
+    assert str(caught.value).startswith(f"{latin}: line 2502: byte 0xb2 is not UTF-8 text")

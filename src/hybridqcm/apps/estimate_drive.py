@@ -12,8 +12,13 @@ Outputs in the run folder:
 
     drives.csv          one row per drive segment: drive, segment, start_s, end_s, m3, m3_std, m3_low,
                         m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
-                        windows_outliers, windows_overlapping, model, chi2, dof, chi2_per_dof, p_value,
-                        status (ok | inconsistent | no_usable_window) [, m3_true when the file has params]
+                        windows_outliers, windows_overlapping, windows_skipped, model, chi2, dof,
+                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
+                        [, m3_true when the file has params]
+                        windows_skipped: windows kept from the fit for want of information (no_signal: the
+                        car standing still; clipped; estimation/window_check.py), never combined;
+                        windows_rejected: windows fitted but not usable (a status not in drive.statuses,
+                        no positive definite covariance)
     drive_progress.csv  every window of every drive in time order: its segment, whether it was used (or
                         why not), and the segment's running estimate after it (m3, m3_low, m3_high) at the
                         driving time t_s since the segment's start
@@ -57,6 +62,9 @@ from hybridqcm.estimation.drive import (
     usable_windows,
 )
 from hybridqcm.estimation.solver import STATUS_LABELS
+from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
+
+ALL_STATUS_LABELS = {**STATUS_LABELS, **WINDOW_STATUS_LABELS}
 
 DRIVES_HEADER = [
     "drive",
@@ -74,6 +82,7 @@ DRIVES_HEADER = [
     "windows_rejected",
     "windows_outliers",
     "windows_overlapping",
+    "windows_skipped",
     "model",
     "chi2",
     "dof",
@@ -231,6 +240,24 @@ def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
     return with_drive
 
 
+def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
+    """``skipped_tables(index, status, true)`` (apps/estimate_report: windows kept from the fit, no_signal or
+    clipped) with :func:`drive_columns`' columns added, NaN: a block's fitted and skipped windows merge into
+    one table, and such a window is never usable."""
+
+    def with_drive(index, status, true) -> tuple[list, list, dict]:
+        rows, status_rows, columns = skipped_tables(index, status, true)
+        k = int(index.shape[0])
+        nan = torch.full((k, n_params, n_params), math.nan, dtype=torch.float64)
+        columns["drive_theta"] = torch.full((k, n_params), math.nan, dtype=torch.float64)
+        columns["drive_cov"] = nan
+        columns["drive_model_cov"] = nan.clone()
+        columns["drive_model"] = torch.zeros(k, dtype=torch.long)
+        return rows, status_rows, columns
+
+    return with_drive
+
+
 def model_names(refinement) -> list[str]:
     """The occupant models a window can report: an occupant-model selection's candidates, else one."""
     return list(getattr(refinement, "names", None) or ["rigid"])
@@ -318,6 +345,7 @@ def aggregate_drives(
     status = columns["status"]
     allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
     ok_status = torch.tensor([int(s) in allowed for s in status], dtype=torch.bool)
+    kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
     usable = _usable(columns["drive_theta"], columns["drive_cov"]) & ok_status
     if drive.weights == "model":
         usable &= _usable(columns["drive_theta"], columns["drive_model_cov"])
@@ -338,8 +366,11 @@ def aggregate_drives(
             for r in rows
         }
         for r in rows:
-            if reason[int(r)] == "rejected" and not bool(ok_status[r]):
-                reason[int(r)] = f"rejected:{STATUS_LABELS[int(status[r])]}"
+            if reason[int(r)] == "rejected" and bool(kept_out[r]):  # not fitted: no information in it
+                reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
+            elif reason[int(r)] == "rejected" and not bool(ok_status[r]):
+                reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
+        skipped = sum(reason[int(r)].startswith("skipped") for r in rows)
         if good.size == 0:
             notes.append(
                 f"drive {name}: every one of its {rows.size} window(s) was rejected "
@@ -351,9 +382,10 @@ def aggregate_drives(
                 + [
                     rows.size,
                     0,
-                    rows.size - len(overlapping),
+                    rows.size - len(overlapping) - skipped,
                     0,
                     len(overlapping),
+                    skipped,
                     "",
                     "",
                     "",
@@ -405,6 +437,7 @@ def aggregate_drives(
                     sum(c.startswith("rejected") for c in counts),
                     sum(c == "outlier" for c in counts),
                     sum(c == "overlapping" for c in counts),
+                    sum(c.startswith("skipped") for c in counts),
                     label,
                     _fmt(final.chi2),
                     final.dof,
@@ -509,4 +542,4 @@ def _plot_drive(run_dir: Path, name: str, progress_rows: Sequence[Sequence], dri
     return path
 
 
-__all__ = ["DrivePlan", "drive_plan", "drive_columns", "model_names", "aggregate_drives"]
+__all__ = ["DrivePlan", "drive_plan", "drive_columns", "drive_skipped_columns", "model_names", "aggregate_drives"]

@@ -16,7 +16,16 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
+from hybridqcm.apps.common import (
+    CONFIG_DIR,
+    check_task_name_overrides,
+    fail,
+    install_signal_handlers,
+    interrupted_exit,
+    print_table,
+    run_folder,
+)
+from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.importer import import_recordings
 from hybridqcm.data.two_loggers import import_two_loggers
 
@@ -42,6 +51,18 @@ def _mapping(cfg: DictConfig, key: str) -> dict:
     if not isinstance(value, dict):
         raise ValueError(f"{key} must be a mapping like {key}.a3=NAME, got {value!r}")
     return value
+
+
+def _rate_range(cfg: DictConfig) -> tuple[float, float]:
+    value = OmegaConf.to_container(cfg.rate_range, resolve=True) if cfg.get("rate_range") is not None else None
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)
+        or not 0 < value[0] < value[1]
+    ):
+        raise ValueError(f"rate_range={value!r} must be [LOW, HIGH] in Hz with 0 < LOW < HIGH")
+    return float(value[0]), float(value[1])
 
 
 def run(cfg: DictConfig) -> dict:
@@ -71,6 +92,7 @@ def run(cfg: DictConfig) -> dict:
         rate_tolerance=_number(cfg, "rate_tolerance"),
         gap_factor=_number(cfg, "gap_factor"),
         delimiter=cfg.delimiter,
+        rate_range=_rate_range(cfg),
     )
     duration = sum(data.rows) * data.h
     summary = {
@@ -110,9 +132,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 def _save_summary(cfg: DictConfig, summary: dict) -> None:
-    summary_path = Path(cfg.paths.output_dir) / "summary.json"
-    summary_path.parent.mkdir(parents=True, exist_ok=True)
-    summary_path.write_text(json.dumps(summary, indent=2))
+    atomic_write_text(Path(cfg.paths.output_dir) / "summary.json", json.dumps(summary, indent=2))
 
 
 def _run_two_loggers(cfg: DictConfig, seat: Path, output: Path) -> dict:
@@ -128,6 +148,7 @@ def _run_two_loggers(cfg: DictConfig, seat: Path, output: Path) -> dict:
         "units": str(cfg.units),
         "gap_factor": _number(cfg, "gap_factor"),
         "delimiter": cfg.delimiter,
+        "rate_range": _rate_range(cfg),
     }
     base_read = dict(read, axes=_axes(cfg, "base_axes"), units=str(cfg.get("base_units") or cfg.units))
     rate = cfg.get("rate")
@@ -199,14 +220,23 @@ def _axes(cfg: DictConfig, key: str) -> list[str] | None:
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="import")
 def _main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except (ValueError, FileExistsError, OSError) as error:
-        fail(error)
+    with run_folder("qcm-import"):
+        try:
+            run(cfg)
+        except (ValueError, FileExistsError, OSError) as error:
+            fail(error)
 
 
 def main() -> None:
-    _main()
+    install_signal_handlers()  # Ctrl-C / SIGTERM: the .partial removed, one line, exit 130 / 143
+    try:
+        check_task_name_overrides(sys.argv[1:])  # task_name=../../x would put the run folder outside outputs/
+    except ValueError as error:
+        fail(error)
+    try:
+        _main()
+    except KeyboardInterrupt as error:
+        interrupted_exit(error)
 
 
 if __name__ == "__main__":

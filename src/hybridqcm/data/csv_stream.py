@@ -12,6 +12,13 @@ and lines it cannot split are counted where they are, so that the count stays ph
 A row with another number of fields than the first data row is an error naming its row and line: the
 first data row may have more fields than the header (a trailing delimiter on every row, as some loggers
 write), which then counts as the row's width.
+
+pyarrow, like the csv module, lets a stray double quote swallow the lines up to the next quote; it does not
+say so. A cell that does not parse and holds a line break (Block.explain), a short row holding a quote, a
+quoted field across a block's end, or (UTF-8 files) fewer rows than the file has lines at the end of a pass
+(a quote in a column not read) is therefore diagnosed by the csv module with data/csv_checks.py's checks, on
+the error path only, so the message is the one the csv-module reader gave. Bytes that are not
+UTF-8 in a column read are named by line likewise (in a column not read they are not looked at).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridqcm.data import csv_checks
 from hybridqcm.errors import DatasetError
 
 BLOCK_BYTES = 1 << 20  # 1 MiB of text per block: ~30 000 rows of t, a3, a2 (4 MiB: no faster, 80 MB more peak memory)
@@ -37,26 +45,43 @@ class CsvStreamError(DatasetError):
 @dataclass
 class Block:
     """One block of rows: rows int64 [n] (data row numbers, 1-based), cells {column: pyarrow string array [n]},
-    bytes_read (of the file so far: for a progress bar)."""
+    bytes_read (of the file so far: for a progress bar), source (path, delimiter, encoding)."""
 
     rows: np.ndarray
     cells: dict
     bytes_read: int
+    source: tuple = ()
+
+    def explain(self, name: str) -> None:
+        """For a column whose cells did not parse (or whose text is used as is): a cell holding a line break
+        is a stray quote's doing, raised as csv_checks' one-line error at the line where the quote opens."""
+        if self.source and _has_line_break(self.cells[name]):
+            _diagnose(*self.source)
 
 
 class _Counting(io.RawIOBase):
-    """A binary file that counts the bytes read through it."""
+    """A binary file that counts the bytes and the line breaks (\\n, \\r\\n or \\r) read through it."""
 
     def __init__(self, handle):
-        self.handle, self.count = handle, 0
+        self.handle, self.count, self.breaks, self.last = handle, 0, 0, b""
 
     def readable(self) -> bool:
         return True
 
     def readinto(self, buffer) -> int:
         n = self.handle.readinto(buffer) or 0
+        if n:
+            data = bytes(memoryview(buffer)[:n])
+            joined = data.count(b"\r\n") + (self.last == b"\r" and data[:1] == b"\n")
+            self.breaks += data.count(b"\n") + data.count(b"\r") - joined
+            self.last = data[-1:]
         self.count += n
         return n
+
+    def data_lines(self) -> int:
+        """Lines after the header (line 1) in what was read: every line break, and a last line without one."""
+        lines = self.breaks + (1 if self.last not in (b"", b"\n", b"\r") else 0)
+        return max(0, lines - 1)
 
 
 def _first_data_fields(path: Path, sep: str, encoding: str) -> int | None:
@@ -106,12 +131,13 @@ def iter_blocks(
         return "skip"
 
     wanted = list(dict.fromkeys(columns))
+    utf8 = encoding in ("utf-8-sig", "utf-8", "utf8")
     raw = open(path, "rb", buffering=0)
     counting = _Counting(raw)
     try:
         stream = io.BufferedReader(counting, buffer_size=1 << 20)
-        if encoding == "utf-8-sig":  # the header line is skipped by count; a BOM needs no more
-            encoding = "utf8"
+        # the header line is skipped by count; a BOM needs no more
+        arrow_encoding = "utf8" if encoding == "utf-8-sig" else encoding
         reader = pcsv.open_csv(
             stream,
             read_options=pcsv.ReadOptions(
@@ -119,7 +145,7 @@ def iter_blocks(
                 block_size=int(block_bytes or BLOCK_BYTES),
                 column_names=names,
                 skip_rows=1,
-                encoding=encoding,
+                encoding=arrow_encoding,
             ),
             parse_options=pcsv.ParseOptions(delimiter=sep, ignore_empty_lines=False, invalid_row_handler=handler),
             convert_options=pcsv.ConvertOptions(
@@ -130,10 +156,9 @@ def iter_blocks(
             ),
         )
         seen = 0  # rows delivered so far (every physical data line; an invalid one stops the read)
-        for batch in reader:
+        for batch in _batches(reader, path, sep, encoding):
             if invalid:
-                row, fields, _ = invalid[0]
-                raise _invalid(path, row, fields, width, on_short_row)
+                raise _invalid(path, sep, encoding, invalid[0], width, on_short_row)
             n = batch.num_rows
             rows = np.arange(seen + 1, seen + n + 1, dtype=np.int64)
             while skipped and skipped[0] <= rows[-1]:  # a skipped line before these rows shifts them by one
@@ -151,12 +176,65 @@ def iter_blocks(
                 index = pa.array(keep)
                 cells = {name: cells[name].take(index) for name in wanted}
             if rows.size:
-                yield Block(rows=rows, cells=cells, bytes_read=counting.count)
+                yield Block(rows=rows, cells=cells, bytes_read=counting.count, source=(path, sep, encoding))
         if invalid:
-            row, fields, _ = invalid[0]
-            raise _invalid(path, row, fields, width, on_short_row)
+            raise _invalid(path, sep, encoding, invalid[0], width, on_short_row)
+        if utf8 and seen + len(skipped) != counting.data_lines():  # lines swallowed in a column not read
+            _diagnose(path, sep, encoding)
+            raise CsvStreamError(
+                f"{path}: {seen + len(skipped)} rows read where the file has {counting.data_lines()} lines after "
+                f"the header (a quoted field spanning lines?)"
+            )
     finally:
         raw.close()
+
+
+def _batches(reader, path: Path, sep: str, encoding: str):
+    """The reader's record batches; bytes not in the file's encoding are named by line (one line)."""
+    import pyarrow as pa
+
+    while True:
+        try:
+            batch = reader.read_next_batch()
+        except StopIteration:
+            return
+        except UnicodeDecodeError:
+            _diagnose_encoding(path, encoding)
+            raise
+        except pa.ArrowInvalid as error:
+            if "UTF8" in str(error):
+                _diagnose_encoding(path, encoding)
+            else:  # e.g. "parser got out of sync with chunker": a quoted field across a block's end
+                _diagnose(path, sep, encoding)
+            raise CsvStreamError(f"{path}: {str(error).splitlines()[0]}") from None
+        yield batch
+
+
+def _has_line_break(cells) -> bool:
+    import pyarrow.compute as pc
+
+    return bool(pc.any(pc.match_substring_regex(cells, "[\\r\\n]")).as_py())
+
+
+def _diagnose(path: Path, sep: str, encoding: str) -> None:
+    """The error path: the file read again by the csv module through csv_checks.checked_rows, which raises
+    the one-line RecordingError for a stray quote (or undecodable text) at the line where it starts."""
+    with open(path, newline="", encoding=encoding) as handle:
+        handle.readline()
+        for _ in csv_checks.checked_rows(path, csv.reader(handle, delimiter=sep)):
+            pass
+
+
+def _diagnose_encoding(path: Path, encoding: str) -> None:
+    """Raises csv_checks' one-line message for the first line of ``path`` that is not UTF-8 (UTF-8 files)."""
+    if encoding not in ("utf-8-sig", "utf-8", "utf8"):
+        return
+    with open(path, "rb") as handle:
+        for number, line in enumerate(handle, start=1):
+            try:
+                line.decode("utf-8")
+            except UnicodeDecodeError as error:
+                raise csv_checks.RecordingError(csv_checks.undecodable(path, line, error, number)) from None
 
 
 def _blank(cells):
@@ -165,7 +243,10 @@ def _blank(cells):
     return pc.equal(pc.utf8_length(pc.utf8_trim_whitespace(cells)), 0).to_numpy(zero_copy_only=False)
 
 
-def _invalid(path: Path, row: int, fields: int, width: int, on_short_row) -> Exception:
+def _invalid(path: Path, sep: str, encoding: str, bad: tuple[int, int, str], width: int, on_short_row) -> Exception:
+    row, fields, text = bad
+    if '"' in text or "\n" in text or "\r" in text:  # a quote that swallowed lines: named where it opens
+        _diagnose(path, sep, encoding)
     if fields < width and on_short_row is not None:
         return on_short_row(row, fields)
     return CsvStreamError(

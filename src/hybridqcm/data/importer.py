@@ -43,11 +43,13 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from hybridqcm.data import csv_stream
-from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.data import csv_checks, csv_stream
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.h5file import open_guarded, raise_if_failed, writing
+from hybridqcm.data.hdf5 import DatasetError  # noqa: F401 - importable here
+from hybridqcm.interrupt import check_stop, deferred
 
 SCHEMA_V2 = "hybridqcm.dataset/2"
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901, exact by definition)
@@ -57,10 +59,6 @@ UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "m/s²": 1.0, "g": STANDARD_GRAVITY}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 DEFAULT_TIME_COLUMNS = ("t", "time")
 DELIMITERS = (",", ";", "\t")
-
-
-class RecordingError(DatasetError):
-    """A CSV recording that cannot be imported; the message names the file, column and row."""
 
 
 @dataclass
@@ -254,6 +252,7 @@ class RecordingLayout:
     path: Path
     header: list[str]
     sep: str
+    encoding: str  # csv_checks.text_encoding's
     time_name: str
     mapping: dict[str, str]  # channel (and road) -> CSV column
     factors: dict[str, float]  # channel -> unit factor to m/s²
@@ -292,20 +291,24 @@ def _progress(enabled: bool):
     return Progress(*columns, TimeRemainingColumn(), disable=not enabled, transient=False)
 
 
-def _blocks(path: Path, header, sep: str, wanted, on_short_row=None):
+def _blocks(path: Path, header, sep: str, wanted, encoding: str, on_short_row=None):
     """csv_stream.iter_blocks with its row errors as RecordingError (one line naming the file and row)."""
     try:
-        yield from csv_stream.iter_blocks(path, header, sep, wanted, on_short_row=on_short_row)
+        yield from csv_stream.iter_blocks(path, header, sep, wanted, encoding=encoding, on_short_row=on_short_row)
     except csv_stream.CsvStreamError as error:
         raise RecordingError(str(error)) from None
 
 
-def _floats(path: Path, name: str, cells, rows: np.ndarray) -> np.ndarray:
+def _floats(path: Path, name: str, block: csv_stream.Block) -> np.ndarray:
     """One block's cells of a column as float64: pyarrow's parser, and the exact one-line error of
-    :func:`_to_float` (naming the cell) for a block it cannot parse or that holds NaN/inf."""
+    :func:`_to_float` (naming the cell) for a block it cannot parse or that holds NaN/inf (a stray quote's
+    swallowed lines named where the quote opens: Block.explain)."""
+    cells = block.cells[name]
     values = csv_stream.to_float64(cells)
     if values is None or not np.isfinite(values).all():
-        values = _to_float(path, name, csv_stream.strings(cells), rows)
+        if values is None:
+            block.explain(name)
+        values = _to_float(path, name, csv_stream.strings(cells), block.rows)
     return values
 
 
@@ -333,6 +336,7 @@ def scan_recordings(
     rate_tolerance: float = 1e-3,
     gap_factor: float = 1.5,
     delimiter: str | None = None,
+    rate_range: Sequence[float] = csv_checks.RATE_RANGE,
     progress: bool = False,
 ) -> RecordingLayout:
     """First pass (read_recordings' keys): the header, units, the time column and recording ids streamed
@@ -356,10 +360,12 @@ def scan_recordings(
     if unknown:
         raise RecordingError(f"{path}: column_units.{unknown[0]} is not an acceleration channel (a3, a2, a1)")
 
-    with open(path, newline="", encoding="utf-8-sig") as handle:
+    encoding = csv_checks.text_encoding(path)
+    with open(path, newline="", encoding=encoding) as handle:
         first = handle.readline()
     if not first.strip():
         raise RecordingError(f"{path}: line 1 is empty; the first line must be the header (e.g. t,a3,a2)")
+    csv_checks.check_header_line(path, first)
     sep = delimiter or _sniff_delimiter(first)
     header = [name.strip() for name in next(csv.reader([first], delimiter=sep))]
     time_name, mapping = _resolve_columns(path, header, columns, time_column, recording_column)
@@ -371,6 +377,7 @@ def scan_recordings(
         if c in mapping
     }
     wanted = [time_name, *mapping.values()] + ([recording_column] if recording_column else [])
+    csv_checks.check_header(path, header, wanted)
     size = path.stat().st_size
 
     # pass 1: time and recording ids only
@@ -381,10 +388,11 @@ def scan_recordings(
     count, last_id = 0, None
     with _progress(progress) as bar:
         task = bar.add_task(f"checking {path.name}", total=size)
-        for block in _blocks(path, header, sep, wanted, _short_row(path, header, wanted)):
-            times.append(_floats(path, time_name, block.cells[time_name], block.rows) * TIME_UNITS[time_unit])
+        for block in _blocks(path, header, sep, wanted, encoding, _short_row(path, header, wanted)):
+            times.append(_floats(path, time_name, block) * TIME_UNITS[time_unit])
             row_parts.append(block.rows)
             if recording_column:
+                block.explain(recording_column)  # an id is used as text: no parse failure would show a quote
                 ids = np.asarray([c.strip() for c in csv_stream.strings(block.cells[recording_column])], dtype=object)
                 empty = np.flatnonzero(ids == "")
                 if empty.size:
@@ -420,6 +428,7 @@ def scan_recordings(
         label = f" (recording {name!r})" if recording_column else ""
         hs.append(_check_time(path, time_name, t_all[a:b], rows[a:b], label, gap_factor, rate_tolerance))
     h = float(np.mean(hs))
+    csv_checks.check_rate(path, time_name, h, time_unit, TIME_UNITS, rate_range)
     for name, (a, _), h_i in zip(names, blocks, hs):
         if abs(h_i - h) > rate_tolerance * h:
             raise RecordingError(
@@ -454,6 +463,7 @@ def scan_recordings(
         path=path,
         header=header,
         sep=sep,
+        encoding=encoding,
         time_name=time_name,
         mapping=mapping,
         factors=factors,
@@ -486,14 +496,14 @@ def iter_windows(layout: RecordingLayout, progress: bool = False):
     cuts = layout.cuts
     with _progress(progress) as bar:
         task = bar.add_task(f"cutting {path.name}", total=layout.file_bytes)
-        for block in _blocks(path, layout.header, layout.sep, wanted):
-            values = np.stack(
-                [
-                    _floats(path, name, block.cells[name], block.rows) * layout.factors.get(key, 1.0)
-                    for key, name in zip(keys, wanted)
-                ],
-                axis=1,
-            )
+        for block in _blocks(path, layout.header, layout.sep, wanted, layout.encoding):
+            columns = []
+            for key, name in zip(keys, wanted):
+                raw = _floats(path, name, block)
+                factor = layout.factors.get(key, 1.0)
+                csv_checks.check_float32(path, name, raw, factor, block.rows)  # else stored as inf
+                columns.append(raw * factor)
+            values = np.stack(columns, axis=1)
             buffer = np.concatenate([buffer, values]) if buffer.size else values
             end = buffer_start + buffer.shape[0]
             while m < len(cuts) and cuts[m][1] + cuts[m][2] <= end:
@@ -528,6 +538,7 @@ def read_recordings(
     rate_tolerance: float = 1e-3,
     gap_factor: float = 1.5,
     delimiter: str | None = None,
+    rate_range: Sequence[float] = csv_checks.RATE_RANGE,
 ) -> ImportedRecordings:
     """Read a CSV recording into the dataset layout (module docstring) in memory; raises RecordingError.
 
@@ -537,7 +548,8 @@ def read_recordings(
     skips it). recording_column: several recordings, one id per row, each in one block of rows.
     window, stride: cut every recording into samples of `window` steps starting every `stride`
     (default: window) steps; without a window every recording is one sample and all must have
-    the same length. For a long recording write it with :func:`import_recordings` (streamed).
+    the same length. rate_range: the sampling rates [Hz] accepted (csv_checks.check_rate). For a long
+    recording write it with :func:`import_recordings` (streamed).
     """
     layout = scan_recordings(
         path,
@@ -552,6 +564,7 @@ def read_recordings(
         rate_tolerance=rate_tolerance,
         gap_factor=gap_factor,
         delimiter=delimiter,
+        rate_range=rate_range,
     )
     accel = np.full((layout.n_samples, layout.n_steps, 3), np.nan, dtype=np.float32)
     road = np.empty((layout.n_samples, layout.n_steps), dtype=np.float32) if layout.has_road else None
@@ -622,53 +635,81 @@ def write_windows(
 ) -> Path:
     """Write samples as they come — ``windows`` yields (m, accel float32 [T, 3], road [T] or None) in order
     m = 0.. M-1 — into a schema-2 file with ``layout``'s attributes, profile_id and t_start; atomically (a
-    temporary file renamed when complete, removed on any error). Memory: ``slab`` samples at a time."""
+    temporary file renamed when complete, removed on any error). Memory: ``slab`` samples at a time.
+
+    Through a guarded file (data/h5file.py): a full disk is one DatasetError naming the file, never HDF5's
+    segfault. A stop request (Ctrl-C, SIGTERM) waits for the h5py call it interrupts (interrupt.deferred
+    around each write, not around the whole file: the samples may come from a pass over an hour's CSV)."""
     output = Path(output)
     tmp = _temporary(output, overwrite, split)
-    M, T = layout.n_samples, layout.n_steps
+    guard = None
     try:
-        with h5py.File(tmp, "w") as handle:
-            handle.attrs.update(_file_attrs(layout, source, created_by, attrs))
-            group = handle.create_group(split)
-            rows = max(1, min(M, (1 << 20) // max(1, T * 12)))  # about 1 MiB per chunk
-            gz = {"compression": "gzip", "compression_opts": 1} if M > 0 else {}
-            accel = group.create_dataset(
-                "accel", shape=(M, T, 3), dtype=np.float32, chunks=(rows, T, 3) if M else None, **gz
-            )
-            road = (
-                group.create_dataset("road", shape=(M, T), dtype=np.float32, chunks=(rows, T) if M else None, **gz)
-                if layout.has_road
-                else None
-            )
-            group.create_dataset("profile_id", data=layout.profile_id)
-            group.create_dataset("t_start", data=np.asarray(layout.t_start, dtype=np.float64))
-            block_a = np.empty((slab, T, 3), dtype=np.float32)
-            block_r = np.empty((slab, T), dtype=np.float32) if road is not None else None
-            first, filled = 0, 0
-            for m, a, r in windows:
-                if m != first + filled:
-                    raise RecordingError(f"{output}: sample {m} arrived out of order (expected {first + filled})")
-                block_a[filled] = a
-                if block_r is not None:
-                    block_r[filled] = r
-                filled += 1
-                if filled == slab:
-                    accel[first : first + filled] = block_a[:filled]
-                    if road is not None:
-                        road[first : first + filled] = block_r[:filled]
-                    first, filled = first + filled, 0
-            if filled:
-                accel[first : first + filled] = block_a[:filled]
-                if road is not None:
-                    road[first : first + filled] = block_r[:filled]
-            if first + filled != M:
-                raise RecordingError(f"{output}: {first + filled} of {M} samples were written")
+        with deferred(raise_on_exit=False):  # a stop request here is raised at the first slab's check_stop
+            handle, guard = open_guarded(tmp)
+        try:
+            _write_slabs(handle, guard, output, layout, windows, split, source, created_by, attrs, slab)
+        finally:
+            with deferred(raise_on_exit=False):  # a stop request during the close: raised below
+                handle.close()
+                guard.close()
+        check_stop()
+        raise_if_failed(guard, output)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        if guard is not None:
+            raise_if_failed(guard, output)  # a full disk is the cause of whatever HDF5 raised
         raise
     return output
+
+
+def _write_slabs(handle, guard, output: Path, layout, windows, split, source, created_by, attrs, slab: int) -> None:
+    """write_windows' body: the datasets created, then the samples written ``slab`` at a time (each h5py
+    call under interrupt.deferred; the disk checked after each slab: a full one stops the import now)."""
+    M, T = layout.n_samples, layout.n_steps
+    with deferred():
+        handle.attrs.update(_file_attrs(layout, source, created_by, attrs))
+        group = handle.create_group(split)
+        rows = max(1, min(M, (1 << 20) // max(1, T * 12)))  # about 1 MiB per chunk
+        gz = {"compression": "gzip", "compression_opts": 1} if M > 0 else {}
+        accel = group.create_dataset(
+            "accel", shape=(M, T, 3), dtype=np.float32, chunks=(rows, T, 3) if M else None, **gz
+        )
+        road = (
+            group.create_dataset("road", shape=(M, T), dtype=np.float32, chunks=(rows, T) if M else None, **gz)
+            if layout.has_road
+            else None
+        )
+        group.create_dataset("profile_id", data=layout.profile_id)
+        group.create_dataset("t_start", data=np.asarray(layout.t_start, dtype=np.float64))
+    raise_if_failed(guard, output)
+    block_a = np.empty((slab, T, 3), dtype=np.float32)
+    block_r = np.empty((slab, T), dtype=np.float32) if road is not None else None
+
+    def flush(first: int, filled: int) -> None:
+        check_stop()  # a stop request swallowed inside a GC callback is raised here
+        with deferred():
+            accel[first : first + filled] = block_a[:filled]
+            if road is not None:
+                road[first : first + filled] = block_r[:filled]
+        raise_if_failed(guard, output)
+
+    first, filled = 0, 0
+    for m, a, r in windows:
+        if m != first + filled:
+            raise RecordingError(f"{output}: sample {m} arrived out of order (expected {first + filled})")
+        block_a[filled] = a
+        if block_r is not None:
+            block_r[filled] = r
+        filled += 1
+        if filled == slab:
+            flush(first, filled)
+            first, filled = first + filled, 0
+    if filled:
+        flush(first, filled)
+    if first + filled != M:
+        raise RecordingError(f"{output}: {first + filled} of {M} samples were written")
 
 
 def import_recordings(
@@ -703,8 +744,10 @@ def write_recordings(
     """
     output = Path(output)
     tmp = _temporary(output, overwrite, split)
+    guard = None
     try:
-        with h5py.File(tmp, "w") as handle:
+        # a full disk: one DatasetError, not HDF5's segfault; Ctrl-C / SIGTERM after h5py's calls (data/h5file.py)
+        with writing(tmp) as (handle, guard):
             handle.attrs.update(_file_attrs(data, source, created_by))
             group = handle.create_group(split)
             arrays = {"accel": data.accel, "profile_id": data.profile_id, "t_start": data.t_start}
@@ -715,10 +758,13 @@ def write_recordings(
                 group.create_dataset(
                     key, data=array, compression="gzip" if chunked else None, compression_opts=1 if chunked else None
                 )
+        raise_if_failed(guard, output)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        if guard is not None:
+            raise_if_failed(guard, output)  # a full disk is the cause of whatever HDF5 raised
         raise
     return output
 
@@ -782,21 +828,25 @@ def read_logger(
     units: str = "m/s2",
     gap_factor: float = 1.5,
     delimiter: str | None = None,
+    rate_range: Sequence[float] = csv_checks.RATE_RANGE,
     progress: bool = False,
 ) -> LoggerRecording:
     """A logger's CSV: a time column and three acceleration axes with gravity (a phone app's
     `Time (s),Acceleration x (m/s^2),...`). Sample times may be irregular (each row keeps its own stamp:
     the rate is not checked for constancy), but must increase, without gaps above gap_factor x the
-    median step. Streamed in blocks; kept: 32 bytes a row. Raises RecordingError (one line)."""
+    median step; the mean rate within rate_range [Hz]. Streamed in blocks; kept: 32 bytes a row. The text
+    checks of data/csv_checks.py as for read_recordings. Raises RecordingError (one line)."""
     path = Path(path)
     if not path.is_file():
         raise RecordingError(f"{path}: input CSV does not exist")
     if time_unit not in TIME_UNITS:
         raise RecordingError(f"{path}: time_unit = {time_unit!r} is not supported; use one of {list(TIME_UNITS)}")
-    with open(path, newline="", encoding="utf-8-sig") as handle:
+    encoding = csv_checks.text_encoding(path)
+    with open(path, newline="", encoding=encoding) as handle:
         first = handle.readline()
     if not first.strip():
         raise RecordingError(f"{path}: line 1 is empty; the first line must be the header")
+    csv_checks.check_header_line(path, first)
     sep = delimiter or _sniff_delimiter(first)
     header = [name.strip() for name in next(csv.reader([first], delimiter=sep))]
     if time_column is None:
@@ -812,18 +862,23 @@ def read_logger(
     xyz_names = _axis_columns(path, header, axes, axes_key)
     factor = _unit_factor(path, xyz_names[0], "x, y, z", units, "units")
     wanted = [time_column, *xyz_names]
+    csv_checks.check_header(path, header, wanted)
     times, parts, row_parts = [], [], []
     with _progress(progress) as bar:
         task = bar.add_task(f"reading {path.name}", total=path.stat().st_size)
-        for block in _blocks(path, header, sep, wanted, _short_row(path, header, wanted)):
-            times.append(_floats(path, time_column, block.cells[time_column], block.rows) * TIME_UNITS[time_unit])
-            parts.append(np.stack([_floats(path, n, block.cells[n], block.rows) for n in xyz_names], 1) * factor)
+        for block in _blocks(path, header, sep, wanted, encoding, _short_row(path, header, wanted)):
+            times.append(_floats(path, time_column, block) * TIME_UNITS[time_unit])
+            xyz = np.stack([_floats(path, n, block) for n in xyz_names], 1)
+            for j, n in enumerate(xyz_names):
+                csv_checks.check_float32(path, n, xyz[:, j], factor, block.rows)
+            parts.append(xyz * factor)
             row_parts.append(block.rows)
             bar.update(task, completed=block.bytes_read)
     if not times:
         raise RecordingError(f"{path}: column {time_column!r}: no data rows after the header")
     t, rows = np.concatenate(times), np.concatenate(row_parts)
     _check_time(path, time_column, t, rows, "", gap_factor, math.inf)
+    csv_checks.check_rate(path, time_column, float((t[-1] - t[0]) / (t.size - 1)), time_unit, TIME_UNITS, rate_range)
     return LoggerRecording(
         path=path,
         t=t,
