@@ -4,6 +4,8 @@
     .venv/bin/python bench/foreign_sim.py make --out data/foreign.csv --n 1 --steps 6000   (one drive, qcm-import)
     .venv/bin/python bench/foreign_sim.py make --out data/persons.h5 --n 400 --occupant mixed --delay-ms-range -20 20
     .venv/bin/python bench/foreign_sim.py score RUN_DIR [--data data/foreign.h5] [--json score.json]
+    .venv/bin/python bench/foreign_sim.py drives --out data/drives --n 300 [--stop-s 10 --change | --two-files]
+    .venv/bin/python bench/foreign_sim.py score-drives RUN_DIR --truth data/drives/truth.json   (aggregate=drive)
 
 Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and differs from
 `physics/continuous.py` wherever a real car's simulator could:
@@ -57,6 +59,12 @@ Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and di
 mass hung on the pan; body2 hangs a on the pan and b on a; unused columns 0; also the dataset's attr
 `columns`), and with a delay `/test/truth_delay_s`. With a `.csv` output it writes one long drive of the
 first vehicle in the layout `qcm-import` reads (t, a3, a2, a1 in m/s²), its truth in a `.json` beside.
+`drives` writes drives of any length (minutes to an hour) of one vehicle each, for qcm-import: one CSV with
+a recording column (t, a3, a2 on one clock), or per drive a seat and a floor logger's CSV (phone-app columns,
+own clock, rate, jitter, tilt, gravity), and truth.json; made by the exact convolution of the road with each
+vehicle's first-order-hold impulse response (impulse_responses; see docs/notes/drives.md). `score-drives`
+scores a qcm-estimate aggregate=drive run folder against it (mean / worst drive error, coverage, time to
+±5 / ±2 %, splits at an occupant change and without one).
 `score` reads a qcm-estimate run folder and prints the occupant mass error and status counts, how many
 answers more than a tolerance off are still called `converged`, the chosen occupant models, the 95 %
 interval coverage of m3, and the honesty count: `converged`, more than 10 % off and the truth outside
@@ -543,6 +551,393 @@ def score(args) -> None:
         Path(args.json).write_text(json.dumps(numbers, indent=1))
 
 
+# --------------------------------------------------------------------------------------------------
+# Drives: minutes to an hour of one vehicle, cut into windows by qcm-import (issue 32)
+GRAVITY = 9.80665  # m/s², what an accelerometer at rest reads along the vertical
+PHONE_HEADER = "Time (s),Acceleration x (m/s^2),Acceleration y (m/s^2),Acceleration z (m/s^2)"
+
+
+def _active(A: np.ndarray, B: np.ndarray):
+    """(A, B) without the bodies that nothing links (a person's unused body: mass 1, no springs): their
+    states never move, and their zero eigenvalues (a Jordan block) have no eigen-decomposition."""
+    nb = A.shape[0] // 2
+    used = [j for j in range(nb) if np.any(A[nb + j] != 0) or np.any(A[nb:, j] != 0) or np.any(A[nb:, nb + j] != 0)]
+    keep = used + [nb + j for j in used]
+    return A[np.ix_(keep, keep)], B[keep]
+
+
+def impulse_responses(v, dt: float, n_max: int) -> np.ndarray:
+    """[n, L, 3] accelerations (a3, a2, a1) of each vehicle of `v` (rigid occupant or person) to a unit triangular road
+    pulse u_j = δ_j0 on the fine step dt (the road linear between fine points: _foh's first-order hold,
+    exact). A drive's response is the causal convolution with u (an LTI system from rest). With
+    x_{j+1} = Ad x_j + G0 u_j + G1 u_{j+1}: x_0 = G1, x_1 = Ad G1 + G0, x_j = Ad^(j-1) x_1, so h_0 = Ac G1 + Bc
+    and h_j = Re(Ac V Λ^(j-1) V⁻¹ x_1) from the eigen-decomposition Ad = V Λ V⁻¹ (no step loop). L: until every
+    mode has decayed to 1e-12, at most n_max (a longer tail never reaches a drive of n_max steps). The
+    reference vehicle's chassis bounce is barely damped (the soft tyre spring in series: Re λ ≈ -0.04/s), so
+    L is minutes, not seconds."""
+    if np.any(v["C1"] != 0):
+        raise ValueError("impulse_responses: drives take no tyre damper (the road's slope is not an input here)")
+    n = len(v["m3"])
+    systems = [_active(*_state_space(v, i)) for i in range(n)]
+    mats = [_foh(A, B, dt) for A, B in systems]
+    slowest = max(np.max(np.real(np.linalg.eigvals(A))) for A, _ in systems)
+    L = int(min(n_max, np.ceil(np.log(1e-12) / (slowest * dt)) + 1))
+    out = np.empty((n, L, 3))
+    for i, ((A, B), (Ad, G0, G1)) in enumerate(zip(systems, mats)):
+        nb = A.shape[0] // 2  # bodies: seat (pan), chassis, wheel[, person's a, b]
+        Ac, Bc = A[nb : nb + 3], B[nb : nb + 3, 0]  # accelerations from the state and from u (the tyre spring)
+        out[i, 0] = Ac @ G1[:, 0] + Bc
+        lam, V = np.linalg.eig(Ad)
+        weights = (Ac @ V) * np.linalg.solve(V, Ad @ G1[:, 0] + G0[:, 0])[None, :]  # [3, 6]
+        log_lam = np.log(lam.astype(complex))
+        for a in range(1, L, 1 << 20):
+            j = np.arange(a, min(L, a + (1 << 20)))
+            out[i, j] = np.real(np.exp(np.outer(j - 1, log_lam)) @ weights.T)
+    return out
+
+
+def drive_road(n_points: int, dx: float, road_class: int, rng: np.random.Generator, segment: int = 1 << 20):
+    """Road height [m] at n_points points dx apart. Up to `segment` points: iso_road. Longer (an hour at
+    1 kHz): independent iso_road segments overlap-added under a sine window of half a segment's overlap
+    (w² of neighbours sums to one, so the variance and the spectrum above 1/segment stay ISO's)."""
+    if n_points <= segment:
+        return iso_road(n_points, dx, road_class, rng)
+    hop = segment // 2
+    window = np.sin(np.pi * (np.arange(segment) + 0.5) / segment)
+    out = np.zeros(n_points + segment)
+    for start in range(-hop, n_points, hop):
+        piece = iso_road(segment, dx, road_class, rng) * window
+        lo = max(start, 0)
+        out[lo : start + segment] += piece[lo - start :]
+    return out[:n_points]
+
+
+def drive_positions(n_fine: int, dt: float, stop: tuple[float, float] | None) -> np.ndarray:
+    """Index of the road point under the car at each fine step: one point per step while driving, the same
+    point during `stop` = (start_s, end_s) (the car stands; it stops and drives off at once)."""
+    moving = np.ones(n_fine, dtype=np.int64)
+    if stop is not None:
+        moving[int(round(stop[0] / dt)) : int(round(stop[1] / dt))] = 0
+    return np.concatenate([[0], np.cumsum(moving[:-1])])
+
+
+def drive_accelerations(v, dt: float, n_fine: int, rng: np.random.Generator, *, speed_mps, classes, stop=None):
+    """Clean (a3, a2) [n, n_fine, 2] of each vehicle from rest at t = 0 on its own road, at the fine step dt.
+
+    `stop` = (start_s, end_s, v2): the car stands still in [start_s, end_s); the occupant of v2 (the same
+    vehicle, another m3) replaces v's at the middle of the stop, when v's motion has died out, and rides
+    from there on; each occupant's response is the convolution from rest (the equilibrium shifts with the
+    road height the car stands on: accelerations do not see it)."""
+    from scipy.signal import oaconvolve
+
+    n = len(v["m3"])
+    cls = rng.choice(np.asarray(classes), n)
+    positions = drive_positions(n_fine, dt, None if stop is None else stop[:2])
+    out = np.empty((n, n_fine, 2))
+    h1 = impulse_responses(v, dt, n_fine)
+    h2 = impulse_responses(stop[2], dt, n_fine) if stop is not None else None
+    change = None if stop is None else int(round(0.5 * (stop[0] + stop[1]) / dt))
+    for i in range(n):
+        road = drive_road(int(positions[-1]) + 1, speed_mps * dt, int(cls[i]), rng)[positions]
+        for c in (0, 1):
+            out[i, :, c] = oaconvolve(road - road[0], h1[i, :, c])[:n_fine]
+            if change is not None:
+                after = oaconvolve(road[change:] - road[change], h2[i, :, c])[: n_fine - change]
+                out[i, change:, c] = after
+    return out, cls
+
+
+def _clock(n: int, h: float, jitter: float, rng: np.random.Generator) -> np.ndarray:
+    """A logger's own time stamps [n] from 0: steps h (1 + jitter ξ), ξ ~ N(0, 1) clipped to ±3 (irregular
+    sampling, as a phone's sensor events come)."""
+    steps = h * (1 + jitter * np.clip(rng.standard_normal(n - 1), -3, 3))
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def _rotation(tilt: float, axis_angle: float, yaw: float) -> np.ndarray:
+    """Logger frame -> world: yaw about the vertical after a tilt by `tilt` about the horizontal axis at
+    `axis_angle` (rad)."""
+    k = np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0])
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    tilt_m = np.eye(3) + np.sin(tilt) * K + (1 - np.cos(tilt)) * K @ K
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ tilt_m
+
+
+def _horizontal(n_fine: int, dt: float, rms: float, rng: np.random.Generator) -> np.ndarray:
+    """[n_fine, 2] world-frame horizontal accelerations (longitudinal, lateral): white noise low-passed at
+    0.5 Hz (second order), scaled to `rms`, zero mean (braking and cornering, both loggers alike)."""
+    from scipy.signal import butter, sosfiltfilt
+
+    if rms == 0:
+        return np.zeros((n_fine, 2))
+    sos = butter(2, 0.5, fs=1 / dt, output="sos")
+    x = sosfiltfilt(sos, rng.standard_normal((2, n_fine)), axis=1).T
+    x -= x.mean(0)
+    return x * rms / x.std(0)
+
+
+def write_phone_csv(path: Path, t: np.ndarray, xyz: np.ndarray) -> None:
+    """A phone app's CSV: time [s] in the logger's own clock, three axes in m/s² with gravity."""
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "w") as handle:
+        handle.write(PHONE_HEADER + "\n")
+        for a in range(0, len(t), 100_000):
+            block = np.column_stack([t[a : a + 100_000], xyz[a : a + 100_000]])
+            np.savetxt(handle, block, delimiter=",", fmt=["%.6f", "%.6f", "%.6f", "%.6f"])
+    tmp.rename(path)
+
+
+def make_drives(args) -> None:
+    """Write drives (module docstring of `drives --help`) and their truth.json."""
+    for key, value, ok in (
+        ("--n", args.n, args.n >= 1),
+        ("--duration", args.duration, args.duration > 0),
+        ("--h", args.h, args.h > 0),
+        ("--noise", args.noise, args.noise >= 0),
+        ("--stop-s", args.stop_s, args.stop_s >= 0),
+        ("--min-change", args.min_change, 0 <= args.min_change < 1),
+        ("--jitter", args.jitter, 0 <= args.jitter < 0.2),
+        ("--tilt-max-deg", args.tilt_max_deg, 0 <= args.tilt_max_deg < 80),
+        ("--drift-ppm", args.drift_ppm, args.drift_ppm >= 0),
+        ("--start-spread-s", args.start_spread_s, args.start_spread_s >= 0),
+        ("--horizontal", args.horizontal, args.horizontal >= 0),
+    ):
+        if not ok:
+            sys.exit(f"foreign_sim drives: {key} = {value} is out of range")
+    if args.change and args.stop_s <= 0:
+        sys.exit("foreign_sim drives: --change happens at a stop: give --stop-s > 0")
+    out = Path(args.out)
+    if out.exists():
+        sys.exit(f"{out}: exists; choose another --out")
+    rng = np.random.default_rng(args.seed)
+    v = draw_vehicles(args.n, rng)
+    v["C1"] = np.zeros(args.n)
+    if tuple(args.m3_range) != (30.0, 150.0):  # the same stream; occupants mapped into the range asked for
+        v["m3"] = args.m3_range[0] + (v["m3"] - 30.0) / 120.0 * (args.m3_range[1] - args.m3_range[0])
+    if args.occupant != "rigid":
+        if args.change:
+            sys.exit("foreign_sim drives: --change takes rigid occupants")
+        draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]))
+    two = bool(args.two_files)
+    stop = None
+    if args.stop_s > 0:  # the stop half-way, the drive's length is driving time
+        half = 0.5 * args.duration
+        stop = (half, half + args.stop_s)
+    total = args.duration + (args.stop_s if stop else 0.0)
+    v2 = None
+    if stop is not None:
+        v2 = {k: np.array(x, copy=True) for k, x in v.items()}
+        if args.change:  # another occupant, at least min_change away, in the same range
+            for i in range(args.n):
+                while True:
+                    m = rng.uniform(30.0, 150.0)
+                    if abs(m / v["m3"][i] - 1) >= args.min_change:
+                        v2["m3"][i] = m
+                        break
+    # timing of the two loggers (true time): starts, ends, clock errors, tilts
+    rates = [float(r) for r in args.rates] if two else [1 / args.h]
+    fine_rate = max(2000.0, 2 * max(rates)) if two else 1 / args.h * args.sub
+    dt = 1 / fine_rate
+    spread = args.start_spread_s if two else 0.0
+    starts = rng.uniform(0, spread, (args.n, 2)) if two else np.zeros((args.n, 2))
+    overlap_start = starts.max(1)
+    ends = overlap_start[:, None] + total + (rng.uniform(0, 5, (args.n, 2)) if two else 0.0)
+    drive_end = ends.max() + 1.0 / min(rates)
+    lead = args.warmup_s  # every car drives this long from rest before the (first) logger starts
+    n_fine = int(np.ceil((lead + drive_end) / dt)) + 2
+    if stop is not None and two:
+        sys.exit("foreign_sim drives: a stop (--stop-s) is for one-clock drives")
+    stop_fine = None if stop is None else (lead + stop[0], lead + stop[1], v2)  # in the fine grid's time
+    print(f"simulating {args.n} drive(s) of {total:g} s on a {fine_rate:g} Hz grid ...", flush=True)
+    clean, cls = drive_accelerations(
+        v,
+        dt,
+        n_fine,
+        rng,
+        speed_mps=args.speed_kmh / 3.6,
+        classes=[ISO_CLASSES.index(c) for c in args.classes],
+        stop=stop_fine,
+    )
+    out.mkdir(parents=True)
+    params = parameters(v)
+    truth = {"h": args.h, "duration_s": total, "noise": args.noise, "K3": REF["K3"], "two_files": two, "drives": {}}
+    table = []
+    width = len(str(args.n - 1))
+    t_fine = np.arange(n_fine) * dt - lead  # the drive's time: 0 where the loggers' time origin is
+    for i in range(args.n):
+        name = f"drive{i:0{width}d}"
+        record = {"m3": float(v["m3"][i]), "p1": float(params[i, 0]), "p2": float(params[i, 1])}
+        if "occupant" in v:  # the static mass on the seat spring (pan + person), as `make` reports it
+            record["occupant"] = OCCUPANTS[int(v["occupant"][i])]
+        record["road_class"] = ISO_CLASSES[int(cls[i])]
+        if stop is not None:
+            record["stop_s"] = [stop[0], stop[1]]
+            record["m3_after"] = float(v2["m3"][i])
+            record["change_s"] = 0.5 * (stop[0] + stop[1]) if args.change else None
+        # the driving parts' RMS (noise is a fraction of it), per channel
+        driving = (t_fine >= 0) & (t_fine < total)
+        if stop is not None:
+            driving &= ~((t_fine >= stop[0]) & (t_fine < stop[1]))
+        rms = np.sqrt(np.mean(clean[i, driving] ** 2, axis=0))
+        if not two:
+            k = np.arange(int(round(total / args.h)))
+            idx = np.round((lead + k * args.h) / dt).astype(int)
+            a = clean[i, idx] + args.noise * rms * rng.standard_normal((len(k), 2))
+            table.append((name, k * args.h, a))
+            truth["drives"][name] = record
+            continue
+        # two loggers: seat (a3) and floor (a2), each its own clock, start, rate, tilt, noise on every axis
+        from scipy.interpolate import CubicSpline
+
+        horizontal = _horizontal(n_fine, dt, args.horizontal, rng)
+        clocks = rng.uniform(-0.5, 0.5, 2) * args.drift_ppm * 1e-6  # each clock's rate error: relative <= drift
+        order = rng.permutation(rates) if len(rates) == 2 else np.array(rates * 2)
+        for role, c in (("seat", 0), ("floor", 1)):
+            h_own = 1.0 / order[c]
+            n_samples = int((ends[i, c] - starts[i, c]) * order[c])
+            stamps = _clock(n_samples, h_own, args.jitter, rng)
+            t_true = starts[i, c] + stamps / (1 + clocks[c])
+            fine_idx = t_true / dt + lead / dt
+            vertical = CubicSpline(np.arange(n_fine), clean[i, :, c])(fine_idx)
+            flat = np.column_stack(
+                [CubicSpline(np.arange(n_fine), horizontal[:, j])(fine_idx) for j in (0, 1)] + [vertical + GRAVITY]
+            )
+            tilt = np.radians(rng.uniform(0, args.tilt_max_deg))
+            R = _rotation(tilt, rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi))
+            xyz = flat @ R  # world -> logger: R^T f, row-wise
+            xyz += args.noise * rms[c] * rng.standard_normal(xyz.shape)
+            write_phone_csv(out / f"{name}_{role}.csv", stamps, xyz)
+            record[f"{role}_rate_hz"] = float(order[c])
+            record[f"{role}_tilt_deg"] = float(np.degrees(tilt))
+            record[f"{role}_start_s"] = float(starts[i, c])
+            record[f"{role}_clock_ppm"] = float(clocks[c] * 1e6)
+        # the floor clock at the seat clock's zero, and the relative rate: c_floor = offset + (1 + drift) c_seat
+        record["offset_s"] = float((starts[i, 0] - starts[i, 1]) * (1 + clocks[1]))
+        record["drift_ppm"] = float(((1 + clocks[1]) / (1 + clocks[0]) - 1) * 1e6)
+        record["overlap_s"] = float(ends[i].min() - overlap_start[i])
+        truth["drives"][name] = record
+    if not two:
+        path = out / "drives.csv"
+        with open(path.with_name(path.name + ".partial"), "w") as handle:
+            handle.write("t,a3,a2,recording\n")
+            for name, t, a in table:
+                for s in range(0, len(t), 100_000):
+                    block = np.column_stack([t[s : s + 100_000], a[s : s + 100_000]])
+                    rows = np.char.add(
+                        np.char.add(np.char.mod("%.6f,", block[:, 0]), np.char.mod("%.7g,", block[:, 1])),
+                        np.char.mod("%.7g," + name, block[:, 2]),
+                    )
+                    handle.write("\n".join(rows.tolist()) + "\n")
+        path.with_name(path.name + ".partial").rename(path)
+    if args.whole:  # every drive as one recording (clean, one clock): what bench/occupant_crb.py reads
+        import h5py
+
+        n_steps = int(round(total / args.h))
+        idx = np.round((lead + np.arange(n_steps) * args.h) / dt).astype(int)
+        with h5py.File(out / "whole.partial", "w") as f:
+            f.attrs["schema"] = "hybridqcm.dataset/2"
+            f.attrs["h"] = args.h
+            accel = np.full((args.n, n_steps, 3), np.nan)
+            accel[:, :, :2] = clean[:, idx]
+            f["test/accel"] = np.nan_to_num(accel)
+            f["test/params"] = params
+            f["test/truth_m3"] = v["m3"]
+            f["test/truth_K3"] = v["K3"]
+        (out / "whole.partial").rename(out / "whole.h5")
+    (out / "truth.json").write_text(json.dumps(truth, indent=1))
+    what = "two loggers each" if two else "one clock"
+    print(
+        f"{out}: {args.n} drive(s) of {total:g} s ({what}), noise {args.noise}"
+        + (", occupant change" if args.change else "")
+    )
+
+
+def score_drives(args) -> None:
+    """Score a qcm-estimate aggregate=drive run folder (drives.csv) against a `drives` truth.json."""
+    import csv
+
+    run = Path(args.run)
+    truth = json.loads(Path(args.truth).read_text())
+    with open(run / "drives.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    segments: dict[str, list[dict]] = {}
+    for row in rows:
+        segments.setdefault(row["drive"], []).append(row)
+    missing = sorted(set(truth["drives"]) - set(segments))
+    tw = args.window_s
+
+    def number(text: str) -> float:
+        return float(text) if text not in ("", None) else np.inf
+
+    err, cover, t5, t2, splits, right, chi = [], [], [], [], [], [], []
+    seg_err = []
+    for name, record in truth["drives"].items():
+        if name not in segments:
+            continue
+        segs = sorted(segments[name], key=lambda r: int(r["segment"]))
+        change = record.get("change_s")
+        splits.append(len(segs) > 1)
+        if change is None:
+            if len(segs) == 1:
+                m3, lo, hi = (number(segs[0][k]) for k in ("m3", "m3_low", "m3_high"))
+                err.append(abs(m3 / record["m3"] - 1))
+                cover.append(lo <= record["m3"] <= hi)
+                t5.append(number(segs[0]["t_to_5pct_s"]))
+                t2.append(number(segs[0]["t_to_2pct_s"]))
+                chi.append(number(segs[0].get("chi2_per_dof", "")))
+            continue
+        stop = record["stop_s"]
+        ok = len(segs) == 2 and stop[0] - tw <= float(segs[1]["start_s"]) <= stop[1] + tw
+        right.append(ok)
+        if ok:  # each segment against its own occupant
+            for seg, true_m3 in zip(segs, (record["m3"], record["m3_after"])):
+                m3, lo, hi = (number(seg[k]) for k in ("m3", "m3_low", "m3_high"))
+                seg_err.append(abs(m3 / true_m3 - 1))
+                cover.append(lo <= true_m3 <= hi)
+    n = len(truth["drives"]) - len(missing)
+    numbers = {"run": str(run), "drives": n, "missing": missing}
+    print(f"{run}: {n} drives scored" + (f", {len(missing)} missing from drives.csv: {missing[:5]}" if missing else ""))
+    if err:
+        e = np.asarray(err)
+        numbers |= {
+            "m3_mean": float(e.mean()),
+            "m3_p95": float(np.percentile(e, 95)),
+            "m3_max": float(e.max()),
+            "over_3pct": int(np.sum(e > 0.03)),
+            "coverage_95": float(np.mean(cover)),
+            "median_t_to_5pct_s": float(np.median(t5)),
+            "median_t_to_2pct_s": float(np.median(t2)),
+            "reached_2pct": float(np.mean(np.isfinite(t2))),
+            "median_chi2_per_dof": float(np.median(chi)) if chi else None,
+        }
+        print(
+            f"  drive m3: mean {100 * e.mean():.3g} %, p95 {100 * numbers['m3_p95']:.3g} %, max {100 * e.max():.3g} %, "
+            f"over 3 %: {numbers['over_3pct']}; 95 % interval covers {100 * numbers['coverage_95']:.3g} % "
+            f"({len(err)} unsplit drives)"
+        )
+        print(
+            f"  median time to ±5 %: {numbers['median_t_to_5pct_s']:.3g} s, to ±2 %: {numbers['median_t_to_2pct_s']:.3g} s "
+            f"(±2 % reached in {100 * numbers['reached_2pct']:.3g} % of drives)"
+        )
+    split_rate = float(np.mean(splits)) if splits else float("nan")
+    if right:
+        numbers |= {
+            "split_right": float(np.mean(right)),
+            "segment_m3_mean": float(np.mean(seg_err)) if seg_err else None,
+        }
+        numbers["segment_coverage_95"] = float(np.mean(cover)) if cover else None
+        print(
+            f"  occupant change: split at the right window (±1, one boundary) in {100 * np.mean(right):.3g} % of "
+            f"{len(right)} drives; per segment m3 mean {100 * np.mean(seg_err or [np.nan]):.3g} %"
+        )
+    else:
+        numbers["no_split"] = 1.0 - split_rate
+        print(f"  no occupant change: not split in {100 * (1 - split_rate):.3g} % of drives")
+    if args.json:
+        Path(args.json).write_text(json.dumps(numbers, indent=1))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -569,8 +964,38 @@ def main(argv=None) -> None:
     sc.add_argument("--data")
     sc.add_argument("--tol", type=float, default=0.05)
     sc.add_argument("--json", help="write the m3 numbers to this JSON file")
+    dr = sub.add_parser("drives", help="write drives (minutes to hours) for qcm-import and aggregate=drive")
+    dr.add_argument("--out", required=True, help="a new folder: drives.csv or *_seat.csv/*_floor.csv, truth.json")
+    dr.add_argument("--n", type=int, default=100)
+    dr.add_argument("--duration", type=float, default=60.0, help="driving time [s] (a stop comes on top)")
+    dr.add_argument("--h", type=float, default=0.01, help="one clock: the logger's step [s]")
+    dr.add_argument("--sub", type=int, default=10, help="one clock: fine steps per logger step")
+    dr.add_argument("--speed-kmh", type=float, default=30.0)
+    dr.add_argument("--classes", nargs="+", default=["A", "B", "C"])
+    dr.add_argument("--warmup-s", type=float, default=5.0, help="driven from rest before the loggers start")
+    dr.add_argument("--noise", type=float, default=0.05, help="additive white noise, fraction of the driving RMS")
+    dr.add_argument("--stop-s", type=float, default=0.0, help="a stop of this length half-way")
+    dr.add_argument("--change", action="store_true", help="another occupant after the stop")
+    dr.add_argument("--min-change", type=float, default=0.1, help="the new occupant differs by at least this")
+    dr.add_argument("--two-files", action="store_true", help="a seat and a floor logger, each its own CSV and clock")
+    dr.add_argument("--rates", type=float, nargs="+", default=[100.0, 200.0], help="two files: the loggers' rates")
+    dr.add_argument("--jitter", type=float, default=0.01, help="two files: step-to-step timing jitter (fraction)")
+    dr.add_argument("--tilt-max-deg", type=float, default=20.0)
+    dr.add_argument("--drift-ppm", type=float, default=100.0, help="two files: largest relative clock drift")
+    dr.add_argument("--start-spread-s", type=float, default=30.0, help="two files: loggers start this far apart")
+    dr.add_argument("--horizontal", type=float, default=0.2, help="two files: horizontal acceleration RMS [m/s²]")
+    dr.add_argument("--m3-range", type=float, nargs=2, default=[30.0, 150.0], help="occupant mass U(A, B) [kg]")
+    dr.add_argument("--occupant", choices=(*OCCUPANTS, "mixed"), default="rigid", help="rigid mass or seated person")
+    dr.add_argument("--whole", action="store_true", help="also whole.h5: each drive clean, for occupant_crb.py")
+    dr.add_argument("--seed", type=int, default=0)
+    sd = sub.add_parser("score-drives", help="score a qcm-estimate aggregate=drive run folder")
+    sd.add_argument("run")
+    sd.add_argument("--truth", required=True, help="the drives' truth.json")
+    sd.add_argument("--window-s", type=float, default=5.12, help="window length: the split's tolerance (±1)")
+    sd.add_argument("--json")
     args = ap.parse_args(argv)
-    make(args) if args.cmd == "make" else score(args)
+    commands = {"make": make, "score": score, "drives": make_drives, "score-drives": score_drives}
+    commands[args.cmd](args)
 
 
 if __name__ == "__main__":

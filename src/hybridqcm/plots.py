@@ -172,3 +172,28 @@ def plot_apparent_mass(
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def plot_running_estimate(
+    segments: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    skipped: np.ndarray | None = None,
+    path: str | Path | None = None,
+    title: str | None = None,
+    ylabel: str = "m3 [kg]",
+):
+    """A drive's running estimate: per segment (time [n], estimate [n], low [n], high [n]) a step line with its
+    95 % band (an infinite bound is left open), one colour each; ``skipped``: times of windows not used (x)."""
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for k, (t, m, low, high) in enumerate(segments):
+        high = np.where(np.isfinite(high), high, np.nan)
+        ax.fill_between(t, low, high, step="post", alpha=0.25, color=f"C{k}")
+        ax.step(t, m, where="post", color=f"C{k}", label=f"segment {k}")
+    if skipped is not None and len(skipped):
+        ax.plot(skipped, np.full(len(skipped), ax.get_ylim()[0]), "kx", ms=4, label="window not used")
+    ax.set_xlabel("time in the recording [s] (end of each window)")
+    ax.set_ylabel(f"{ylabel}, 95 % band")
+    ax.grid(alpha=0.3)
+    ax.set_title(title or "running estimate")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

@@ -35,6 +35,13 @@ from omegaconf import DictConfig
 
 from hybridqcm.apps import common, runfolder
 from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm.apps.estimate_drive import (
+    aggregate_drives,
+    drive_columns,
+    drive_plan,
+    drive_skipped_columns,
+    model_names,
+)
 from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
 from hybridqcm.apps.estimate_occupant import build_selection, plot_first_recordings
 from hybridqcm.apps.estimate_plan import (
@@ -254,6 +261,7 @@ def run(cfg) -> dict:
         return run_vehicle(cfg, build_trainer)
     t_start = time.perf_counter()
     plan = validate(cfg)
+    drive = drive_plan(cfg, plan)  # aggregate=drive: the file's drives checked now (None: per window only)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     common.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
@@ -268,23 +276,32 @@ def run(cfg) -> dict:
         if cfg.get("overwrite", False):
             store.remove()
     n_samples, n_params = plan["n_samples"], plan["n_params"]
-    blocks = block_rows(n_samples, int(cfg.batch_size))
+    # a block holds at most block_samples time steps (recordings x steps read): long windows, fewer per block
+    per_block = int(cfg.batch_size)
+    if cfg.get("block_samples"):
+        per_block = min(per_block, max(1, int(cfg.block_samples) // int(plan["n_read_steps"])))
+    blocks = block_rows(n_samples, per_block)
     pending = store.pending(blocks)  # a finished block (matching marker) of an interrupted run is kept
 
     refinement = build_refinement(cfg, plan)
     theta_names = list(refinement.response.theta_names)
     n_theta_params = refinement.response.n_params  # with body modes and a delay: more than the n_params scored
     extra = list(getattr(refinement, "extra_columns", []))
+    tables = functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra)
+    skipped = functools.partial(
+        skipped_tables, header=estimates_header(theta_names, n_theta_params, extra), n_scored=n_params
+    )
+    if drive is not None:  # each window's shared parameters and covariance travel with its block
+        tables = drive_columns(tables, refinement, n_theta_params)
+        skipped = drive_skipped_columns(skipped, n_theta_params)
     writer = ShardWriter(
         store,
         refinement,
         estimates_header(theta_names, n_theta_params, extra),
         STATUS_HEADER,
-        functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra),
+        tables,
         block_stage_stats,
-        functools.partial(
-            skipped_tables, header=estimates_header(theta_names, n_theta_params, extra), n_scored=n_params
-        ),
+        skipped,
         merge_block_tables,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
@@ -365,6 +382,10 @@ def run(cfg) -> dict:
         cfg, columns, columns.get("true"), plan["known"], run_dir, plan["n_steps"], noise=noise
     )
     summary.update(metrics)
+    if drive is not None:
+        summary["drive_aggregate"] = aggregate_drives(
+            cfg, plan, drive, columns, run_dir, model_names(refinement), theta_names[:n_theta_params]
+        )
     summary["noise"] = noise
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).

@@ -325,6 +325,13 @@ def validate(cfg) -> dict:
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if int(cfg.batch_size) < 1:
         raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
+    block_samples = cfg.get("block_samples")
+    if block_samples is not None and (
+        isinstance(block_samples, bool) or not isinstance(block_samples, int) or block_samples < 1
+    ):
+        raise ConfigError(
+            f"block_samples must be an integer >= 1 (time steps per block) or null, got {block_samples!r}"
+        )
     restart_batch = cfg.restarts.get("batch", 64)
     if isinstance(restart_batch, bool) or not isinstance(restart_batch, int) or restart_batch < 1:
         raise ConfigError(f"restarts.batch must be an integer >= 1, got {restart_batch!r}")

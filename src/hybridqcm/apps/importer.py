@@ -2,6 +2,7 @@
 
 Examples:
     qcm-import input=drive.csv output=data/drive.h5 units=g
+    qcm-import input=SEAT.csv base_input=FLOOR.csv output=data/drive.h5 window=500     (two loggers, two clocks)
     qcm-import input=drive.csv output=data/drive.h5 columns.a3=seat_z columns.a2=floor_z window=500 stride=250
     qcm-import --help                               # every key
 """
@@ -25,7 +26,8 @@ from hybridqcm.apps.common import (
     run_folder,
 )
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.data.importer import read_recordings, write_recordings
+from hybridqcm.data.importer import import_recordings
+from hybridqcm.data.two_loggers import import_two_loggers
 
 
 def _optional_int(cfg: DictConfig, key: str) -> int | None:
@@ -71,8 +73,14 @@ def run(cfg: DictConfig) -> dict:
     output = Path(cfg.output) if cfg.output is not None else Path(cfg.paths.data_dir) / f"{source.stem}.h5"
     if output.exists() and not cfg.overwrite:
         raise FileExistsError(f"output={output} exists; pass overwrite=true to replace it")
-    data = read_recordings(
+    if cfg.get("base_input") is not None:
+        return _run_two_loggers(cfg, source, output)
+    data = import_recordings(
         source,
+        output,
+        split=str(cfg.split),
+        overwrite=bool(cfg.overwrite),
+        progress=bool(cfg.get("progress", True)),
         units=str(cfg.units),
         column_units=_mapping(cfg, "column_units"),
         columns=_mapping(cfg, "columns"),
@@ -86,7 +94,6 @@ def run(cfg: DictConfig) -> dict:
         delimiter=cfg.delimiter,
         rate_range=_rate_range(cfg),
     )
-    write_recordings(output, data, split=str(cfg.split), source=str(source), overwrite=bool(cfg.overwrite))
     duration = sum(data.rows) * data.h
     summary = {
         "input": str(source),
@@ -98,7 +105,7 @@ def run(cfg: DictConfig) -> dict:
         "rows": int(sum(data.rows)),
         "duration_s": duration,
         "channels": list(data.channels),
-        "road": data.road is not None,
+        "road": data.has_road,
         "units": data.source_units,
         "samples": data.n_samples,
         "n_steps": data.n_steps,
@@ -120,8 +127,95 @@ def run(cfg: DictConfig) -> dict:
         ],
     ]
     print_table(f"{source} -> {output}", ["imported", "value"], rows)
-    atomic_write_text(Path(cfg.paths.output_dir) / "summary.json", json.dumps(summary, indent=2))
+    _save_summary(cfg, summary)
     return summary
+
+
+def _save_summary(cfg: DictConfig, summary: dict) -> None:
+    atomic_write_text(Path(cfg.paths.output_dir) / "summary.json", json.dumps(summary, indent=2))
+
+
+def _run_two_loggers(cfg: DictConfig, seat: Path, output: Path) -> dict:
+    """input = the seat's logger, base_input = the floor's (data/two_loggers.py): aligned, one grid, windows."""
+    for key in ("recording_column",):
+        if cfg.get(key) is not None:
+            raise ValueError(f"{key}={cfg[key]!r} does not apply to two loggers (base_input=): one drive per pair")
+    floor = Path(cfg.base_input)
+    read = {
+        "axes": _axes(cfg, "axes"),
+        "time_column": cfg.time_column,
+        "time_unit": str(cfg.time_unit),
+        "units": str(cfg.units),
+        "gap_factor": _number(cfg, "gap_factor"),
+        "delimiter": cfg.delimiter,
+        "rate_range": _rate_range(cfg),
+    }
+    base_read = dict(read, axes=_axes(cfg, "base_axes"), units=str(cfg.get("base_units") or cfg.units))
+    rate = cfg.get("rate")
+    layout, report = import_two_loggers(
+        seat,
+        floor,
+        output,
+        window=_optional_int(cfg, "window"),
+        stride=_optional_int(cfg, "stride"),
+        split=str(cfg.split),
+        overwrite=bool(cfg.overwrite),
+        progress=bool(cfg.get("progress", True)),
+        read=read,
+        base_read=base_read,
+        rate=None if rate is None else _number(cfg, "rate"),
+        min_overlap_s=_number(cfg, "min_overlap_s"),
+    )
+    summary = {
+        "input": str(seat),
+        "base_input": str(floor),
+        "output": str(output),
+        "split": str(cfg.split),
+        "rate_hz": 1.0 / layout.h,
+        "h": layout.h,
+        "samples": layout.n_samples,
+        "n_steps": layout.n_steps,
+        "window": layout.window,
+        "stride": layout.stride,
+        "two_loggers": report,
+    }
+    drift = (
+        f"{report['drift_ppm']:+.1f} ± {report['drift_sd_ppm']:.1f} ppm, "
+        + ("applied" if report["drift_applied"] else "not applied (not determined over this overlap)")
+        if report["drift_ppm"] == report["drift_ppm"]
+        else "not estimated (overlap too short)"
+    )
+    rows = [
+        [
+            "loggers",
+            f"seat {report['seat']['rate_hz']:.6g} Hz, tilt {report['seat']['tilt_deg']:.2f} deg; "
+            f"floor {report['floor']['rate_hz']:.6g} Hz, tilt {report['floor']['tilt_deg']:.2f} deg",
+        ],
+        ["clock offset", f"t_floor - t_seat = {report['offset_s']:.6f} s"],
+        ["clock drift", drift],
+        [
+            "grid",
+            f"{report['rate_hz']:.6g} Hz over {report['overlap_s']:.6g} s in common (floor clock from {report['t0_s']:.6g} s)",
+        ],
+        [
+            "written",
+            f"/{cfg.split}: {layout.n_samples} sample(s) x {layout.n_steps} steps of a3 (seat), a2 (floor)"
+            + (f" (window {layout.window}, stride {layout.stride})" if layout.window else ""),
+        ],
+    ]
+    print_table(f"{seat} + {floor} -> {output}", ["imported", "value"], rows)
+    _save_summary(cfg, summary)
+    return summary
+
+
+def _axes(cfg: DictConfig, key: str) -> list[str] | None:
+    value = cfg.get(key)
+    if value is None:
+        return None
+    value = OmegaConf.to_container(value, resolve=True) if not isinstance(value, (str, list)) else value
+    if isinstance(value, str) or len(value) != 3:
+        raise ValueError(f"{key} must list the three axis columns, e.g. {key}=[ax,ay,az], got {value!r}")
+    return [str(v) for v in value]
 
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="import")

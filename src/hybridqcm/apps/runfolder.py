@@ -28,6 +28,8 @@ ESTIMATE_ARTEFACTS = (
     "error_distribution.csv",
     "error_distribution.md",
     "calibration.csv",
+    "drives.csv",
+    "drive_progress.csv",
     "summary.json",
     "plots",
     "tb",

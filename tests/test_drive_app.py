@@ -1,0 +1,260 @@
+"""qcm-estimate aggregate=drive: drives.csv / drive_progress.csv from per-window columns built here (known
+truth, a change, a drive whose every window is rejected, overlapping windows), and end to end on drives
+from the simulator that is not ours (bench/foreign_sim.py) through qcm-import."""
+
+import csv
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from hybridqcm.apps.estimate_drive import DrivePlan, aggregate_drives, drive_plan
+from hybridqcm.data.importer import read_recordings, write_recordings
+from hybridqcm.errors import DatasetError
+from hybridqcm.estimation.solver import SolverStatus
+from hybridqcm.estimation.window_check import WindowStatus
+
+REPO = Path(__file__).resolve().parents[1]
+K3 = 98935.0
+_spec = importlib.util.spec_from_file_location("foreign_sim", REPO / "bench" / "foreign_sim.py")
+fs = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(fs)
+
+
+def _rows(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _plan(profile_id, t_start, names, window_s=5.0, **settings):
+    defaults = dict(
+        statuses=("converged",),
+        weights="reported",
+        scale="birge",
+        alpha=0.01,
+        min_windows=2,
+        outlier_alpha=0.001,
+        neighbours=2,
+        plots=1,
+        per_window=("tau",),
+    )
+    defaults.update(settings)
+    return DrivePlan(
+        **defaults,
+        profile_id=np.asarray(profile_id),
+        t_start=np.asarray(t_start, dtype=float),
+        names=tuple(names),
+        window_s=window_s,
+    )
+
+
+def _columns(masses, rel_sd, rng, status=None):
+    """Per-window columns as drive_columns writes them: θ = (p1, p2) drawn around the truth with the
+    covariance the window reports (p1 = C3/m3 with C3 = 615, p2 = K3/m3)."""
+    masses = np.asarray(masses, float)
+    n = masses.size
+    p = np.stack([615.0 / masses, K3 / masses], 1)
+    sd = rel_sd * p
+    cov = np.stack([np.diag(s**2) for s in sd])
+    theta = p + rng.standard_normal((n, 2)) * sd
+    status = np.full(n, int(SolverStatus.CONVERGED)) if status is None else np.asarray(status)
+    p2_low, p2_high = theta[:, 1] - 1.96 * sd[:, 1], theta[:, 1] + 1.96 * sd[:, 1]
+    return {
+        "drive_theta": torch.from_numpy(theta),
+        "drive_cov": torch.from_numpy(cov),
+        "drive_model_cov": torch.from_numpy(cov),
+        "drive_model": torch.zeros(n, dtype=torch.long),
+        "status": torch.from_numpy(status).long(),
+        "m3_low": torch.from_numpy(K3 / p2_high),
+        "m3_high": torch.from_numpy(K3 / p2_low),
+        "true": torch.from_numpy(np.concatenate([p, np.ones((n, 8))], 1)),
+    }
+
+
+def test_drives_csv_segments_rejections_and_progress(tmp_path, capsys):
+    """Drive A: 80 kg, then 110 kg after window 6 (of 12); drive B: every window misfit; drive C: 60 kg with
+    windows every 2.5 s of 5 s (overlapping: every other one used)."""
+    rng = np.random.default_rng(0)
+    mass = [80.0] * 6 + [110.0] * 6 + [70.0] * 4 + [60.0] * 8
+    status = [int(SolverStatus.CONVERGED)] * 12 + [int(SolverStatus.MISFIT)] * 4 + [int(SolverStatus.CONVERGED)] * 8
+    columns = _columns(mass, 0.01, rng, status)
+    pid = [0] * 12 + [1] * 4 + [2] * 8
+    t0 = [5.0 * k for k in range(12)] + [5.0 * k for k in range(4)] + [2.5 * k for k in range(8)]
+    plan = _plan(pid, t0, ["A", "B", "C"])
+    cfg = OmegaConf.create({"K3": K3, "plots": True, "tensorboard": True})
+    summary = aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"])
+    rows = _rows(tmp_path / "drives.csv")
+    assert [(r["drive"], r["segment"]) for r in rows] == [("A", "0"), ("A", "1"), ("B", "0"), ("C", "0")]
+    a0, a1, b, c = rows
+    assert float(a1["start_s"]) == 30.0 and float(a0["end_s"]) == 30.0  # split at the change
+    for r, truth in ((a0, 80.0), (a1, 110.0), (c, 60.0)):
+        assert abs(float(r["m3"]) / truth - 1) < 0.02  # 6 windows of 1 %: well inside
+        assert float(r["m3_low"]) < float(r["m3"]) < float(r["m3_high"])
+        assert float(r["m3_true"]) == pytest.approx(truth)
+        assert r["status"] == "ok" and r["model"] == "rigid"
+    assert (a0["windows"], a0["windows_used"], a1["windows_used"]) == ("6", "6", "6")
+    assert (b["status"], b["m3"], b["windows_rejected"], b["windows_used"]) == ("no_usable_window", "", "4", "0")
+    assert (c["windows"], c["windows_used"], c["windows_overlapping"]) == ("8", "4", "4")
+    assert (
+        "drive B: every one of its 4 window(s) was rejected (rejected:misfit); no estimate" in capsys.readouterr().out
+    )
+    # 1 % windows: ±5 % after the first window (1.96 %), ±2 % once the interval narrowed below 2 %
+    assert float(a0["t_to_5pct_s"]) == 5.0 and 5.0 < float(a0["t_to_2pct_s"]) <= 15.0
+    progress = _rows(tmp_path / "drive_progress.csv")
+    assert len(progress) == len(mass)
+    first = [r for r in progress if r["drive"] == "A" and r["segment"] == "1"]
+    assert [r["windows_used"] for r in first] == [str(k) for k in range(1, 7)]
+    assert float(first[0]["t_s"]) == 5.0 and float(first[-1]["t_s"]) == 30.0
+    last = first[-1]
+    assert (last["m3"], last["m3_low"], last["m3_high"]) == (a1["m3"], a1["m3_low"], a1["m3_high"])
+    assert [r["used"] for r in progress if r["drive"] == "C"] == ["used", "overlapping"] * 4
+    assert summary["drives"] == 3 and summary["drives_split"] == 1 and summary["drives_without_estimate"] == 1
+    assert (tmp_path / "plots" / "drive_A.png").exists()
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 0}).Reload()
+    assert "drive/drive_A" in events.Tags()["images"]
+
+
+def test_windows_of_different_models_combine_the_static_mass(tmp_path):
+    """Windows that chose different occupant models: m3 per window (σ from its interval) is combined."""
+    rng = np.random.default_rng(1)
+    columns = _columns([75.0] * 6, 0.02, rng)
+    columns["drive_model"] = torch.tensor([0, 1, 0, 1, 1, 0])
+    plan = _plan([0] * 6, [5.0 * k for k in range(6)], ["D"])
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["body1", "body2"])
+    (row,) = _rows(tmp_path / "drives.csv")
+    assert row["model"] == "mixed(body1:3;body2:3)"
+    m3 = K3 / columns["drive_theta"][:, 1].numpy()
+    sd = (columns["m3_high"] - columns["m3_low"]).numpy() / 3.919927969080108
+    expected = np.sum(m3 / sd**2) / np.sum(1 / sd**2)
+    assert float(row["m3"]) == pytest.approx(expected, rel=1e-12)
+
+
+def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
+    """no_signal / clipped windows (kept from the fit: NaN estimates, estimation/window_check.py) are never
+    combined and are counted apart from the rejected ones; a drive of nothing else has no estimate."""
+    rng = np.random.default_rng(3)
+    status = [0, int(WindowStatus.NO_SIGNAL), 0, 0, int(SolverStatus.MISFIT), 0]
+    status += [int(WindowStatus.CLIPPED), int(WindowStatus.NO_SIGNAL)]
+    columns = _columns([70.0] * 6 + [90.0] * 2, 0.01, rng, status)
+    for key in ("drive_theta", "drive_cov", "drive_model_cov", "m3_low", "m3_high"):
+        columns[key][[1, 6, 7]] = math.nan  # as drive_skipped_columns / skipped_tables write them
+    plan = _plan([0] * 6 + [1] * 2, [5.0 * k for k in range(6)] + [0.0, 5.0], ["A", "B"])
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"])
+    a, b = _rows(tmp_path / "drives.csv")
+    assert (a["windows"], a["windows_used"], a["windows_skipped"], a["windows_rejected"]) == ("6", "4", "1", "1")
+    assert abs(float(a["m3"]) / 70.0 - 1) < 0.02 and a["status"] == "ok"
+    assert (b["status"], b["windows_skipped"], b["windows_rejected"]) == ("no_usable_window", "2", "0")
+    assert "drive B: every one of its 2 window(s)" in capsys.readouterr().out
+    used_column = [r["used"] for r in _rows(tmp_path / "drive_progress.csv")]
+    assert used_column == ["used", "skipped:no_signal", "used", "used", "rejected:misfit", "used"] + [
+        "skipped:clipped",
+        "skipped:no_signal",
+    ]
+
+
+def test_drive_plan_needs_the_drives_layout(tmp_path):
+    path = tmp_path / "no_t.h5"
+    with h5py.File(path, "w") as f:
+        f["test/accel"] = np.zeros((3, 10, 3), np.float32)
+        f["test/profile_id"] = np.zeros(3, np.int32)
+    cfg = OmegaConf.create({"aggregate": "drive", "drive": {}})
+    with pytest.raises(DatasetError, match=r"no_t.h5: /test lacks \['t_start'\], which aggregate=drive needs"):
+        drive_plan(cfg, {"path": path, "split": "test", "n_samples": 3, "h": 0.01})
+    cfg = OmegaConf.create({"aggregate": "trip"})
+    with pytest.raises(Exception, match="aggregate='trip': give drive"):
+        drive_plan(cfg, {"path": path, "split": "test", "n_samples": 3, "h": 0.01})
+
+
+@pytest.mark.parametrize(
+    "occupant",
+    [
+        pytest.param(["occupant.models=[rigid]", "delay=null"], id="rigid"),
+        # occupant_roadfree's default: rigid, body1, body2 by evidence, delay auto (191 s on 2 shared cores)
+        pytest.param([], id="default-models", marks=pytest.mark.slow),
+    ],
+)
+def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path, occupant):
+    """Two 32 s drives (2 % noise) with a 6 s stop half-way and another occupant after it: imported with
+    4 s windows, estimated in blocks of at most 2 000 steps (no restarts: the stop's windows would only cost
+    time), each split at the stop (± one window), each segment within 3 % of its occupant. One window of the
+    first drive is all zeros (a logger standing still): skipped (no_signal), counted, not combined."""
+    out = tmp_path / "drives"
+    fs.main(["drives", "--out", str(out), "--n", "2", "--duration", "32", "--stop-s", "6", "--change"]
+            + ["--noise", "0.02", "--seed", "4"])  # fmt: skip
+    data = read_recordings(out / "drives.csv", recording_column="recording", window=400)
+    data.accel[1, :, :2] = 0.0
+    h5 = write_recordings(tmp_path / "drives.h5", data)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree", f"data.path={h5}"]
+    proc = subprocess.run(
+        cmd
+        + occupant
+        + ["aggregate=drive", "restarts.count=0", "block_samples=2000", f"hydra.run.dir={run}", "progress=false"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    truth = json.loads((out / "truth.json").read_text())["drives"]
+    rows = _rows(run / "drives.csv")
+    assert sorted({r["drive"] for r in rows}) == sorted(truth)
+    for name, record in truth.items():
+        segs = [r for r in rows if r["drive"] == name]
+        assert len(segs) == 2, segs
+        stop = record["stop_s"]
+        assert stop[0] - 4.0 <= float(segs[1]["start_s"]) <= stop[1] + 4.0
+        for seg, m3 in zip(segs, (record["m3"], record["m3_after"])):
+            assert abs(float(seg["m3"]) / m3 - 1) < 0.03
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["drive_aggregate"]["drives_split"] == 2
+    assert summary["blocks"] == 4  # block_samples: 5 windows of 400 steps read per block at most, 18 windows
+    progress = _rows(run / "drive_progress.csv")
+    assert len(progress) == data.n_samples
+    assert _rows(run / "estimates.csv")[1]["status"] == "no_signal" and data.profile_id[1] == 0
+    assert [r["used"] for r in progress if r["index"] == "1"] == ["skipped:no_signal"]
+    first = [r for r in rows if r["drive"] == data.recordings[0]]
+    assert (first[0]["windows_skipped"], first[1]["windows_skipped"]) == ("1", "0")
+    assert summary["skipped_windows"]["no_signal"] == 1
+
+
+def test_foreign_drives_agree_with_dop853():
+    """The drive simulator's convolution with each vehicle's impulse response (eigen-decomposed) against
+    scipy's DOP853 on the same piecewise-linear road, from rest: a3 and a2 to 5e-7 of their range (DOP853 steps
+    across the road's kinks; the hold is exact there)."""
+    from scipy.integrate import solve_ivp
+
+    n, dt, n_fine = 2, 1e-3, 1500
+    v = fs.draw_vehicles(n, np.random.default_rng(2))
+    v["C1"] = np.zeros(n)
+    accel, cls = fs.drive_accelerations(v, dt, n_fine, np.random.default_rng(7), speed_mps=30 / 3.6, classes=[0, 1, 2])
+    rng = np.random.default_rng(7)  # replay the simulator's stream: classes, then each road
+    assert (rng.choice(np.asarray([0, 1, 2]), n) == cls).all()
+    grid = np.arange(n_fine) * dt
+    for i in range(n):
+        u = fs.drive_road(n_fine, 30 / 3.6 * dt, int(cls[i]), rng)
+        u = u - u[0]  # the car at rest on the road where it starts
+        A, B = fs._state_space(v, i)
+        sol = solve_ivp(
+            lambda t, x, A=A, B=B, u=u: A @ x + B[:, 0] * np.interp(t, grid, u),
+            (0, grid[-1]),
+            np.zeros(6),
+            method="DOP853",
+            t_eval=grid[::10],
+            rtol=1e-11,
+            atol=1e-14,
+            max_step=dt,
+        )
+        ref = (A[3:5] @ sol.y + np.outer(B[3:5, 0], u[::10])).T
+        assert np.abs(ref - accel[i, ::10]).max() <= 5e-7 * np.abs(ref).max()
