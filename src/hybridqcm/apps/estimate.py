@@ -120,7 +120,7 @@ def build_refinement(cfg, plan):
     centre = reference if plan["restarts_around"] == "reference" else None
     if plan.get("occupant") is not None:
         return build_selection(
-            cfg, plan, plan["occupant"], lambda r, k, prior: _refinement(cfg, plan, r, k, prior, None)
+            cfg, plan, plan["occupant"], lambda r, k, prior, centre=None: _refinement(cfg, plan, r, k, prior, centre)
         )
     return _refinement(cfg, plan, response, known_mask, param_prior, centre)
 
@@ -286,7 +286,8 @@ def run(cfg) -> dict:
         return {}
 
     columns, markers = store.merge(blocks, n_samples)
-    if plan.get("occupant") is not None and cfg.plots:  # a person at a glance: fitted apparent mass vs a3/a2
+    # a person at a glance: fitted apparent mass vs the measured a3/a2
+    if plan.get("occupant") is not None and cfg.plots and {"a3", "a2"} <= set(plan["observed"]):
         pictures = plot_first_recordings(run_dir, plan, run_dir / "estimates.csv")
         if cfg.tensorboard and pictures:
             from hybridqcm.tracking import log_estimation_to_tensorboard
