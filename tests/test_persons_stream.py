@@ -62,3 +62,24 @@ def test_persons_refuse_the_physics_residual_and_the_euler_stream():
         StreamingDataModule(window=64, occupant="mixed")
     with pytest.raises(ValueError, match="data.occupant = 'giant'"):
         StreamingDataModule(window=64, physics="continuous", occupant="giant")
+
+
+def test_a_persons_file_refuses_the_physics_residual_but_trains_the_labelled_cnn(tmp_path):
+    """qcm-simulate occupant=body1's file: the labels (params p1, p2) are the static mass's, the physics
+    residual's training split is refused in one line."""
+    from conftest import write_tiny_dataset
+    from hybridqcm.data.datamodules import HDF5DataModule
+    from hybridqcm.data.hdf5 import DatasetError, read_split
+
+    path = tmp_path / "persons.h5"
+    write_tiny_dataset(path, physics="continuous", warmup_s=(2.0, 5.0), occupant="body1")
+    physics = dict(window=64, aux=["a3", "v3", "v2", "q3", "q2"], batch_size=8, val_fraction=0.25)
+    with pytest.raises(DatasetError, match="holds seated persons"):
+        HDF5DataModule(path, **physics).setup("fit")
+    HDF5DataModule(path, **physics).setup("test")  # evaluating on persons is allowed
+    labelled = HDF5DataModule(path, window=64, batch_size=8, val_fraction=0.25)
+    labelled.setup("fit")
+    arrays = read_split(path, "train", ["params", "occupant_params"])
+    assert arrays["occupant_params"].shape[1] == 3 and (arrays["occupant_params"][:, 0] > 0).all()
+    y = torch.cat([labelled.data_train.tensors["y"], labelled.data_val.tensors["y"]])
+    assert torch.equal(y.sort(0).values, torch.as_tensor(arrays["params"][:, :2]).double().sort(0).values)

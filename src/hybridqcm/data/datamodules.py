@@ -332,6 +332,13 @@ class HDF5DataModule(_BaseDataModule):
                     f"{self.path}: /{split} lacks dataset(s) {missing} needed for channels "
                     f"inputs={self.spec.inputs} targets={self.spec.targets} aux={self.spec.aux}; it has {have}"
                 )
+            occupant = info["splits"][split].get("occupant", "rigid")
+            if split == self.train_split and "fit" in stages and self.spec.aux and occupant != "rigid":
+                # the physics residual a3 = -p1 (v3 - v2) - p2 (q3 - q2) is the rigid occupant's equation
+                raise DatasetError(
+                    f"{self.path}: /{split} holds seated persons (occupant = {occupant}); the physics-residual "
+                    f"loss (aux {list(self.spec.aux)}) assumes a rigid occupant: train the labelled CNN on it"
+                )
             stored = info["splits"][split]["n_steps"]
             if stored is not None and self.window > stored:
                 raise DatasetError(
