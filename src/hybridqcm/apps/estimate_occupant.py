@@ -113,8 +113,7 @@ def _vehicle_settings(cfg, plan, names) -> tuple:
     """(mean [n], std [n]) of the run's vehicle prior over the parameter ``names`` (std inf where it has none)
     and the restarts' centre [n] (None unless restarts go around the reference vehicle), as the rigid run
     has them (apps/estimate.build_refinement)."""
-    from hybridqcm.apps.estimate_plan import PARAM_NAMES
-    from hybridqcm.physics.parameters import PhysicalConstants
+    from hybridqcm.physics.parameters import PARAM_NAMES, PhysicalConstants
 
     p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
     reference = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
