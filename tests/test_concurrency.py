@@ -15,7 +15,6 @@ import pytest
 
 from hybridqcm.apps import runfolder
 from hybridqcm.data.hdf5 import DatasetWriter, acquire_write_lock, read_split
-from hybridqcm.errors import ConfigError
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 ENV = {**os.environ, "PYTHONPATH": SRC}
@@ -125,26 +124,6 @@ def test_run_folders_are_unique_per_process():
     config = yaml.safe_load(text)
     for section in ("run", "sweep"):
         assert "%f" in config[section]["dir"] and "${hybridqcm_pid:}" in config[section]["dir"]
-
-
-def test_run_folder_with_another_runs_outputs_is_refused_then_cleared(tmp_path):
-    (tmp_path / "estimates.csv").write_text("old")
-    (tmp_path / "plots").mkdir()
-    (tmp_path / "plots" / "sorted_p1.png").write_text("old")
-    (tmp_path / "notes.txt").write_text("user's own file")
-    with pytest.raises(ConfigError, match=r"already holds another run's outputs \(estimates.csv, plots\)"):
-        runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, overwrite=False)
-    runfolder.prepare_run_dir(tmp_path, runfolder.ESTIMATE_ARTEFACTS, overwrite=True)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]  # only our artefacts were removed
-
-
-def test_overwrite_never_clears_an_input_of_the_run(tmp_path):
-    (tmp_path / "checkpoints").mkdir()
-    ckpt = tmp_path / "checkpoints" / "last.ckpt"
-    ckpt.write_text("weights")
-    with pytest.raises(ConfigError, match="is an input of this run"):
-        runfolder.prepare_run_dir(tmp_path, runfolder.TRAIN_ARTEFACTS, True, inputs=[ckpt])
-    assert ckpt.read_text() == "weights"
 
 
 def test_completion_marker_names_the_inputs(tmp_path):

@@ -140,3 +140,39 @@ logging.getLogger("lightning.pytorch.accelerators.cuda").info("LOCAL_RANK: 0 - C
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.splitlines() == ["lightning.pytorch.utilities.rank_zero | kept: GPU available"]
     assert "kept" not in result.stderr
+
+
+def test_help_lists_only_the_groups_and_experiments_the_app_takes():
+    """Before: every app's --help listed every folder of configs/ (qcm-estimate: model, logger, callbacks,
+    launcher, ... and the training experiments), which the app then refused."""
+    import yaml
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import MissingConfigException
+
+    from hybridqcm.apps.common import CONFIG_DIR
+
+    bin_dir = Path(sys.executable).parent
+    from hybridqcm.apps.common import app_groups_help
+
+    assert app_groups_help("simulate") == "paths: default\npreset: small, tiny"
+    for app, config in (("qcm-estimate", "estimate"), ("qcm-train", "train")):
+        result = subprocess.run([str(bin_dir / app), "--help"], capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr[-2000:]
+        section = result.stdout.split("== Configuration groups (group=option) ==\n", 1)[1].split("\n\n", 1)[0]
+        listed = {line.split(": ", 1)[0]: line.split(": ", 1)[1].split(", ") for line in section.splitlines()}
+        assert result.stdout.startswith(f"{app}: key=value overrides")
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            for group, options in listed.items():
+                if group == "experiment":  # each one is this app's (the config's own `task:`)
+                    tasks = {yaml.safe_load((CONFIG_DIR / group / f"{o}.yaml").read_text())["task"] for o in options}
+                    assert tasks == {config}, (app, tasks)
+                    continue
+                try:  # the group is in the app's defaults list: an option of it composes
+                    compose(config, overrides=[f"{group}={options[-1]}"])
+                except MissingConfigException as error:  # a launcher whose optional plugin is not installed
+                    assert group == "launcher" and "hydra/launcher" in str(error), error
+        if app == "qcm-estimate":
+            assert set(listed) == {"paths", "solver", "sensor", "trainer", "experiment"}
+            assert "occupant_roadfree" in listed["experiment"] and "exp1_labelled" not in listed["experiment"]
+        if app == "qcm-train":
+            assert "solver" not in listed and "exp5_random_init" not in listed["experiment"]

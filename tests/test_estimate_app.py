@@ -238,7 +238,10 @@ def test_vehicle_prior_is_the_reference_vehicle_on_the_listed_unknowns(tiny_data
     assert (precision[10:] == 0).all()  # never on the initial state
     off = _cfg([*base, "vehicle_prior.rel_std=null"])
     assert build_refinement(off, validate(off)).param_prior is None
-    seat = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "dynamics=exact"])
+    seat = _cfg(
+        ["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "dynamics=exact", "occupant.models=[rigid]"]
+    )
+    seat.delay = None
     assert build_refinement(seat, validate(seat)).param_prior is None
     # exp 10's extra attempts for wrong basins: the exact model only (the Euler reproduction keeps its protocol)
     assert refinement.restarts_failed == 8

@@ -23,7 +23,15 @@ from hybridqcm.estimation.draws import NormalStream
 from hybridqcm.physics.parameters import PhysicalConstants
 
 BIN = Path(sys.executable).parent
-ROADFREE = ["experiment=occupant_roadfree", "progress=false", "plots=false", "tensorboard=false"]
+# the rigid occupant on one clock: these tests are about blocks, shards and processes, not the occupant models
+ROADFREE = [
+    "experiment=occupant_roadfree",
+    "occupant.models=[rigid]",
+    "delay=null",
+    "progress=false",
+    "plots=false",
+    "tensorboard=false",
+]
 
 
 def _cfg(overrides):

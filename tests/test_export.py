@@ -117,6 +117,29 @@ def test_cli_synthetic_signals_and_time_steps(checkpoints, tmp_path):
     assert not (tmp_path / "last.onnx").exists()
     scripted = torch.jit.load(str(tmp_path / "last.pt"))
     assert scripted(torch.randn(3, 2, 300)).shape == (3, 2, 300)
+    # an existing export is not replaced unasked (before: replaced without a word)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    again = subprocess.run(command[:-4] + ["--time-steps", "200"], capture_output=True, text=True, timeout=300)
+    assert again.returncode == 2
+    assert again.stderr.strip().splitlines() == [
+        f"error: {tmp_path / 'last.pt'} exists; pass --overwrite to replace the export (or --out/--name)"
+    ]
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_overwrite_replaces_an_export_and_only_then(checkpoints, tmp_path):
+    from hybridqcm.apps.export import ConfigError, export
+
+    ckpt = checkpoints["exp4_denoiser"]
+    export(ckpt, tmp_path, "cae", ["torchscript"], 300, n_check=4)
+    (tmp_path / "cae.onnx").write_text("the user's own file of that name")
+    with pytest.raises(ConfigError, match=r"cae.onnx exists; pass --overwrite"):
+        export(ckpt, tmp_path, "cae", ["onnx"], 300, n_check=4)
+    assert (tmp_path / "cae.onnx").read_text() == "the user's own file of that name"
+    export(ckpt, tmp_path, "cae", ["torchscript"], 200, n_check=4, overwrite=True)
+    assert json.loads((tmp_path / "cae.json").read_text())["time_steps"] == 200
+    assert torch.jit.load(str(tmp_path / "cae.pt"))(torch.randn(2, 2, 200)).shape == (2, 2, 200)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cae.json", "cae.onnx", "cae.pt"]  # no temporary left
 
 
 @pytest.mark.parametrize(

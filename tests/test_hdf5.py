@@ -370,3 +370,73 @@ def test_schema_2_attributes_and_state0(tmp_path):
     np.testing.assert_allclose(
         out["state0"], np.concatenate([out["vel"][:, 0], out["disp"][:, 0]], -1), rtol=1e-6, atol=1e-9
     )
+
+
+# -- data stored elsewhere (issue 29): before, h5py's KeyError traceback or data read unnoticed ------------
+def _linked(path, link):
+    with h5py.File(path, "w") as f:
+        f.attrs["h"] = 0.01
+        f.create_dataset("test/road", data=np.zeros((2, 8), np.float32))
+        f["test"]["accel"] = link(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "link, message",
+    [
+        (
+            lambda p: h5py.ExternalLink(str(p.parent / "gone.h5"), "/test/accel"),
+            r"gone.h5:/test/accel \(a file that does not exist\)",
+        ),
+        (lambda p: h5py.ExternalLink(str(p), "/test/accel"), r"\(this file itself: a loop\)"),
+        (
+            lambda p: h5py.ExternalLink(str(p.parent / "other.h5"), "/test/accel"),
+            r"other.h5:/test/accel \(another file, whose changes would not be noticed\)",
+        ),
+        (lambda p: h5py.SoftLink("/test/nothing"), "soft link to /test/nothing, which leads nowhere or in a loop"),
+    ],
+)
+def test_links_out_of_the_file_or_nowhere_are_one_line(tmp_path, link, message):
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f.create_dataset("test/accel", data=np.ones((2, 8, 3), np.float32))
+    path = _linked(tmp_path / "linked.h5", link)
+    for read in (dataset_info, lambda p: read_split(p, "test", ("accel",))):
+        with pytest.raises(DatasetError, match=rf"linked.h5: /test/accel is an? .*{message}") as info:
+            read(path)
+        assert "\n" not in str(info.value)
+
+
+def test_soft_link_loops_and_virtual_datasets_of_other_files_are_refused(tmp_path):
+    loop = tmp_path / "loop.h5"
+    with h5py.File(loop, "w") as f:
+        f["test/accel"] = h5py.SoftLink("/test/other")
+        f["test/other"] = h5py.SoftLink("/test/accel")
+    with pytest.raises(DatasetError, match="which leads nowhere or in a loop"):
+        dataset_info(loop)
+    source = tmp_path / "source.h5"
+    with h5py.File(source, "w") as f:
+        f.create_dataset("test/accel", data=np.ones((2, 8, 3), np.float32))
+    virtual = tmp_path / "virtual.h5"
+    with h5py.File(virtual, "w") as f:
+        layout = h5py.VirtualLayout(shape=(2, 8, 3), dtype="f4")
+        layout[:] = h5py.VirtualSource(str(source), "/test/accel", shape=(2, 8, 3))
+        f.create_virtual_dataset("test/accel", layout)
+    with pytest.raises(DatasetError, match=r"virtual.h5: /test/accel is a virtual dataset mapping .*source.h5"):
+        read_split(virtual, "test", ("accel",))
+    inside = tmp_path / "inside.h5"  # a soft link within the file is fine
+    with h5py.File(inside, "w") as f:
+        f.create_dataset("data/accel", data=np.ones((2, 8, 3), np.float32))
+        f["test/accel"] = h5py.SoftLink("/data/accel")
+    assert read_split(inside, "test", ("accel",))["accel"].shape == (2, 8, 3)
+
+
+def test_an_unknown_physics_attribute_is_refused(tmp_path):
+    path = tmp_path / "quantum.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs.update(h=0.01, physics="quantum")
+        f.create_dataset("test/accel", data=np.ones((2, 8, 3), np.float32))
+    with pytest.raises(
+        DatasetError, match=r"quantum.h5: attribute physics = 'quantum' is not one of \['continuous', 'euler'\]"
+    ):
+        dataset_info(path)  # before: read as continuous physics, silently

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import h5py
@@ -305,3 +306,122 @@ def test_delimiters_time_units_and_short_rows(tmp_path):
     )
     with pytest.raises(RecordingError, match=r"short.csv: column 'a2', row 10 \(line 11\): cell is empty"):
         read_recordings(short)
+
+
+# -- inputs that used to be taken silently or reported misleadingly (issue 29) ------------------------------
+def _drive(tmp_path: Path, n: int = 300, name: str = "drive.csv") -> tuple[Path, list[str]]:
+    t = np.arange(n) * 0.01
+    lines = ["t,a3,a2"] + [f"{t[k]:.2f},{x:.9g},{y:.9g}" for k, (x, y) in enumerate(zip(*signals(n)[:2]))]
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n")
+    return path, lines
+
+
+def test_duplicate_columns_beyond_float32_and_rate_of_ms_read_as_s_are_refused(tmp_path):
+    path, lines = _drive(tmp_path)
+    dup = tmp_path / "dup.csv"  # before: the second a2 was read, silently
+    dup.write_text("\n".join(["t,a3,a2,a2"] + [f"{line},0" for line in lines[1:]]) + "\n")
+    with pytest.raises(
+        RecordingError, match=r"dup.csv: header \(line 1\): column 'a2' appears 2 times \(fields 3, 4\)"
+    ):
+        read_recordings(dup)
+    big = tmp_path / "big.csv"  # before: stored as inf
+    big.write_text("\n".join(lines[:41] + [lines[41].rsplit(",", 1)[0] + ",1e40"] + lines[42:]) + "\n")
+    with pytest.raises(
+        RecordingError, match=r"big.csv: column 'a2', row 41 \(line 42\): value 1e\+40 is beyond the float32"
+    ):
+        read_recordings(big)
+    g = tmp_path / "g.csv"  # in g the limit is 9.81 times lower
+    g.write_text("\n".join(lines[:2] + [lines[2].rsplit(",", 1)[0] + ",1e38"] + lines[3:]) + "\n")
+    read_recordings(g)  # 1e38 m/s² fits float32
+    with pytest.raises(RecordingError, match=r"row 2 \(line 3\): value 1e\+38 is beyond"):
+        read_recordings(g, units="g")
+    ms = tmp_path / "ms.csv"  # time in milliseconds: before, h = 10 s silently
+    ms.write_text(
+        "\n".join(["t,a3,a2"] + [f"{10 * k},{line.split(',', 1)[1]}" for k, line in enumerate(lines[1:])]) + "\n"
+    )
+    with pytest.raises(
+        RecordingError, match=r"ms.csv: column 't': sampling rate 0.1 Hz .* if the time is in ms, pass time_unit=ms"
+    ):
+        read_recordings(ms)
+    assert read_recordings(ms, time_unit="ms").h == pytest.approx(0.01, rel=1e-12)
+    assert read_recordings(ms, rate_range=(0.05, 1.0)).h == pytest.approx(10.0)  # the user says so
+
+
+def test_encodings_and_stray_quotes_are_named_for_what_they_are(tmp_path):
+    path, lines = _drive(tmp_path)
+    reference = read_recordings(path).accel
+    for encoding in ("utf-16", "utf-8-sig", "utf-32"):  # before: "'utf-8' codec can't decode byte 0xff"
+        other = tmp_path / f"{encoding}.csv"
+        other.write_text("\n".join(lines) + "\n", encoding=encoding)
+        np.testing.assert_array_equal(read_recordings(other).accel, reference)
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(("\n".join(lines[:5]) + "\n").encode() + b"0.05,0.1\xb2,0.2\n")
+    with pytest.raises(RecordingError, match=r"latin.csv: line 6: byte 0xb2 is not UTF-8 text"):
+        read_recordings(latin)
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(b"\x89HDF\r\n\x1a\n\0\0\0")
+    with pytest.raises(RecordingError, match="binary.csv: not a text CSV"):
+        read_recordings(binary)
+    quote = tmp_path / "quote.csv"  # before: "column 'a2', row 300 (line 301): cell is empty"
+    quote.write_text("\n".join(lines[:51] + ['0.50,"0.1,0.2'] + lines[52:]) + "\n")
+    with pytest.raises(
+        RecordingError, match=r"quote.csv: line 52: a double quote \(\"\) opens a field that runs over lines 52-301"
+    ):
+        read_recordings(quote)
+    header = tmp_path / "header.csv"  # before: "no acceleration column ... ['t', 'a3,a2']"
+    header.write_text('t,"a3,a2\n' + "\n".join(lines[1:]) + "\n")
+    with pytest.raises(RecordingError, match="header.csv: header \\(line 1\\) has an unmatched double quote"):
+        read_recordings(header)
+
+
+def test_task_name_cannot_put_the_run_folder_outside_the_project(tmp_path):
+    path, _ = _drive(tmp_path)
+    script = Path(sys.executable).parent / "qcm-import"
+    result = subprocess.run(
+        [str(script), f"input={path}", f"output={tmp_path / 'o.h5'}", "task_name=../../../escaped"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=ENV,
+        cwd=tmp_path / "..",
+    )
+    assert result.returncode == 2
+    assert (
+        result.stderr.strip()
+        == "error: task_name='../../../escaped' must be a plain folder name (no '/', '..' or empty)"
+    )
+    assert not (tmp_path / "o.h5").exists() and not list(tmp_path.parents[2].glob("escaped*"))
+
+
+@pytest.mark.parametrize("signum", [15, 2])
+def test_sigterm_and_ctrl_c_during_the_write_leave_no_partial_and_one_line(tmp_path, signum):
+    n = 100_000
+    t = np.arange(n) * 0.001
+    a3, a2, _ = np.random.default_rng(0).normal(size=(3, n))
+    big = tmp_path / "long.csv"
+    np.savetxt(big, np.stack([t, a3, a2], 1), delimiter=",", header="t,a3,a2", comments="", fmt="%.6f")
+    out = tmp_path / "out" / "long.h5"
+    script = Path(sys.executable).parent / "qcm-import"
+    # overlapping windows make the write the long part (40 MB through gzip)
+    command = [
+        str(script),
+        f"input={big}",
+        f"output={out}",
+        "window=1000",
+        "stride=10",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    deadline = time.monotonic() + 120
+    while not list(out.parent.glob(".long.h5.*.partial")) if out.parent.exists() else True:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.005)
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, stderr
+    name = {15: "SIGTERM", 2: "SIGINT"}[signum]
+    assert stderr.strip().splitlines() == [
+        f"error: interrupted by {name}; temporary files removed, outputs left as they were"
+    ]
+    assert list(out.parent.iterdir()) == []  # neither the output nor a .partial

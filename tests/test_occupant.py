@@ -152,16 +152,23 @@ def _estimates(run_dir):
 
 
 def test_a_late_seat_logger_is_found_and_costs_nothing(tmp_path):
-    """Another simulator's a3 logged 5 ms behind a2 (two clocks): with the delay estimated it comes back
-    as 5 ms and the occupant mass is right; without it the mass is off by percent (issue 28's row)."""
+    """Another simulator's a3 logged 5 ms behind a2 (two clocks): occupant_roadfree's defaults find the
+    delay (5 ms) and the occupant mass; the rigid model on one clock is off by percent (issue 28's row)."""
     truth = _foreign(tmp_path / "late.h5", n=6, seed=4, delay_ms=5)
-    proc = _app(tmp_path / "run", "experiment=occupant_roadfree", f"data.path={tmp_path / 'late.h5'}", "delay=estimate")
+    proc = _app(tmp_path / "run", "experiment=occupant_roadfree", f"data.path={tmp_path / 'late.h5'}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = _estimates(tmp_path / "run")
     tau = torch.tensor([float(r["tau"]) for r in rows])
     err = (torch.tensor([float(r["m3"]) for r in rows]) / torch.tensor(truth) - 1).abs()
     assert (tau - 0.005).abs().max() < 1e-4 and err.max() < 0.002
-    proc = _app(tmp_path / "plain", "experiment=occupant_roadfree", f"data.path={tmp_path / 'late.h5'}")
+    assert all(r["occupant_model"].endswith("+delay") for r in rows)
+    proc = _app(
+        tmp_path / "plain",
+        "experiment=occupant_roadfree",
+        f"data.path={tmp_path / 'late.h5'}",
+        "occupant.models=[rigid]",
+        "delay=null",
+    )
     plain = torch.tensor([float(r["m3"]) for r in _estimates(tmp_path / "plain")]) / torch.tensor(truth) - 1
     assert plain.abs().mean() > 0.01  # the one-clock model is biased: the delay is what mattered
 

@@ -45,7 +45,15 @@ def test_occupant_mass_without_road(continuous, tmp_path):
     """Seat accelerometer pair only (a2 drives, a3 answers), mid-drive, noise-free: m3 within 0.5 %,
     every sample converged, its 95 % interval around the estimate."""
     path, params = continuous
-    proc = _app("estimate", tmp_path, "experiment=occupant_roadfree", f"data.path={path}", "progress=false")
+    proc = _app(
+        "estimate",
+        tmp_path,
+        "experiment=occupant_roadfree",
+        f"data.path={path}",
+        "progress=false",
+        "occupant.models=[rigid]",
+        "delay=null",
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = _rows(tmp_path / "estimates.csv")
     assert list(rows[0])[:4] == ["index", "p1", "p2", "status"]
@@ -109,7 +117,15 @@ def test_roadfree_on_a_file_without_road_and_with_an_unrecorded_channel(continuo
     with h5py.File(logger, "w") as f:
         f.attrs.update({"schema": "hybridqcm.dataset/2", "h": h, "created_by": "a logger"})
         f.create_dataset("test/accel", data=accel)
-    proc = _app("estimate", tmp_path / "run", "experiment=occupant_roadfree", f"data.path={logger}", "progress=false")
+    proc = _app(
+        "estimate",
+        tmp_path / "run",
+        "experiment=occupant_roadfree",
+        f"data.path={logger}",
+        "progress=false",
+        "occupant.models=[rigid]",
+        "delay=null",
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = _rows(tmp_path / "run" / "estimates.csv")
     err = _relative_errors(rows, params, ["p2"])

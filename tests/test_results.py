@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +95,26 @@ def test_malformed_table_and_manifest_fail_loudly(tmp_path):
     with pytest.raises(ValueError, match="malformed manifest"):
         results.render([bad_manifest], tmp_path / "R.md", copy_plots=False)
     assert results.main(["--manifest", str(tmp_path / "absent.json"), "--output", str(tmp_path / "R.md")]) == 2
+
+
+@pytest.mark.parametrize(
+    "manifest, message",
+    [
+        ({"stages": []}, r"pipeline = None, expected its name"),
+        ({"pipeline": 3, "stages": []}, r"pipeline = 3, expected its name"),
+        ({"pipeline": "demo", "stages": ["x"]}, r"stages\[0\] = .x. is not a stage record"),
+        ({"pipeline": "demo", "stages": [{"name": "exp5", "run_dir": "r"}]}, r"stages\[0\] \(exp5\) lacks 'app'"),
+    ],
+)
+def test_a_manifest_missing_what_results_read_is_one_line(tmp_path, capsys, manifest, message):
+    """Before: KeyError tracebacks ('pipeline', 'app') from deep in the rendering."""
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps(manifest))
+    assert results.main(["--manifest", str(path), "--output", str(tmp_path / "R.md"), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {path}: malformed manifest: ")
+    assert re.search(message, err)
+    assert not (tmp_path / "R.md").exists()
 
 
 def test_unknown_table_id_fails(tmp_path):

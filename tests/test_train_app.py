@@ -247,6 +247,10 @@ def test_unknown_and_non_training_experiments(tmp_path):
         (["data.noise_sigma=-0.1"], "noise_sigma"),
         (["data.inputs=[a3,a1]"], "data.inputs"),
         (["data.inputs=[a3,zz]"], "data.inputs"),
+        # issue 29: before, Hydra's instantiation error about Trainer(devices=0), a TypeError mid-fit
+        (["trainer.devices=0"], r"^trainer.devices=0: give a number of devices >= 1, -1 \(all\), auto"),
+        (["model.optimizer.lr=abc"], r"^model.optimizer.lr='abc': give a number$"),
+        (["model.optimizer.lr=-1"], r"^model.optimizer \(torch.optim.Adam\): Invalid learning rate: -1"),
     ],
 )
 def test_bad_settings_fail_before_training(overrides, message, data, tmp_path):

@@ -62,6 +62,14 @@ def files(tmp_path_factory):
         ("good", ["+data.pathh=x.h5"], ConfigError, r"unknown setting data.pathh='x.h5'"),
         ("good", ["+foo=1"], ConfigError, r"unknown setting foo=1"),
         ("negative", [], DatasetError, r"/test/params\[2, 4\] \(p5\) = -[0-9.]+; parameters must be finite and > 0"),
+        # issue 29: before, a traceback each (int('abc'), Lightning's MisconfigurationException)
+        ("good", ["n_samples=abc"], ConfigError, r"^n_samples='abc': give a whole number or null$"),
+        ("good", ["batch_size=2.5"], ConfigError, r"^batch_size=2.5: give a whole number$"),
+        ("good", ["noise_sigma=x"], ConfigError, r"^noise_sigma='x': give a number$"),
+        ("good", ["plots=maybe"], ConfigError, r"^plots='maybe': give true or false$"),
+        ("good", ["trainer.devices=0"], ConfigError, r"^trainer.devices=0: give a number of devices >= 1"),
+        ("good", ["+trainer.num_nodes=0"], ConfigError, r"^trainer.num_nodes=0: give a number of nodes >= 1$"),
+        ("good", ["skip_windows.min_std=-1"], ConfigError, r"^skip_windows: min_std must be a finite number >= 0"),
     ],
 )
 def test_estimate_refuses_before_any_work(files, key, overrides, error, message):

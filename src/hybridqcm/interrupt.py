@@ -9,6 +9,7 @@ completes. The handler therefore also records the request, and long loops call
 
 from __future__ import annotations
 
+import contextlib
 import signal
 
 _pending: int | None = None
@@ -46,4 +47,33 @@ def pending() -> int | None:
     return _pending
 
 
-__all__ = ["Interrupted", "install", "check_stop", "pending"]
+def _record(signum, frame) -> None:
+    global _pending
+    _pending = signum
+
+
+@contextlib.contextmanager
+def deferred(raise_on_exit: bool = True):
+    """A block that a stop request does not cut: inside, Ctrl-C / SIGTERM are recorded, not raised;
+    they are raised on leaving the block (raise_on_exit; else at the caller's next `check_stop()`).
+    For HDF5 writes: an exception raised while h5py's C code runs (a dataset being created or
+    flushed) leaves objects that fail again when the interpreter exits, a traceback after the
+    one-line message."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield  # handlers can only be set in the main thread; there, nothing is delivered anyway
+        return
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in previous:
+        signal.signal(s, _record)
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if raise_on_exit:
+        check_stop()
+
+
+__all__ = ["Interrupted", "install", "check_stop", "pending", "deferred"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import os
@@ -13,11 +14,43 @@ from typing import NoReturn
 
 
 def _register_resolvers() -> None:
-    """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes."""
+    """${hybridqcm_pid:} in configs/hydra/default.yaml: run folders unique across processes;
+    ${hybridqcm_groups:NAME}: the config groups app NAME takes, for its --help."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("hybridqcm_pid"):
         OmegaConf.register_new_resolver("hybridqcm_pid", lambda: os.getpid())
+    if not OmegaConf.has_resolver("hybridqcm_groups"):
+        OmegaConf.register_new_resolver("hybridqcm_groups", lambda name: app_groups_help(str(name)))
+
+
+def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
+    """One line per config group the app's defaults list names (not Hydra's own), with its options;
+    experiments: only those for this app (`task:`). Hydra's default --help listed every folder of
+    configs/, the groups of the other apps included, which this app then refuses."""
+    import yaml
+
+    root = Path(config_dir or CONFIG_DIR)
+    data = yaml.safe_load((root / f"{config_name}.yaml").read_text()) or {}
+    lines = []
+    for entry in data.get("defaults") or []:
+        if not isinstance(entry, dict):
+            continue
+        group = str(next(iter(entry))).split("@")[0].removeprefix("override ").strip()
+        folder = root / group
+        if group == "hydra" or not folder.is_dir():
+            continue
+        if group == "experiment":
+            options = experiments_for(str(data.get("task")), root) if data.get("task") else []
+        else:
+            options = sorted(p.stem for p in folder.glob("*.yaml"))
+        lines.append(f"{group}: {', '.join(options)}")
+        lines += [
+            f"{group}/{sub.name}: {', '.join(sorted(p.stem for p in sub.glob('*.yaml')))}"
+            for sub in sorted(folder.iterdir())
+            if sub.is_dir() and any(sub.glob("*.yaml"))
+        ]
+    return "\n".join(lines) or "(none)"
 
 
 _register_resolvers()
@@ -71,6 +104,41 @@ def check_task_name(name) -> None:
     text = str(name)
     if not text or text in (".", "..") or "/" in text or "\\" in text or "\0" in text:
         raise ConfigError(f"task_name={text!r} must be a plain folder name (no '/', '..' or empty)")
+
+
+def _devices_ok(devices) -> bool:
+    """Lightning's `devices`: a count >= 1, -1 (all), "auto", or device indices (a list, or "0,1")."""
+    if isinstance(devices, str):
+        text = devices.strip()
+        if text == "auto":
+            return True
+        parts = [p.strip() for p in text.split(",") if p.strip()]
+        if not parts or not all(p.lstrip("-").isdigit() for p in parts):
+            return False
+        devices = [int(p) for p in parts] if "," in text else int(parts[0])
+    if isinstance(devices, bool):
+        return False
+    if isinstance(devices, int):
+        return devices >= 1 or devices == -1
+    try:
+        items = list(devices)
+    except TypeError:
+        return False
+    return bool(items) and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in items)
+
+
+def check_trainer_settings(group, prefix: str = "trainer") -> None:
+    """trainer.devices and trainer.num_nodes as Lightning takes them, in one line naming the key and
+    value, before any work (Lightning's own message came wrapped in Hydra's, or as a traceback)."""
+    group = group or {}
+    if not _devices_ok(group.get("devices", 1)):
+        raise ConfigError(
+            f"{prefix}.devices={group.get('devices')!r}: give a number of devices >= 1, -1 (all), auto, "
+            f"or device indices such as [0,1]"
+        )
+    nodes = group.get("num_nodes", 1)
+    if isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1:
+        raise ConfigError(f"{prefix}.num_nodes={nodes!r}: give a number of nodes >= 1")
 
 
 def _markdown_cell(value) -> str:
@@ -226,7 +294,8 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     @functools.wraps(entry)
     def job(cfg):
         quiet_third_party()
-        return entry(cfg)
+        with run_folder(f"qcm-{config_name}"), disk_full_is_one_line():
+            return entry(cfg)
 
     try:
         hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)(job)()
@@ -235,8 +304,64 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
 
 
 def check_task_name_overrides(args: Sequence[str]) -> None:
-    """Refuse task_name=../x before Hydra builds (and creates) a run folder from it."""
+    """Refuse task_name=../x, and a hydra.run.dir another live run holds, before Hydra builds (and
+    writes into) a run folder."""
+    from hybridqcm import runfiles
+
     for arg in args:
         key, sep, value = arg.partition("=")
         if sep and key.lstrip("+~") == "task_name":
             check_task_name(value)
+        if sep and key.lstrip("+~") == "hydra.run.dir" and value:
+            runfiles.check_free(value)
+
+
+@contextlib.contextmanager
+def disk_full_is_one_line():
+    """A write that failed for want of room (ENOSPC, EDQUOT, EFBIG of `ulimit -f`) ends the app with one
+    line naming the file; outputs are written atomically, so none is left half-written."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from hybridqcm.data.h5file import DISK_FULL, disk_error_message
+
+    try:
+        yield
+    except OSError as error:
+        if error.errno not in DISK_FULL:
+            raise
+        run_dir = HydraConfig.get().runtime.output_dir if HydraConfig.initialized() else "."
+        where = error.filename or f"an output in hydra.run.dir={run_dir}"
+        after = "the run is incomplete (no summary or completion marker): rerun it"
+        fail(disk_error_message(where, error, after, folder=run_dir))
+
+
+def _process_rank() -> int:
+    """This process's global rank as launchers set it (Lightning's order of variables); 0 when alone."""
+    for key in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        value = os.environ.get(key)
+        if value is not None and value.strip().isdigit():
+            return int(value)
+    return 0
+
+
+@contextlib.contextmanager
+def run_folder(app: str):
+    """The Hydra job's run folder held for this job: locked against a second run (one line naming
+    the holder), its file manifest frozen on the way out (hybridqcm/runfiles.py). Only the process
+    of global rank zero holds it (the ranks of one job share the folder)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from hybridqcm import runfiles
+
+    if not HydraConfig.initialized() or _process_rank() != 0:
+        yield None
+        return
+    run_dir = HydraConfig.get().runtime.output_dir
+    try:
+        runfiles.lock(run_dir, app)
+    except ConfigError as error:
+        fail(error)
+    try:
+        yield run_dir
+    finally:
+        runfiles.release(run_dir)

@@ -56,9 +56,11 @@ from hybridqcm.apps.estimate_report import (
     coverage_95,
     estimates_header,
     log_stage_losses,
+    merge_block_tables,
     merge_stage_stats,
     noise_label,
     print_report,
+    skipped_tables,
     write_metrics,
 )
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
@@ -120,13 +122,20 @@ def build_refinement(cfg, plan):
     centre = reference if plan["restarts_around"] == "reference" else None
     if plan.get("occupant") is not None:
         return build_selection(
-            cfg, plan, plan["occupant"], lambda r, k, prior, centre=None: _refinement(cfg, plan, r, k, prior, centre)
+            cfg,
+            plan,
+            plan["occupant"],
+            lambda r, k, prior, restarts=True, centre=None: _refinement(cfg, plan, r, k, prior, centre, True, restarts),
         )
     return _refinement(cfg, plan, response, known_mask, param_prior, centre)
 
 
-def _refinement(cfg, plan, response, known_mask, param_prior, restart_center) -> BlockRefinement:
-    """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings."""
+def _refinement(
+    cfg, plan, response, known_mask, param_prior, restart_center, noise_leverage: bool = False, restarts: bool = True
+) -> BlockRefinement:
+    """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings
+    (``noise_leverage``: the noise variances corrected for the fit's leverage, the occupant models';
+    ``restarts`` false: a single attempt, the occupant selection's candidates, restarted only where chosen)."""
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
         for s in plan["stages"]
@@ -145,23 +154,25 @@ def _refinement(cfg, plan, response, known_mask, param_prior, restart_center) ->
         stages,
         known=known_mask,
         pu_known=bool(cfg.pu_known),
+        observed=tuple(plan["observed"]),  # what a finished fit is weighed on without the module (occupant models)
         h=plan["h"],
         response=response,
         reweight=reweight,
         peer_factor=cfg.get("misfit_peer_factor", 10.0),
         log_dir=None,  # the merged stage losses are logged once, after the merge
-        restarts=int(cfg.restarts.count),
+        restarts=int(cfg.restarts.count) if restarts else 0,
         restart_threshold=threshold,
         restart_sigma=float(cfg.restarts.sigma),
         seed=int(cfg.seed),
         restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
         restart_batch=int(cfg.restarts.get("batch", 64)),
         # the exact model's extra attempts for wrong basins; the Euler reproduction keeps the source's protocol
-        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" else 0,
+        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" and restarts else 0,
         restart_far=cfg.restarts.get("far_from_start"),
         x0_start=plan["x0_start"],
         param_prior=param_prior,
         restart_center=restart_center,
+        noise_leverage=noise_leverage,
     )
 
 
@@ -234,7 +245,12 @@ def run(cfg) -> dict:
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
     store = ShardStore(run_dir, run_fingerprint(cfg, inputs_used))
     if rank_zero_only.rank == 0:  # under a cluster launcher every rank runs this: one clears
-        runfolder.prepare_run_dir(run_dir, runfolder.ESTIMATE_ARTEFACTS, bool(cfg.get("overwrite", False)))
+        runfolder.prepare_run_dir(
+            run_dir,
+            runfolder.ESTIMATE_ARTEFACTS,
+            bool(cfg.get("overwrite", False)),
+            scratch=runfolder.ESTIMATE_SCRATCH,
+        )
         if cfg.get("overwrite", False):
             store.remove()
     n_samples, n_params = plan["n_samples"], plan["n_params"]
@@ -252,6 +268,10 @@ def run(cfg) -> dict:
         STATUS_HEADER,
         functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra),
         block_stage_stats,
+        functools.partial(
+            skipped_tables, header=estimates_header(theta_names, n_theta_params, extra), n_scored=n_params
+        ),
+        merge_block_tables,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:
@@ -293,7 +313,9 @@ def run(cfg) -> dict:
             from hybridqcm.tracking import log_estimation_to_tensorboard
 
             log_estimation_to_tensorboard(run_dir / "tb", [], pictures, prefix="occupant")
-    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], [s["name"] for s in plan["stages"]])
+    stage_names = [s["name"] for s in plan["stages"]]
+    stage_names += [k for k in dict.fromkeys(k for m in markers for k in m["stages"]) if k not in stage_names]
+    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], stage_names)
     if cfg.tensorboard:
         log_stage_losses(run_dir / "tb", stage_loss)
     summary = {

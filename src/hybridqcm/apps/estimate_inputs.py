@@ -13,7 +13,10 @@ of such a draw). The sensor model seeds each sample by its index already.
 
     batch = {"accel" [b, T, 3], "road" [b, T], "pu" [b], "init" [b, 10], "index" [b] int64,
              "true" [b, 10] (file has params), "noise_std" [b, 3] / "noise_sigma" [b] (noise-aware),
-             "block" int}
+             "window_status" [b] (0: fit it; estimation/window_check.py), "block" int}
+
+A block's batch holds the windows to fit only; those a window check keeps from the fit (a car
+standing still, a clipped channel) travel beside it as "skipped_index" / "skipped_status".
 """
 
 from __future__ import annotations
@@ -25,10 +28,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hybridqcm.apps.estimate_plan import CHANNELS
+from hybridqcm.apps.estimate_plan import CHANNELS, window_check_settings
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.window_check import WindowCheck, window_status
 from hybridqcm.physics.parameters import PhysicalConstants
 
 
@@ -43,6 +47,7 @@ class InputSettings:
     pu_known: bool
     noise_sigma: float
     noise_weighting: bool
+    window_check: WindowCheck = WindowCheck()
 
     @classmethod
     def from_config(cls, cfg) -> InputSettings:
@@ -54,6 +59,7 @@ class InputSettings:
             pu_known=bool(cfg.pu_known),
             noise_sigma=float(cfg.noise_sigma),
             noise_weighting=bool(cfg.noise_weighting),
+            window_check=window_check_settings(cfg),
         )
 
 
@@ -91,6 +97,9 @@ def build_inputs(cfg, plan: Mapping, rows: slice | None = None, streams: _Stream
                 f"{plan['path']}: /{plan['split']}/accel channel {c} has NaN/inf (sample {bad}); "
                 f"it is in observed={plan['observed']}"
             )
+    # A window standing still or clipped in a fitted channel is not fitted (estimation/window_check.py).
+    fitted = [CHANNELS.index(c) for c in plan["observed"]]
+    window = window_status(accel[:, :, fitted], settings.window_check)
     road = (
         torch.zeros(accel.shape[:2], dtype=torch.float64)
         if road_free
@@ -121,7 +130,7 @@ def build_inputs(cfg, plan: Mapping, rows: slice | None = None, streams: _Stream
         eta = torch.from_numpy(streams.noise.take(start * per_row, stop * per_row)).reshape(accel.shape)
         accel = accel * (1.0 + sigma * eta)
     sensor = plan["sensor"]
-    out = {"accel": accel, "road": road, "pu": pu, "init": init, "true": true, "index": index}
+    out = {"accel": accel, "road": road, "pu": pu, "init": init, "true": true, "index": index, "window_status": window}
     if sensor.active:
         out["accel"] = sensor.apply(accel, index)
         if settings.noise_weighting:  # the user knows the sensor: weight each channel by 1/σ_c
@@ -167,9 +176,28 @@ class RecordingBlocks(torch.utils.data.Dataset):
         if self._streams is None:  # per process / worker: opened where it is used
             self._streams = _Streams(self.settings, int(self.plan["n_samples"]), int(self.plan["n_read_steps"]))
         batch = build_inputs(self.settings, self.plan, slice(start, stop), self._streams)
-        batch = {key: value for key, value in batch.items() if value is not None}
+        batch = without_skipped(batch)
         batch["block"] = int(block)
         return batch
+
+
+def without_skipped(batch: Mapping) -> dict:
+    """The batch of the windows to fit; those a window check kept from the fit (window_status != 0)
+    travel beside it as "skipped_index" [k], "skipped_status" [k] and "skipped_true" [k, 10] (with a
+    truth): their rows in the tables."""
+    status = batch["window_status"]
+    keep = status == 0
+    b = int(status.shape[0])
+    out = {
+        key: value[keep] if isinstance(value, torch.Tensor) and value.ndim and value.shape[0] == b else value
+        for key, value in batch.items()
+        if value is not None and key != "window_status"
+    }
+    out["skipped_index"] = batch["index"][~keep]
+    out["skipped_status"] = status[~keep]
+    if batch.get("true") is not None:
+        out["skipped_true"] = batch["true"][~keep]
+    return out
 
 
 class RankBlocks(torch.utils.data.Sampler):
@@ -198,4 +226,11 @@ class RankBlocks(torch.utils.data.Sampler):
         return iter(self._mine())
 
 
-__all__ = ["InputSettings", "build_inputs", "block_rows", "RecordingBlocks", "RankBlocks"]
+__all__ = [
+    "InputSettings",
+    "build_inputs",
+    "block_rows",
+    "RecordingBlocks",
+    "RankBlocks",
+    "without_skipped",
+]

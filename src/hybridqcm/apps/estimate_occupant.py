@@ -1,10 +1,14 @@
 """qcm-estimate's occupant settings: which occupant models to fit and the channel delay (SPEC § 10).
 
-    occupant.models: [rigid, body1, body2]   candidates; several: per recording the lowest BIC
-    occupant.interval_weight: 0.05           candidates this close (BIC weight) widen m3's interval
+    occupant.models: [rigid, body1, body2]   candidates; several: per recording the highest evidence
+    occupant.interval_weight: 0.05           candidates this close (evidence weight) widen m3's interval
     occupant.body_prior: true                the literature's ranges as a weak prior on body modes
-    delay: auto | estimate | <ms> | null     a3 behind its driving channel: each model with and without
-                                             an estimated delay (BIC decides), estimated, known, or none
+    occupant.profile: true                   the winner's m3 interval by profile likelihood (else Laplace)
+    occupant.rigid_prior: 0.05               prior probability of a rigid occupant (ballast); the body
+                                             models share the rest
+    delay: auto | estimate | <ms> | null     a3 behind its driving channel: the winner refitted with the
+                                             delay estimated (evidence decides), estimated in every
+                                             candidate, known, or none
     delay_max_ms: 20                         the largest delay searched (either sign)
 
 Occupant models exist for the road-free seat (``base_excitation: seat``) and sprung models and for the
@@ -72,8 +76,24 @@ def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
         "max_delay": float(max_ms) / 1000.0,
         "interval_weight": float(weight),
         "body_prior": bool(occupant.get("body_prior", True)),
+        "profile": _flag(occupant, "profile", True),
+        "rigid_prior": _probability(occupant, "rigid_prior", 0.05),
         "delay_prior": _delay_prior(cfg),
     }
+
+
+def _flag(group, key: str, default: bool) -> bool:
+    value = group.get(key, default)
+    if not isinstance(value, bool):
+        raise ConfigError(f"occupant.{key}={value!r}: give true or false")
+    return value
+
+
+def _probability(group, key: str, default: float) -> float:
+    value = group.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+        raise ConfigError(f"occupant.{key}={value!r}: give a probability in (0, 1)")
+    return float(value)
 
 
 def _delay_prior(cfg) -> float:
@@ -127,64 +147,70 @@ def _vehicle_settings(cfg, plan, names) -> tuple:
 def build_selection(cfg, plan, occupant: dict, make_refinement):
     """The candidates' refinements and the selection over them (estimation/occupant.py).
 
-    ``make_refinement(response, known [n_params] bool, param_prior | None[, restart_center])`` builds one
-    candidate's GaussNewtonRefinement with the run's stages, noise model and restarts. The sprung and
-    road-driven models (estimation/occupant_vehicle.py) keep the rigid run's vehicle prior and restart
-    centre on their p1..pN."""
+    ``make_refinement(response, known [n_params] bool, param_prior | None, restarts: bool[, centre])`` builds
+    one candidate's GaussNewtonRefinement with the run's stages and noise model, with or without its
+    restarts (around ``centre`` where given). The sprung and road-driven models keep the rigid run's
+    vehicle prior and restart centre on their p1..pN; the body's prior and start come after them."""
     from hybridqcm.estimation.delay import DelayedResponse
     from hybridqcm.estimation.occupant import OccupantSelection
-    from hybridqcm.estimation.occupant_vehicle import VehicleOccupantSelection
     from hybridqcm.estimation.response import ExactResponse
 
     base = plan["base_excitation"]
-
-    candidates, starts = {}, {}
     delay = occupant["delay"]
-    # auto: each model both on one clock and with the delay estimated; BIC charges the delay its parameter
-    variants = [(None, ""), ("estimate", "+delay")] if delay == "auto" else [(delay, "")]
-    for name in occupant["models"]:
-        for tau_setting, suffix in variants:
-            modes = N_MODES[name]
-            linear = occupant_linear_model(base, modes, bool(cfg.pu_known))
-            n_vehicle = linear.n_params - 3 * modes  # the rigid model's parameters come first
-            response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), plan["initial_state"])
-            start = body_start(modes)
-            mean, std = body_prior(modes)
-            known = torch.zeros(linear.n_params, dtype=torch.bool)
-            known[plan["known"]] = True
-            if tau_setting is not None:
-                response = DelayedResponse(response, occupant["max_delay"])
-                tau = 0.0 if tau_setting == "estimate" else tau_setting
-                start = torch.cat([start, torch.tensor([tau], dtype=torch.float64)])
-                mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
-                std = torch.cat([std, torch.full((1,), occupant["delay_prior"], dtype=torch.float64)])
-                known = torch.cat([known, torch.tensor([tau_setting != "estimate"])])
-            prior = None
-            if (occupant["body_prior"] and modes > 0) or (
-                tau_setting == "estimate" and occupant["delay_prior"] < math.inf
-            ):
-                full_mean = torch.cat([torch.ones(n_vehicle, dtype=torch.float64), mean])
-                full_std = torch.cat([torch.full((n_vehicle,), math.inf, dtype=torch.float64), std])
-                if not occupant["body_prior"]:
-                    full_std[n_vehicle : n_vehicle + 3 * modes] = math.inf
-                prior = (full_mean, full_std)
-            if base == "seat":
-                candidates[name + suffix] = make_refinement(response, known, prior)
-            else:  # the vehicle's prior and restart centre as in the rigid run, the body's after them
-                reference, vehicle_std, centre = _vehicle_settings(cfg, plan, linear.param_names[:n_vehicle])
-                mean_all = torch.cat([reference, mean if prior is None else prior[0][n_vehicle:]])
-                std_all = torch.cat(
-                    [vehicle_std, torch.full_like(mean, math.inf) if prior is None else prior[1][n_vehicle:]]
-                )
-                prior = (mean_all, std_all) if bool(torch.isfinite(std_all).any()) else None
-                centre = None if centre is None else torch.cat([centre, start])
-                candidates[name + suffix] = make_refinement(response, known, prior, centre)
-            starts[name + suffix] = start
-    if base != "seat":
-        return VehicleOccupantSelection(
-            candidates, starts, float(cfg.K3), occupant["interval_weight"], n_vehicle, plan["observed"]
+
+    def candidate(name: str, tau_setting):
+        modes = N_MODES[name]
+        linear = occupant_linear_model(base, modes, bool(cfg.pu_known))
+        n_vehicle = linear.n_params - 3 * modes  # the rigid model's parameters come first
+        response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), plan["initial_state"])
+        start = body_start(modes)
+        mean, std = body_prior(modes)
+        known = torch.zeros(linear.n_params, dtype=torch.bool)
+        known[plan["known"]] = True
+        if tau_setting is not None:
+            response = DelayedResponse(response, occupant["max_delay"])
+            tau = 0.0 if tau_setting == "estimate" else tau_setting
+            start = torch.cat([start, torch.tensor([tau], dtype=torch.float64)])
+            mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
+            std = torch.cat([std, torch.full((1,), occupant["delay_prior"], dtype=torch.float64)])
+            known = torch.cat([known, torch.tensor([tau_setting != "estimate"])])
+        if not occupant["body_prior"]:
+            std[: 3 * modes] = math.inf
+        centre = None
+        if base == "seat":
+            vehicle_mean = torch.ones(n_vehicle, dtype=torch.float64)
+            vehicle_std = torch.full((n_vehicle,), math.inf, dtype=torch.float64)
+        else:  # the vehicle's prior and restart centre as in the rigid run
+            vehicle_mean, vehicle_std, centre = _vehicle_settings(cfg, plan, linear.param_names[:n_vehicle])
+            centre = None if centre is None else torch.cat([centre, start])
+        full_std = torch.cat([vehicle_std, std])
+        prior = (torch.cat([vehicle_mean, mean]), full_std) if bool(torch.isfinite(full_std).any()) else None
+        pair = (
+            make_refinement(response, known, prior, False, centre),
+            make_refinement(response, known, prior, True, centre),
         )
-    return OccupantSelection(candidates, starts, float(cfg.K3), occupant["interval_weight"])
+        return pair, start
+
+    # auto: every model on one clock, then the winner once more with the delay estimated (evidence decides);
+    # each candidate in one attempt, the chosen one restarted where it does not fit (rescue)
+    candidates, starts, delayed, rescue = {}, {}, {}, {}
+    for name in occupant["models"]:
+        (candidates[name], rescue[name]), starts[name] = candidate(name, None if delay == "auto" else delay)
+        if delay == "auto":
+            (delayed[name], rescue[f"{name}+delay"]), _ = candidate(name, "estimate")
+    rigid = occupant["rigid_prior"]
+    n_body = sum(1 for n in candidates if n != "rigid")
+    model_prior = {n: (rigid if n == "rigid" else (1.0 - rigid) / n_body) if n_body else 1.0 for n in candidates}
+    return OccupantSelection(
+        candidates,
+        starts,
+        float(cfg.K3),
+        occupant["interval_weight"],
+        delayed=delayed,
+        profile=occupant["profile"],
+        model_prior=model_prior,
+        rescue=rescue,
+    )
 
 
 def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
@@ -196,11 +222,13 @@ def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
     import scipy.signal
 
     from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
     from hybridqcm.physics.occupant import normalised_apparent_mass
     from hybridqcm.plots import close, plot_apparent_mass
 
     with open(estimates_csv, newline="") as handle:
-        rows = [row for _, row in zip(range(count), csv.DictReader(handle))]
+        fitted = (r for r in csv.DictReader(handle) if r["status"] not in WINDOW_STATUS_LABELS.values())
+        rows = [row for _, row in zip(range(count), fitted)]
     if not rows:
         return []
     index = np.array([int(r["index"]) for r in rows])

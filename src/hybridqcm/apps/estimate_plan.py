@@ -190,6 +190,62 @@ def check_known_keys(cfg) -> None:
     walk(cfg, _known_key_tree(), "")
 
 
+def window_check_settings(cfg):
+    """skip_windows.{min_std, clip_samples} as an estimation.window_check.WindowCheck; ConfigError naming key and value."""
+    from hybridqcm.estimation.window_check import WindowCheck
+
+    group = cfg.get("skip_windows") or {}
+    try:
+        return WindowCheck(min_std=group.get("min_std", 0.0), clip_samples=group.get("clip_samples", 5))
+    except ValueError as error:
+        raise ConfigError(f"skip_windows: {error}") from None
+
+
+_NULLABLE = ("misfit_peer_factor", "skip_windows.clip_samples", "vehicle_prior.rel_std")
+
+
+def _setting_types() -> dict[str, set[str]]:
+    """{dotted key: type names of its values} in estimate.yaml and the estimation experiments."""
+    import yaml
+
+    types: dict[str, set[str]] = {"n_samples": {"int", "NoneType"}}  # null by default: all samples
+    for key in _NULLABLE:  # documented "null: off" with a number by default
+        types.setdefault(key, set()).add("NoneType")
+
+    def walk(data, prefix: str = "") -> None:
+        for key, value in (data or {}).items():
+            if isinstance(value, dict):
+                walk(value, f"{prefix}{key}.")
+            else:
+                types.setdefault(f"{prefix}{key}", set()).add(type(value).__name__)
+
+    walk(yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text()))
+    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
+        data = yaml.safe_load(path.read_text()) or {}
+        if isinstance(data, dict) and data.get("task") == "estimate":
+            walk(data)
+    return types
+
+
+def check_setting_types(cfg) -> None:
+    """A number or a switch given as something else (`n_samples=abc`, `plots=maybe`): one line naming
+    key and value, before any work. The type is the one every default of the key has."""
+    from omegaconf import OmegaConf
+
+    for key, names in _setting_types().items():
+        value = OmegaConf.select(cfg, key, default=None)
+        if value is None and "NoneType" in names:
+            continue
+        kinds = names - {"NoneType"}
+        if kinds == {"bool"} and not isinstance(value, bool):
+            raise ConfigError(f"{key}={value!r}: give true or false")
+        numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if kinds == {"int"} and not (numeric and isinstance(value, int)):
+            raise ConfigError(f"{key}={value!r}: give a whole number" + (" or null" if "NoneType" in names else ""))
+        if kinds and kinds <= {"int", "float"} and not numeric:
+            raise ConfigError(f"{key}={value!r}: give a number" + (" or null" if "NoneType" in names else ""))
+
+
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
@@ -199,6 +255,9 @@ def validate(cfg) -> dict:
     from hybridqcm.estimation.fusion import check_cnn_prior
 
     check_known_keys(cfg)
+    check_setting_types(cfg)
+    common.check_trainer_settings(cfg.get("trainer"))
+    window_check_settings(cfg)
     common.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")

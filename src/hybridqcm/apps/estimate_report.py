@@ -22,7 +22,11 @@ from hybridqcm.apps.common import print_table
 from hybridqcm.apps.estimate_plan import PARAM_NAMES
 from hybridqcm.atomic import atomic_write_csv
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
+from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS, is_skipped
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+
+# the status column: the solver's outcome, or why a window was not fitted
+ALL_STATUS_LABELS = {**STATUS_LABELS, **WINDOW_STATUS_LABELS}
 
 STATUS_HEADER = [
     "index",
@@ -130,6 +134,46 @@ def block_tables(
     return rows, status_rows, columns
 
 
+def skipped_tables(
+    index: torch.Tensor, status: torch.Tensor, true: torch.Tensor | None, header: Sequence[str], n_scored: int
+) -> tuple[list, list, dict]:
+    """The rows of windows kept from the fit (estimation/window_check.py) in block_tables' layout:
+    their status, no estimate (nan), no iterations. index, status: [k]; true: [k, 10] or None."""
+    k = int(index.shape[0])
+    labels = [ALL_STATUS_LABELS[int(s)] for s in status]
+    nan = repr(math.nan)
+    rows = [
+        [int(i) if name == "index" else label if name == "status" else nan for name in header]
+        for i, label in zip(index.tolist(), labels)
+    ]
+    status_rows = [[int(i), label, 0, nan, nan, 0, nan, nan, nan] for i, label in zip(index.tolist(), labels)]
+    blank = torch.full((k,), math.nan, dtype=torch.float64)
+    columns = {
+        "index": index.long(),
+        "params": torch.full((k, n_scored), math.nan, dtype=torch.float64),
+        "std": torch.full((k, n_scored), math.nan, dtype=torch.float64),
+        "m3_low": blank,
+        "m3_high": blank.clone(),
+        "status": status.long(),
+        "iterations": torch.zeros(k, dtype=torch.int64),
+        "restarts": torch.zeros(k, dtype=torch.int64),
+        "true": None if true is None else true.double(),
+    }
+    return rows, status_rows, columns
+
+
+def merge_block_tables(first: tuple, second: tuple) -> tuple[list, list, dict]:
+    """Two (rows, status rows, columns) of one block merged in sample-index order."""
+    rows, status_rows = first[0] + second[0], first[1] + second[1]
+    columns = {}
+    for key in first[2]:
+        a, b = first[2][key], second[2].get(key)
+        columns[key] = None if a is None or b is None else torch.cat([a, b])
+    order = torch.argsort(columns["index"])
+    columns = {key: None if v is None else v[order] for key, v in columns.items()}
+    return [rows[i] for i in order.tolist()], [status_rows[i] for i in order.tolist()], columns
+
+
 def block_stage_stats(record: Mapping) -> dict:
     """Per stage: loss per iteration summed over the block's samples (finished samples carry their
     last loss), sample count, status counts and iteration sum: mergeable over blocks (JSON)."""
@@ -153,6 +197,8 @@ def merge_stage_stats(blocks: Sequence[Mapping], stage_names: Sequence[str]) -> 
     stage_loss, stage_status = {}, {}
     for name in stage_names:
         parts = [b[name] for b in blocks if name in b]
+        if not parts:  # (an occupant selection's stages are its candidates' "<model>/<stage>")
+            continue
         length = max((len(p["loss_total"]) for p in parts), default=0)
         total = torch.zeros(length, dtype=torch.float64)
         count = 0
@@ -198,15 +244,25 @@ def write_metrics(
 ) -> tuple[dict, list | None]:
     """`noise` describes the noise on the data for the table's title (`noise_label`). Status counts, and with the truth [M, 10]: error distribution, calibration.csv, m3 metrics,
     sorted plots and the TensorBoard table. Returns (summary entries, error-table rows or None)."""
-    params, std, status_codes = columns["params"], columns["std"], columns["status"]
-    n, n_params = params.shape
-    status = [STATUS_LABELS[int(s)] for s in status_codes]
+    status_codes = columns["status"]
+    status = [ALL_STATUS_LABELS[int(s)] for s in status_codes]
+    # windows kept from the fit (a car standing still, a clipped channel): no estimate, not in the metrics
+    skipped = {k: int(sum(1 for s in status if s == k)) for k in WINDOW_STATUS_LABELS.values()}
     summary: dict = {
-        "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()},
-        "iterations_mean": float(columns["iterations"].double().mean()),
-        "restarted_samples": int((columns["restarts"] > 0).sum()),
+        "status_counts": {k: int(sum(1 for s in status if s == k)) for k in STATUS_LABELS.values()}
+        | {k: v for k, v in skipped.items() if v},
+        "skipped_windows": skipped,
     }
-    if true is None:
+    fitted = ~is_skipped(status_codes)
+    if not bool(fitted.all()):
+        columns = {k: v[fitted] if isinstance(v, torch.Tensor) else v for k, v in columns.items()}
+        true = None if true is None else true[fitted]
+        status_codes = columns["status"]
+    params, std = columns["params"], columns["std"]
+    n, n_params = params.shape
+    summary["iterations_mean"] = float(columns["iterations"].double().mean()) if n else math.nan
+    summary["restarted_samples"] = int((columns["restarts"] > 0).sum())
+    if true is None or n == 0:
         return summary, None
     K3 = float(cfg.K3)
     free = [j for j in range(n_params) if j not in known]
@@ -266,34 +322,27 @@ def write_metrics(
     summary["m3_mean_rel_err_converged"] = float(done.mean()) if done.numel() else None
     summary["m3_max_rel_err_converged"] = float(done.max()) if done.numel() else None
     summary["m3_interval_median_rel_width"] = float(m3_width[m3_ok].median()) if bool(m3_ok.any()) else math.inf
+    pictures = []  # this run's plots only: a figure of the user's in plots/ is not ours to log
     if cfg.plots:
         from hybridqcm.plots import close, plot_sorted_predictions  # matplotlib: only when plotting
 
         for j, name in zip(free, free_names):
+            pictures.append(run_dir / "plots" / f"sorted_{name}.png")
             close(
                 plot_sorted_predictions(
-                    params[:, j].numpy(),
-                    true[:, j].numpy(),
-                    name,
-                    run_dir / "plots" / f"sorted_{name}.png",
-                    title=f"{cfg.experiment_name}: {name}",
+                    params[:, j].numpy(), true[:, j].numpy(), name, pictures[-1], title=f"{cfg.experiment_name}: {name}"
                 )
             )
+        pictures.append(run_dir / "plots" / "sorted_m3.png")
         close(
             plot_sorted_predictions(
-                m3.numpy(),
-                true_m3.numpy(),
-                "m3 [kg]",
-                run_dir / "plots" / "sorted_m3.png",
-                title=f"{cfg.experiment_name}: occupant mass",
+                m3.numpy(), true_m3.numpy(), "m3 [kg]", pictures[-1], title=f"{cfg.experiment_name}: occupant mass"
             )
         )
     if cfg.tensorboard:  # the table and the plots beside the GN losses, in one TensorBoard run
         from hybridqcm.tracking import log_estimation_to_tensorboard
 
-        log_estimation_to_tensorboard(
-            run_dir / "tb", table_rows, sorted((run_dir / "plots").glob("*.png")), title=title
-        )
+        log_estimation_to_tensorboard(run_dir / "tb", table_rows, sorted(pictures), title=title)
     return summary, table_rows
 
 
@@ -313,8 +362,17 @@ def print_report(cfg, summary: Mapping, table_rows: list | None, run_dir: Path) 
     print_table(
         f"{cfg.experiment_name}: status", ["status", "samples"], [[k, v] for k, v in summary["status_counts"].items()]
     )
+    skipped = summary.get("skipped_windows") or {}
+    if sum(skipped.values()):
+        n -= sum(skipped.values())
+        print(
+            f"skipped {sum(skipped.values())} window(s) without information, no estimate: "
+            + ", ".join(f"{k} {v}" for k, v in skipped.items())
+            + " (estimates.csv status; skip_windows.* in the config)"
+        )
     if table_rows is None:
-        print(f"estimates of {n} samples (no params in the file: no error table) -> {run_dir}")
+        why = "every window was skipped" if n == 0 else "no params in the file"
+        print(f"estimates of {n} samples ({why}: no error table) -> {run_dir}")
         return
     print_table(
         f"{cfg.experiment_name}: relative error, {n} samples",
@@ -344,6 +402,8 @@ __all__ = [
     "estimates_header",
     "m3_interval",
     "block_tables",
+    "skipped_tables",
+    "merge_block_tables",
     "block_stage_stats",
     "merge_stage_stats",
     "coverage_95",

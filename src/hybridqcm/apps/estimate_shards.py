@@ -20,7 +20,6 @@ import csv
 import hashlib
 import json
 import os
-import shutil
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -30,6 +29,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import move_data_to_device
 from omegaconf import OmegaConf
 
+from hybridqcm import runfiles
 from hybridqcm.apps import runfolder
 from hybridqcm.atomic import atomic_open, atomic_write_csv, atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError
@@ -174,7 +174,8 @@ class ShardStore:
                 raise DatasetError(f"{target}: the shards hold {expected} of {n_samples} samples")
 
     def remove(self) -> None:
-        shutil.rmtree(self.root, ignore_errors=True)
+        """The shards and their temporary files; the folder too, unless someone put something else in it."""
+        runfiles.remove_tree_files(self.root, "block-*", ".block-*")
 
 
 class BlockRefinement(GaussNewtonRefinement):
@@ -201,21 +202,32 @@ class ShardWriter(BasePredictionWriter):
         status_header: Sequence[str],
         tables: Callable,
         stage_stats: Callable,
+        skipped_tables: Callable | None = None,
+        merge_tables: Callable | None = None,
     ):
         super().__init__(write_interval="batch")
         self.store, self.refinement = store, refinement
         self.header, self.status_header = list(header), list(status_header)
         self.tables, self.stage_stats = tables, stage_stats
+        # windows kept from the fit (batch "skipped_index"/"skipped_status"): their rows, merged in index order
+        self.skipped_tables, self.merge_tables = skipped_tables, merge_tables
 
     def write_on_batch_end(self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0):
         t0, c0 = time.perf_counter(), time.process_time()
-        prediction = move_data_to_device(prediction, "cpu")
         block = int(batch["block"])
-        record = self.refinement.refine_block(prediction, pl_module, block)
-        rows, status_rows, columns = self.tables(record)
-        true = batch.get("true")
-        columns["true"] = None if true is None else true.detach().cpu().double()
-        start = int(record["index"][0])
+        tables, stats = None, {}
+        if int(batch["index"].shape[0]):  # a block of windows all kept from the fit has nothing to refine
+            prediction = move_data_to_device(prediction, "cpu")
+            record = self.refinement.refine_block(prediction, pl_module, block)
+            tables, stats = self.tables(record), self.stage_stats(record)
+            true = batch.get("true")
+            tables[2]["true"] = None if true is None else true.detach().cpu().double()
+        skipped = batch.get("skipped_index")
+        if skipped is not None and int(skipped.shape[0]):
+            rest = self.skipped_tables(skipped.cpu(), batch["skipped_status"].cpu(), batch.get("skipped_true"))
+            tables = rest if tables is None else self.merge_tables(tables, rest)
+        rows, status_rows, columns = tables
+        start = int(columns["index"][0])
         self.store.write(
             block,
             (start, start + len(rows)),
@@ -224,7 +236,7 @@ class ShardWriter(BasePredictionWriter):
             self.status_header,
             status_rows,
             columns,
-            self.stage_stats(record),
+            stats,
             (time.perf_counter() - t0, time.process_time() - c0),
             str(pl_module.device),
         )

@@ -24,7 +24,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from hybridqcm.apps.common import ConfigError, fail
-from hybridqcm.atomic import atomic_write_text
 
 FORMATS = ("torchscript", "onnx")
 SPEC_H = 0.01  # the step size the networks are trained at (SPEC §5) when neither the data nor the checkpoint says
@@ -52,10 +51,25 @@ def _temporary(path: Path) -> Path:
     return Path(tmp)
 
 
-def _publish(tmp: Path, path: Path) -> Path:
+def _publish(tmp: Path, path: Path, overwrite: bool = False) -> Path:
+    """Put the finished temporary file in place: replacing `path` only with overwrite, else exclusively
+    (os.link fails if the path appeared meanwhile: another export's or the user's file is never replaced)."""
     os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    if overwrite:
+        os.replace(tmp, path)
+        return path
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise ConfigError(f"{path} appeared while exporting; not replaced (pass --overwrite to replace it)") from None
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
+
+
+def _targets(out: Path, stem: str, formats: Sequence[str]) -> list[Path]:
+    suffix = {"torchscript": ".pt", "onnx": ".onnx"}
+    return [out / f"{stem}{suffix[f]}" for f in FORMATS if f in formats] + [out / f"{stem}.json"]
 
 
 def parity_inputs(model, time_steps: int, data: str | None, split: str, n: int, seed: int = 0):
@@ -94,9 +108,11 @@ def export(
     split: str = "test",
     n_check: int = 64,
     tol: float = 1e-5,
+    overwrite: bool = False,
 ) -> dict:
     """Write the exports and the JSON contract; returns the contract (with a `parity` entry per format).
 
+    An existing export (STEM.pt, STEM.onnx, STEM.json) is refused before any work unless overwrite.
     Raises ConfigError for bad input and ParityError when an export deviates beyond `tol` (the
     files are then left in place for inspection, the contract records the deviation)."""
     import torch
@@ -112,14 +128,17 @@ def export(
             raise ConfigError(
                 f"--format onnx needs the package(s) {missing}: pip install -e '.[export]' (or --format torchscript)"
             )
+    out = Path(out_dir) if out_dir else Path(ckpt).parent
+    stem = stem or Path(ckpt).stem
+    existing = [p for p in _targets(out, stem, formats) if p.exists()]
+    if existing and not overwrite:  # before: replaced without a word
+        raise ConfigError(f"{existing[0]} exists; pass --overwrite to replace the export (or --out/--name)")
     model = _load(ckpt)
     try:
         steps = export_time_steps(model, time_steps)
     except ValueError as error:
         raise ConfigError(f"--time-steps {time_steps}: {error}") from None
-    out = Path(out_dir) if out_dir else Path(ckpt).parent
     out.mkdir(parents=True, exist_ok=True)
-    stem = stem or Path(ckpt).stem
 
     x, h = parity_inputs(model, steps, data, split, n_check)
     graph = PhysicalGraph(model).eval()
@@ -142,17 +161,26 @@ def export(
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)
                 traced = torch.jit.trace(graph, example, check_trace=False)
             tmp = _temporary(path)
-            torch.jit.save(traced, str(tmp))
-            _publish(tmp, path)
+            try:
+                torch.jit.save(traced, str(tmp))
+                _publish(tmp, path, overwrite)
+            finally:
+                tmp.unlink(missing_ok=True)
             loaded = torch.jit.load(str(path))
             sidecar["files"]["torchscript"] = path.name
             sidecar["parity"]["torchscript"] = parity_error(model, reference, loaded(x))
         if "onnx" in formats:
             path = out / f"{stem}.onnx"
             sidecar["files"]["onnx"] = path.name
-            sidecar["parity"]["onnx"] = _export_onnx(graph, example, x, path, model, reference)
+            sidecar["parity"]["onnx"] = _export_onnx(graph, example, x, path, model, reference, overwrite)
     sidecar["tolerance"] = tol
-    atomic_write_text(out / f"{stem}.json", json.dumps(sidecar, indent=2) + "\n")
+    contract_path = out / f"{stem}.json"
+    tmp = _temporary(contract_path)
+    try:
+        tmp.write_text(json.dumps(sidecar, indent=2) + "\n")
+        _publish(tmp, contract_path, overwrite)
+    finally:
+        tmp.unlink(missing_ok=True)
     worst = {k: v for k, v in sidecar["parity"].items() if not v <= tol}
     if worst:
         raise ParityError(
@@ -162,7 +190,7 @@ def export(
     return sidecar
 
 
-def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
+def _export_onnx(graph, example, x, path: Path, model, reference, overwrite: bool = False) -> float:
     """torch.onnx (dynamo) export with a dynamic batch axis; returns the ONNX Runtime parity error."""
     import logging
 
@@ -171,7 +199,8 @@ def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
 
     from hybridqcm.models.export import parity_error
 
-    tmp = _temporary(path).with_suffix(".onnx")
+    reserved = _temporary(path)  # a unique name; the exporter wants the .onnx suffix
+    tmp = reserved.with_suffix(".onnx")
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
     try:
         with warnings.catch_warnings():
@@ -187,10 +216,10 @@ def _export_onnx(graph, example, x, path: Path, model, reference) -> float:
                 verbose=False,
                 external_data=False,
             )
-        _publish(tmp, path)
+        _publish(tmp, path, overwrite)
     finally:
-        tmp.unlink(missing_ok=True)
-        for leftover in path.parent.glob(f".{path.name}.*"):
+        reserved.unlink(missing_ok=True)
+        for leftover in path.parent.glob(f"{tmp.name}*"):  # ours only: a concurrent export's stay
             leftover.unlink(missing_ok=True)
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (result,) = session.run(None, {"accel": x.numpy()})
@@ -233,6 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--n-check", type=int, default=64, help="recordings in the parity check (default: 64)")
     parser.add_argument("--tol", type=float, default=1e-5, help="largest relative deviation accepted (default: 1e-5)")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace an existing export of the same name (default: refuse)"
+    )
     return parser
 
 
@@ -245,7 +277,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         fail(f"--n-check {args.n_check}: must be >= 1")
     try:
         sidecar = export(
-            args.ckpt, args.out, args.name, args.formats, args.time_steps, args.data, args.split, args.n_check, args.tol
+            args.ckpt,
+            args.out,
+            args.name,
+            args.formats,
+            args.time_steps,
+            args.data,
+            args.split,
+            args.n_check,
+            args.tol,
+            args.overwrite,
         )
     except (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError) as error:
         fail(error)

@@ -15,7 +15,16 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import CONFIG_DIR, fail, print_table
+from hybridqcm.apps.common import (
+    CONFIG_DIR,
+    check_task_name_overrides,
+    fail,
+    install_signal_handlers,
+    interrupted_exit,
+    print_table,
+    run_folder,
+)
+from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.importer import read_recordings, write_recordings
 
 
@@ -42,6 +51,18 @@ def _mapping(cfg: DictConfig, key: str) -> dict:
     return value
 
 
+def _rate_range(cfg: DictConfig) -> tuple[float, float]:
+    value = OmegaConf.to_container(cfg.rate_range, resolve=True) if cfg.get("rate_range") is not None else None
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)
+        or not 0 < value[0] < value[1]
+    ):
+        raise ValueError(f"rate_range={value!r} must be [LOW, HIGH] in Hz with 0 < LOW < HIGH")
+    return float(value[0]), float(value[1])
+
+
 def run(cfg: DictConfig) -> dict:
     """Read, check and write; returns the summary (also printed and saved as summary.json in the run folder)."""
     if OmegaConf.is_missing(cfg, "input") or cfg.input is None:
@@ -63,6 +84,7 @@ def run(cfg: DictConfig) -> dict:
         rate_tolerance=_number(cfg, "rate_tolerance"),
         gap_factor=_number(cfg, "gap_factor"),
         delimiter=cfg.delimiter,
+        rate_range=_rate_range(cfg),
     )
     write_recordings(output, data, split=str(cfg.split), source=str(source), overwrite=bool(cfg.overwrite))
     duration = sum(data.rows) * data.h
@@ -98,22 +120,29 @@ def run(cfg: DictConfig) -> dict:
         ],
     ]
     print_table(f"{source} -> {output}", ["imported", "value"], rows)
-    summary_path = Path(cfg.paths.output_dir) / "summary.json"
-    summary_path.parent.mkdir(parents=True, exist_ok=True)
-    summary_path.write_text(json.dumps(summary, indent=2))
+    atomic_write_text(Path(cfg.paths.output_dir) / "summary.json", json.dumps(summary, indent=2))
     return summary
 
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="import")
 def _main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except (ValueError, FileExistsError, OSError) as error:
-        fail(error)
+    with run_folder("qcm-import"):
+        try:
+            run(cfg)
+        except (ValueError, FileExistsError, OSError) as error:
+            fail(error)
 
 
 def main() -> None:
-    _main()
+    install_signal_handlers()  # Ctrl-C / SIGTERM: the .partial removed, one line, exit 130 / 143
+    try:
+        check_task_name_overrides(sys.argv[1:])  # task_name=../../x would put the run folder outside outputs/
+    except ValueError as error:
+        fail(error)
+    try:
+        _main()
+    except KeyboardInterrupt as error:
+        interrupted_exit(error)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,8 @@ from importlib import resources
 from pathlib import Path
 
 from hybridqcm.apps.common import print_table
-from hybridqcm.apps.stages import PIPELINES, load_manifest
+from hybridqcm.apps.stages import PIPELINES
+from hybridqcm.apps.stages import load_manifest as _load_manifest
 from hybridqcm.metrics import COLUMNS, read_error_distribution
 
 DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json", "outputs/noise/manifest.json")
@@ -108,6 +109,16 @@ def _markdown_comparison(rows: list[dict]) -> str:
             f"{_pct(s['max_err'])} → **{_pct(o['max_err'])}** | {mark} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def load_manifest(path: str | Path) -> dict:
+    """A pipeline manifest with every key this page reads of each stage; ValueError (one line) otherwise."""
+    manifest = _load_manifest(path)
+    for i, stage in enumerate(manifest["stages"]):
+        for key in ("app", "run_dir", "command", "setting"):
+            if key not in stage:
+                raise ValueError(f"{path}: malformed manifest: stages[{i}] ({stage['name']}) lacks {key!r}")
+    return manifest
 
 
 def _in_pipeline_order(manifest: dict) -> list[dict]:

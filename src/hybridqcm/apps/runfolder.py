@@ -1,8 +1,9 @@
 """Run folders: one run's outputs per folder, and a completion marker written last.
 
 A run folder (hydra.run.dir) that already holds another run's artefacts is refused unless
-`overwrite=true`; then our own artefacts (never anything else) are removed before the run
-starts, so a new run never leaves the previous run's tables and plots beside its own.
+`overwrite=true`; then the files earlier runs recorded writing there (hybridqcm/runfiles.py: the
+folder's manifest), never anything else, are removed before the run starts, so a new run never
+leaves the previous run's tables and plots beside its own, and a user's own files stay.
 The marker `.hybridqcm-done.json` is written after every artefact; it names the run's inputs
 (the task overrides and each input file's size and mtime), so "this stage is done" means
 "a run with exactly these inputs finished here" (pipeline.Stage.is_done).
@@ -12,13 +13,13 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
+import sys
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
+from hybridqcm import runfiles
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.errors import ConfigError
 
 MARKER = ".hybridqcm-done.json"
 ESTIMATE_ARTEFACTS = (
@@ -46,14 +47,8 @@ TRAIN_ARTEFACTS = (
     MARKER,
 )
 TRAIN_GLOBS = ("sorted_predictions_*.png", "mse_hist_*.png")
-
-
-def existing_artefacts(run_dir: Path, names: Iterable[str], globs: Iterable[str] = ()) -> list[Path]:
-    run_dir = Path(run_dir)
-    found = [run_dir / n for n in names if (run_dir / n).exists()]
-    for pattern in globs:
-        found += sorted(run_dir.glob(pattern))
-    return found
+ESTIMATE_SCRATCH = ("shards",)  # written under the run folder, no final output (a resumed run keeps them)
+TRAIN_SCRATCH = ("csv", "mlruns")  # the csv and mlflow loggers' folders
 
 
 def prepare_run_dir(
@@ -62,33 +57,16 @@ def prepare_run_dir(
     overwrite: bool,
     globs: Sequence[str] = (),
     inputs: Iterable[str | os.PathLike | None] = (),
+    app: str | None = None,
+    scratch: Sequence[str] = (),
 ) -> Path:
-    """Refuse a folder holding another run's artefacts (unless overwrite), clear ours when overwriting.
+    """Refuse a folder holding another run's outputs (unless overwrite); when overwriting, remove only
+    the files earlier runs recorded writing there (hybridqcm/runfiles.py), never the user's own.
 
-    inputs: files this run reads; clearing one of them (a checkpoint inside the folder) is refused.
-    Raises ConfigError (one line) before any work."""
-    run_dir = Path(run_dir)
-    found = existing_artefacts(run_dir, names, globs)
-    for given in (i for i in inputs if i):
-        resolved = Path(given).resolve()
-        for path in found:
-            if resolved == path.resolve() or path.resolve() in resolved.parents:
-                raise ConfigError(
-                    f"{given} is an input of this run but lies in {path}, which overwrite would "
-                    f"clear; choose another hydra.run.dir"
-                )
-    if found and not overwrite:
-        shown = ", ".join(p.name for p in found[:4]) + (" ..." if len(found) > 4 else "")
-        raise ConfigError(
-            f"hydra.run.dir={run_dir} already holds another run's outputs ({shown}); "
-            f"pass overwrite=true to clear them first, or choose another folder"
-        )
-    for path in found:
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        else:
-            path.unlink(missing_ok=True)
-    return run_dir
+    names / globs: the app's final outputs (top level); scratch: what else it writes there (shards, a
+    logger's folder); inputs: files this run reads (clearing one of them, a checkpoint inside the folder,
+    is refused). Raises ConfigError (one line) before any work."""
+    return runfiles.begin(run_dir, app or Path(sys.argv[0]).name, overwrite, names, globs, inputs, scratch, MARKER)
 
 
 def fingerprint(paths: Iterable[str | os.PathLike | None]) -> dict[str, list[int] | None]:
@@ -150,6 +128,8 @@ __all__ = [
     "ESTIMATE_ARTEFACTS",
     "TRAIN_ARTEFACTS",
     "TRAIN_GLOBS",
+    "ESTIMATE_SCRATCH",
+    "TRAIN_SCRATCH",
     "prepare_run_dir",
     "write_completion_marker",
     "read_completion_marker",

@@ -254,7 +254,8 @@ def main() -> None:
 
     def job(cfg):
         common.quiet_third_party()
-        return _hydra_entry(cfg)
+        with common.run_folder("qcm-sbi"), common.disk_full_is_one_line():
+            return _hydra_entry(cfg)
 
     try:
         hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="sbi")(job)()

@@ -30,6 +30,7 @@ from hybridqcm.apps.common import (
     install_signal_handlers,
     interrupted_exit,
     print_table,
+    run_folder,
 )
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.simulate import (
@@ -187,10 +188,11 @@ def run(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="simulate")
 def _main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except (ValueError, FileExistsError, OSError, ConfigError) as error:
-        fail(error)
+    with run_folder("qcm-simulate"):
+        try:
+            run(cfg)
+        except (ValueError, FileExistsError, OSError, ConfigError) as error:
+            fail(error)
 
 
 def main() -> None:

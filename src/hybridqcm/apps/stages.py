@@ -201,7 +201,9 @@ def demo_stages(
             "occupant",
             "occupant mass from the seat accelerometer pair, no road",
             cnn="exp2_physics",
-            extra=["init.cnn=true"],
+            # our generator's occupants are rigid and its channels share one clock: the rigid model alone
+            # (the default fits persons too, and takes ~10x longer; docs/notes/persons.md)
+            extra=["init.cnn=true", "occupant.models=[rigid]", "delay=null"],
         ),
     ]
 
@@ -464,7 +466,13 @@ def noise_stages(
             Stage(
                 f"occupant_noise{sigma:g}",
                 "qcm-estimate",
-                ["experiment=occupant_roadfree", f"data.path={dataset}", *sensor],
+                [
+                    "experiment=occupant_roadfree",
+                    f"data.path={dataset}",
+                    "occupant.models=[rigid]",
+                    "delay=null",
+                    *sensor,
+                ],
                 f"{root}/occupant_noise{sigma:g}",
                 ["estimates.csv", "summary.json"],
                 1.0,
@@ -495,6 +503,11 @@ def load_manifest(path: str | Path) -> dict:
         raise ValueError(f"{path}: malformed manifest ({error})") from None
     if not isinstance(manifest, dict) or not isinstance(manifest.get("stages"), list):
         raise ValueError(f"{path}: malformed manifest (no 'stages' list)")
+    if not isinstance(manifest.get("pipeline"), str) or not manifest["pipeline"]:
+        raise ValueError(f"{path}: malformed manifest: pipeline = {manifest.get('pipeline')!r}, expected its name")
+    for i, stage in enumerate(manifest["stages"]):
+        if not isinstance(stage, dict) or "name" not in stage:
+            raise ValueError(f"{path}: malformed manifest: stages[{i}] = {stage!r} is not a stage record")
     return manifest
 
 

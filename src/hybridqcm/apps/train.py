@@ -171,6 +171,25 @@ def check_logger_callbacks(cfg) -> None:
         )
 
 
+def check_optimizer(model_cfg) -> None:
+    """model.optimizer's settings, tried on a dummy parameter now (the module builds the optimizer only
+    when training starts): `lr=abc` or `lr=-1` is one line naming the key, not a TypeError mid-fit."""
+    import torch
+    from hydra.utils import instantiate
+
+    optimizer = (model_cfg or {}).get("optimizer")
+    if not optimizer:
+        return
+    for key, value in optimizer.items():
+        if not str(key).startswith("_") and isinstance(value, str):
+            raise ConfigError(f"model.optimizer.{key}={value!r}: give a number")
+    try:
+        instantiate(optimizer)([torch.nn.Parameter(torch.zeros(1))])
+    except Exception as error:  # the optimizer's own check (torch: "Invalid learning rate: -1.0")
+        cause = error.__cause__ or error
+        raise ConfigError(f"model.optimizer ({optimizer.get('_target_')}): {cause}") from None
+
+
 def _instantiate_group(group: Mapping | None) -> list:
     from hydra.utils import instantiate
 
@@ -217,6 +236,8 @@ def _prepare(cfg) -> dict:
 
     check_top_level_keys(cfg)
     check_logger_callbacks(cfg)
+    common.check_trainer_settings(cfg.get("trainer"))
+    check_optimizer(cfg.get("model"))
     model = load_model(cfg, train)
     if cfg.get("denoiser_ckpt"):
         from hybridqcm.models import DenoisingAutoencoder
@@ -254,6 +275,7 @@ def train(cfg) -> dict[str, float]:
         bool(cfg.get("overwrite", False)),
         runfolder.TRAIN_GLOBS,
         inputs=[cfg.get("ckpt_path"), cfg.get("denoiser_ckpt")],
+        scratch=runfolder.TRAIN_SCRATCH,
     )
 
     callbacks = _instantiate_group(cfg.get("callbacks"))

@@ -36,12 +36,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from hybridqcm.interrupt import check_stop
+from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
+from hybridqcm.interrupt import check_stop, deferred, pending
 
 SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
 SUPPORTED_SCHEMAS = ("hybridqcm.dataset/1", SCHEMA)
 ACCEL_CHANNELS = ("a3", "a2", "a1")
+PHYSICS = ("continuous", "euler")  # the values of the `physics` attribute (absent: continuous, another producer)
 
 # key -> (dtype, trailing shape given n_steps); the leading dimension is the sample count M.
 LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
@@ -69,9 +71,57 @@ def _open(path: str | os.PathLike) -> h5py.File:
     if not path.exists():
         raise DatasetError(f"{path}: dataset file does not exist (create one with `qcm-simulate output={path}`)")
     try:
-        return h5py.File(path, "r")
+        handle = h5py.File(path, "r")
     except OSError as error:
         raise DatasetError(f"{path}: not a readable HDF5 file ({error})") from None
+    try:
+        _check_links(path, handle)
+    except BaseException:
+        handle.close()
+        raise
+    return handle
+
+
+def _check_links(path: Path, handle: h5py.File) -> None:
+    """Data must be stored in the file itself: a run's fingerprint (shards, completion markers) is the
+    file's size and time, which a linked file's change does not touch. An external link, a virtual
+    dataset mapping another file, or a soft link that leads nowhere is one DatasetError naming it
+    (before: h5py's KeyError traceback for a missing target or a loop, silent data from elsewhere)."""
+
+    def problem(name: str, link) -> str | None:  # a message stops the visit (raising inside it cannot)
+        if isinstance(link, h5py.ExternalLink):
+            target = Path(link.filename) if Path(link.filename).is_absolute() else path.parent / link.filename
+            if not target.exists():
+                state = "a file that does not exist"
+            elif target.resolve() == path.resolve():
+                state = "this file itself: a loop"
+            else:
+                state = "another file, whose changes would not be noticed"
+            return (
+                f"{path}: /{name} is an external link to {link.filename}:{link.path} ({state}); "
+                f"copy the data into the file (e.g. h5copy) so it holds what it is read for"
+            )
+        if isinstance(link, h5py.SoftLink):
+            try:
+                target = handle.get(name)
+            except (KeyError, RuntimeError, OSError):  # "too many links": a loop
+                target = None
+            if target is None:
+                return f"{path}: /{name} is a soft link to {link.path}, which leads nowhere or in a loop"
+        if isinstance(link, h5py.HardLink):
+            obj = handle.get(name)
+            if isinstance(obj, h5py.Dataset) and obj.is_virtual:
+                others = sorted({s.file_name for s in obj.virtual_sources() if s.file_name != "."})
+                if others:
+                    return (
+                        f"{path}: /{name} is a virtual dataset mapping {others[0]}; copy the data into the file "
+                        f"so it holds what it is read for"
+                    )
+        return None
+
+    message = handle.visititems_links(problem)
+    if message:
+        raise DatasetError(message)
 
 
 def _check_schema(path: Path, handle: h5py.File) -> None:
@@ -163,6 +213,8 @@ def dataset_info(path: str | os.PathLike) -> dict:
         _check_schema(path, handle)
         attrs = {k: _attr_value(v) for k, v in handle.attrs.items()}
         physics, initial_state = _physics(attrs)
+        if physics not in PHYSICS:  # before: taken for continuous physics, silently
+            raise DatasetError(f"{path}: attribute physics = {physics!r} is not one of {list(PHYSICS)}")
         splits = {}
         for name, group in handle.items():
             if not isinstance(group, h5py.Group):
@@ -310,6 +362,7 @@ class DatasetWriter:
         self.chunk_samples = chunk_samples
         self.overwrite = bool(overwrite)
         self._handle: h5py.File | None = None
+        self._guard: GuardedFile | None = None
         self._tmp: Path | None = None
         self._lock: Path | None = None
         self.stale: list[Path] = []
@@ -332,7 +385,8 @@ class DatasetWriter:
         os.close(fd)
         self._tmp = Path(tmp)
         try:
-            self._handle = h5py.File(self._tmp, "w")
+            # through a GuardedFile: a full disk is one DatasetError, never HDF5's segfault (data/h5file.py)
+            self._handle, self._guard = open_guarded(self._tmp)
             self._handle.attrs["schema"] = SCHEMA
             for key, value in self.attrs.items():
                 self._handle.attrs[key] = json.dumps(value) if isinstance(value, (dict, list, tuple)) else value
@@ -340,6 +394,8 @@ class DatasetWriter:
             if self._handle is not None:
                 self._handle.close()
                 self._handle = None
+            if self._guard is not None:
+                self._guard.close()
             self._tmp.unlink(missing_ok=True)
             self._release()
             raise
@@ -399,7 +455,10 @@ class DatasetWriter:
                 raise DatasetError(
                     f"{self.path}: refusing to write non-finite values into /{split}/{key} at rows {start}.."
                 )
-            group[key][start : start + array.shape[0]] = array
+            with deferred():  # a stop request waits for h5py's write (see interrupt.deferred)
+                group[key][start : start + array.shape[0]] = array
+        if self._guard is not None:
+            raise_if_failed(self._guard, self.path)  # the disk is full: stop now, not at the end
 
     def set_split_attr(self, split: str, key: str, value) -> None:
         assert self._handle is not None
@@ -411,12 +470,22 @@ class DatasetWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         assert self._handle is not None and self._tmp is not None
+        with deferred(raise_on_exit=False):  # a stop request during the close: raised below
+            try:
+                self._handle.flush()
+                self._handle.close()
+            finally:
+                self._handle = None
+                if self._guard is not None:
+                    self._guard.close()
+        if exc_type is None and pending() is not None:
+            self._tmp.unlink(missing_ok=True)
+            self._release()
+            check_stop()
         try:
-            self._handle.flush()
-            self._handle.close()
-        finally:
-            self._handle = None
-        try:
+            if self._guard is not None and (self._guard.error is not None or self._guard.interrupted is not None):
+                self._tmp.unlink(missing_ok=True)
+                raise_if_failed(self._guard, self.path)  # whatever else was raised, a full disk is the cause
             if exc_type is None:
                 os.chmod(self._tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
                 if self.overwrite:

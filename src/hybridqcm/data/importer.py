@@ -35,10 +35,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import h5py
 import numpy as np
 
-from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.data import csv_checks
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.h5file import raise_if_failed, writing
+from hybridqcm.data.hdf5 import DatasetError  # noqa: F401 - importable here
 
 SCHEMA_V2 = "hybridqcm.dataset/2"
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901, exact by definition)
@@ -48,10 +50,6 @@ UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "m/s²": 1.0, "g": STANDARD_GRAVITY}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 DEFAULT_TIME_COLUMNS = ("t", "time")
 DELIMITERS = (",", ";", "\t")
-
-
-class RecordingError(DatasetError):
-    """A CSV recording that cannot be imported; the message names the file, column and row."""
 
 
 @dataclass
@@ -244,6 +242,7 @@ def read_recordings(
     rate_tolerance: float = 1e-3,
     gap_factor: float = 1.5,
     delimiter: str | None = None,
+    rate_range: Sequence[float] = csv_checks.RATE_RANGE,
 ) -> ImportedRecordings:
     """Read a CSV recording into the dataset layout (module docstring); raises RecordingError.
 
@@ -253,7 +252,7 @@ def read_recordings(
     skips it). recording_column: several recordings, one id per row, each in one block of rows.
     window, stride: cut every recording into samples of `window` steps starting every `stride`
     (default: window) steps; without a window every recording is one sample and all must have
-    the same length.
+    the same length. rate_range: the sampling rates [Hz] accepted (csv_checks.check_rate).
     """
     path = Path(path)
     if not path.is_file():
@@ -273,10 +272,11 @@ def read_recordings(
     if unknown:
         raise RecordingError(f"{path}: column_units.{unknown[0]} is not an acceleration channel (a3, a2, a1)")
 
-    with open(path, newline="", encoding="utf-8-sig") as handle:
+    with open(path, newline="", encoding=csv_checks.text_encoding(path)) as handle:
         first = handle.readline()
         if not first.strip():
             raise RecordingError(f"{path}: line 1 is empty; the first line must be the header (e.g. t,a3,a2)")
+        csv_checks.check_header_line(path, first)
         sep = delimiter or _sniff_delimiter(first)
         header = [name.strip() for name in next(csv.reader([first], delimiter=sep))]
         time_name, mapping = _resolve_columns(path, header, columns, time_column, recording_column)
@@ -288,12 +288,13 @@ def read_recordings(
             if c in mapping
         }
         wanted = [time_name, *mapping.values()] + ([recording_column] if recording_column else [])
+        csv_checks.check_header(path, header, wanted)
         index = {name: header.index(name) for name in wanted}
         cells: dict[str, list[str]] = {name: [] for name in wanted}
         data_rows: list[int] = []
         reader = csv.reader(handle, delimiter=sep)
         row = 0
-        for fields in reader:
+        for fields in csv_checks.checked_rows(path, reader):
             if not fields or all(not f.strip() for f in fields):
                 continue  # blank line
             row = reader.line_num  # lines read after the header: the data row; the line is row + 1
@@ -313,6 +314,8 @@ def read_recordings(
     rows = np.asarray(data_rows, dtype=np.int64)
     t_all = _to_float(path, time_name, cells[time_name], rows) * TIME_UNITS[time_unit]
     values = {key: _to_float(path, name, cells[name], rows) for key, name in mapping.items()}
+    for key, name in mapping.items():
+        csv_checks.check_float32(path, name, values[key], factors.get(key, 1.0), rows)
 
     # recordings: contiguous blocks of one id each
     if recording_column:
@@ -339,6 +342,7 @@ def read_recordings(
         label = f" (recording {name!r})" if recording_column else ""
         hs.append(_check_time(path, time_name, t_all[a:b], rows[a:b], label, gap_factor, rate_tolerance))
     h = float(np.mean(hs))
+    csv_checks.check_rate(path, time_name, h, time_unit, TIME_UNITS, rate_range)
     for name, (a, _), h_i in zip(names, blocks, hs):
         if abs(h_i - h) > rate_tolerance * h:
             raise RecordingError(
@@ -418,8 +422,10 @@ def write_recordings(
     fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent)
     os.close(fd)
     tmp = Path(tmp)
+    guard = None
     try:
-        with h5py.File(tmp, "w") as handle:
+        # a full disk: one DatasetError, not HDF5's segfault; Ctrl-C / SIGTERM after h5py's calls (data/h5file.py)
+        with writing(tmp) as (handle, guard):
             attrs = {
                 "schema": SCHEMA_V2,
                 "h": float(data.h),
@@ -444,9 +450,12 @@ def write_recordings(
                 group.create_dataset(
                     key, data=array, compression="gzip" if chunked else None, compression_opts=1 if chunked else None
                 )
+        raise_if_failed(guard, output)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        if guard is not None:
+            raise_if_failed(guard, output)  # a full disk is the cause of whatever HDF5 raised
         raise
     return output

@@ -113,11 +113,15 @@ def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Te
     -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
     balanced eigenvectors, ok [b]: finite, and the complex eigenvalues in conjugate pairs)."""
     ratio = scale[:, None, :] / scale[:, :, None]
-    lam, Vb = torch.linalg.eig(A * ratio)
-    Vb_inv = torch.linalg.inv(Vb)
+    balanced = A * ratio
+    finite = torch.isfinite(balanced).all(-1).all(-1)
+    # a non-finite matrix (a failed trial step) or defective eigenvectors: not ok, left to the recursion
+    balanced = torch.where(finite[:, None, None], balanced, torch.zeros_like(balanced))
+    lam, Vb = torch.linalg.eig(balanced)
+    Vb_inv, info = torch.linalg.inv_ex(Vb)
     V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
     cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)
-    ok = torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
+    ok = finite & (info == 0) & torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
     return lam, V, V_inv, cond, ok
 
 

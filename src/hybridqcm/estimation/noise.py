@@ -93,12 +93,18 @@ def frequency_response(
             return Ck[..., 0:1] * X[:, :, None, 0] + Ck[..., 1:2] * X[:, :, None, 1] + E[:, None], None
         Y = torch.stack([Ck[..., 0] * rows[0][l][..., None] + Ck[..., 1] * rows[1][l][..., None] for l in range(2)], -1)
     elif not derivatives:
-        X = torch.linalg.solve(pencil, B[:, None].expand(-1, K, -1, -1))  # [b, K, n, m]
+        # A model with a pole on the axis (a trial step to a singular A) has no response there: NaN, so that the
+        # trial's loss is not finite and the line search rejects it, rather than an exception.
+        X, info = torch.linalg.solve_ex(pencil, B[:, None].expand(-1, K, -1, -1))  # [b, K, n, m]
+        X = torch.where((info == 0)[..., None, None], X, torch.full_like(X, complex(math.nan, math.nan)))
         return C[:, None] @ X + E[:, None], None
     else:  # one LU for both sides: X = (j w I - A)^-1 B and Y = C (j w I - A)^-1
-        LU, pivots = torch.linalg.lu_factor(pencil)
+        LU, pivots, info = torch.linalg.lu_factor_ex(pencil)
         X = torch.linalg.lu_solve(LU, pivots, B[:, None].expand(-1, K, -1, -1))
         Y = torch.linalg.lu_solve(LU, pivots, C[:, None].expand(-1, K, -1, -1), left=False)  # [b, K, o, n]
+        bad = (info != 0)[..., None, None]
+        X = torch.where(bad, torch.full_like(X, complex(math.nan, math.nan)), X)
+        Y = torch.where(bad, torch.full_like(Y, complex(math.nan, math.nan)), Y)
     dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
     dH = (
         torch.einsum("bkoi,bpil,bklm->bpkom", Y, dA, X)
@@ -150,6 +156,7 @@ def estimate_variances(
     reference: Tensor | None = None,
     iterations: int = 30,
     floor: float = 1e-12,
+    leverage: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Whittle fit of (v_out [b, o], v_in [b, m] or None) to the periodogram of ``residual`` [b, T, o].
 
@@ -158,13 +165,27 @@ def estimate_variances(
     mean square without its DC, the white-noise maximum likelihood). Variances are floored at
     ``floor`` x ``reference`` [b, o] (e.g. the measured channels' mean squares; default the
     residual's) so that an exact fit cannot give infinite weight.
+
+    ``leverage`` [b, K]: the fit's leverage per frequency (:func:`spectral_leverage`). A residual at a
+    fitted p is shorter than the noise where the model is flexible — E P_k = S_k (1 - h_k) — and the
+    model is most flexible exactly where the input's noise shows (the resonance, |H| large): without
+    the correction the input noise comes out 20 % low and the errors-in-variables fit drifts back
+    towards the output-error bias. With it, each frequency's likelihood term weighs (1 - h_k) and reads
+    P_k / (1 - h_k) (restricted likelihood; for white noise Σ c_k P_k / Σ c_k (1 - h_k)).
     """
     r = residual.to(torch.float64)
     b, T, o = r.shape
     c = parseval_weights(T)
     R = torch.fft.rfft(r, dim=1)  # [b, K, o]
     P = R[..., :, None] * R[..., None, :].conj() / T  # [b, K, o, o]
-    power = (c[None, :, None] * P.diagonal(dim1=-2, dim2=-1).real).sum(1) / c.sum()  # [b, o] mean square, no DC
+    # Per-sample frequency weights: Parseval's c_k, times (1 - h_k) for the restricted fit, whose periodogram
+    # is then P_k / (1 - h_k) (a bin the fit takes whole, h_k -> 1, weighs nothing).
+    cw = c[None, :].expand(b, -1)
+    if leverage is not None:
+        free = (1.0 - leverage.to(torch.float64)).clamp(1e-6, 1.0)
+        cw = cw * free
+        P = P / free[:, :, None, None]
+    power = (cw[:, :, None] * P.diagonal(dim1=-2, dim2=-1).real).sum(1) / cw.sum(1, keepdim=True)  # [b, o], no DC
     scale = (power if reference is None else reference.to(torch.float64)).clamp_min(1e-300)
     lower_out = floor * scale
     if H is None or n_inputs == 0:
@@ -182,7 +203,7 @@ def estimate_variances(
     v = torch.cat([0.5 * power, 0.5 * power.mean(1, keepdim=True) / gain.mean(1).clamp_min(1e-300)], 1)
     lower = torch.cat([lower_out, floor * (scale.mean(1, keepdim=True) / gain.mean(1).clamp_min(1e-300))], 1)
     v = v.maximum(lower)
-    weight = c[None, None, :].to(torch.float64)
+    weight = cw[:, None, :].to(torch.float64)
     if o == 1:  # S_k = v_1 + sum_i v_i |H_ki|^2 is real: the same scoring without complex matrices
         G = torch.cat([torch.ones_like(H[..., 0, :1].real), H[..., 0, :].abs().square()], -1)  # [b, K, J]
         G = G.transpose(1, 2).contiguous()  # [b, J, K]: the sums over frequencies run along rows
@@ -191,7 +212,7 @@ def estimate_variances(
         for _ in range(iterations):  # each sample until its own step is below 1e-8 relative
             Ga, va = G[active], v[active]
             S = (Ga * va[:, :, None]).sum(1)  # [n, K]
-            w = c / S.square()
+            w = cw[active] / S.square()
             score = (Ga * (w * (Pk[active] - S))[:, None, :]).sum(-1)  # [n, J]
             info = torch.bmm(Ga * w[:, None, :], Ga.transpose(1, 2))  # [n, J, J]
             new = (va + _solve_psd(info, score)).maximum(lower[active])
@@ -215,6 +236,55 @@ def estimate_variances(
             break
         v = new
     return v[:, :o], v[:, o:]
+
+
+def input_noise_log_std(H: Tensor, v_out: Tensor, v_in: Tensor, n_steps: int, leverage: Tensor | None = None) -> Tensor:
+    """[b, m] the standard deviation of log v_in, each input noise variance as :func:`estimate_variances` fits it
+    from one window: the inverse of the Whittle likelihood's Fisher information Σ_k w_k G_jk G_lk / S_k² (one
+    output: S_k = v_out + Σ_i v_in,i |H_ki|², G = (1, |H_k1|², ...), w_k = c_k (1 − h_k)). The seat's
+    transmissibility separates input from output noise only through the contrast of |H|², so one window
+    leaves v_in uncertain by tens of per cent; a fit that treats it as known is overconfident (the
+    occupant model's intervals carry it, estimation/occupant.py). Several outputs: their first is used."""
+    c = parseval_weights(n_steps)[None, :]
+    if leverage is not None:
+        c = c * (1.0 - leverage.to(torch.float64)).clamp(1e-6, 1.0)
+    gain = H[:, :, 0, :].abs().square()  # [b, K, m]
+    G = torch.cat([torch.ones_like(gain[..., :1]), gain], -1)  # [b, K, 1 + m]
+    S = v_out[:, :1, None].transpose(1, 2) + (gain * v_in[:, None, :]).sum(-1, keepdim=True)  # [b, K, 1]
+    info = torch.einsum("bk,bkj,bkl->bjl", c.expand(G.shape[0], -1), G / S, G / S)
+    cov = torch.linalg.pinv(info, hermitian=True)
+    variance = cov.diagonal(dim1=1, dim2=2)[:, 1:].clamp_min(0.0)
+    return variance.sqrt() / v_in.clamp_min(1e-300)
+
+
+def spectral_leverage(
+    jacobian: Tensor, noise: SpectralNoise | None, params: Tensor, precision: Tensor | None = None
+) -> Tensor:
+    """[b, K] the fit's leverage per frequency: the diagonal of the hat matrix X (XᵀX + Λ)⁻¹ Xᵀ of the
+    whitened real stack X of the Jacobian ``jacobian`` [b, T, o, Q] (time domain, the free columns) at
+    ``params`` [b, n_theta] under ``noise`` (None: white, equal variances), averaged over each frequency's
+    real and imaginary rows and its outputs; Λ = diag(``precision`` [b, Q]) a prior's (None: none).
+    Σ_k of it is the number of effectively fitted unknowns (estimate_variances' correction)."""
+    b, T, o, Q = jacobian.shape
+    index = torch.arange(b)
+    if noise is None:
+        w = (parseval_weights(T) / T).sqrt().to(_COMPLEX)
+        X = torch.fft.rfft(jacobian.to(torch.float64), dim=1) * w.view(1, -1, 1, 1)
+    else:
+        X = noise._solve(noise._factor(index, params, T, False)[0], noise._spectrum(jacobian))
+    K = X.shape[1]
+    stack = torch.cat([X.real, X.imag], 1).reshape(b, 2 * K * o, Q)  # rows: (Re | Im) x frequency x output
+    F = stack.transpose(1, 2) @ stack
+    if precision is not None:
+        F = F + torch.diag_embed(precision.to(torch.float64))
+    scale = F.diagonal(dim1=1, dim2=2).clamp_min(1e-300).sqrt()
+    inverse = torch.linalg.pinv(F / (scale[:, :, None] * scale[:, None, :]), hermitian=True, rtol=1e-10)
+    inverse = inverse / (scale[:, :, None] * scale[:, None, :])
+    h = ((stack @ inverse) * stack).sum(-1).view(b, 2, K, o).mean(-1).sum(1)  # [b, K]
+    components = torch.full((K,), 2.0, dtype=torch.float64)  # real rows per frequency: Re and Im,
+    if T % 2 == 0:
+        components[-1] = 1.0  # Re only at Nyquist (DC has none: its rows are zero)
+    return h / components
 
 
 class SpectralNoise:
@@ -248,7 +318,21 @@ class SpectralNoise:
         # S evaluated at these θ [batch, Q] and held fixed (iteratively reweighted, no dS term): its
         # factor for the whole batch is computed once per window length, not at every line-search trial.
         self.frozen_at = None if frozen_at is None else frozen_at.to(torch.float64)
+        # [b, m] std of log v_in where the variances were fitted to the data (input_noise_log_std), else None
+        self.v_in_log_std: Tensor | None = None
         self._frozen_factor: dict[int, Tensor] = {}
+
+    def subset(self, rows: Tensor) -> SpectralNoise:
+        """The noise model of the samples ``rows`` only (a sub-problem's)."""
+        noise = SpectralNoise(
+            self.v_out[rows],
+            None if self.v_in is None else self.v_in[rows],
+            self.model,
+            self.h,
+            None if self.frozen_at is None else self.frozen_at[rows],
+        )
+        noise.v_in_log_std = None if self.v_in_log_std is None else self.v_in_log_std[rows]
+        return noise
 
     @property
     def has_input_noise(self) -> bool:

@@ -23,7 +23,7 @@ from hybridqcm.data.sensor import keyed_normals
 
 from .front import CHANNELS, HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
-from .noise import SpectralNoise, estimate_variances, frequency_response
+from .noise import SpectralNoise, estimate_variances, frequency_response, input_noise_log_std, spectral_leverage
 from .response import EulerResponse, PreparedInputs, ResponseModel
 from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus, torch_threads
 
@@ -104,6 +104,7 @@ class GaussNewtonRefinement(Callback):
         param_prior: tuple[Tensor, Tensor] | None = None,
         noise_refits: int = 2,
         restart_center: Tensor | None = None,
+        noise_leverage: bool = False,
     ):
         super().__init__()
         if not stages:
@@ -146,6 +147,9 @@ class GaussNewtonRefinement(Callback):
         if int(noise_refits) < 0:
             raise ValueError(f"noise_refits must be >= 0, got {noise_refits!r}")
         self.noise_refits = int(noise_refits)
+        # The noise variances fitted to a residual at the fit are short by the fit's leverage, most where
+        # the input's noise shows (estimate_variances): with ``noise_leverage`` the restricted fit corrects it.
+        self.noise_leverage = bool(noise_leverage)
         self.ml_guard = None if ml_guard is None else float(ml_guard)
         self.min_input_noise = float(min_input_noise)  # relative to the input's RMS (see _noise_model)
         self.peer_factor = None if peer_factor is None else float(peer_factor)
@@ -346,6 +350,55 @@ class GaussNewtonRefinement(Callback):
         n_terms = outputs["targets"].shape[1] * len(channels) if noise is not None else None
         return per_stage, result, params, relative, self._attempt_score(relative, n_terms, problem, result.params)
 
+    def final_problem(
+        self,
+        outputs: Mapping,
+        params: Tensor,
+        known: Tensor | None = None,
+        variances: tuple[Tensor, Tensor | None] | None = None,
+    ) -> LeastSquaresProblem:
+        """The last stage's maximum-likelihood problem at θ ``params`` [batch, n_theta] of ``outputs``' batch:
+        its window and channels, the noise model fitted to the residual there (errors in variables: the
+        spectrum a function of p) and the prior that stage applies (recordings with a sensor noise floor).
+        What weighs, compares and profiles a finished fit (estimation/occupant.py, estimation/profile.py).
+        ``known`` [n_theta] bool: entries held fixed (default: the refinement's own); ``variances``
+        (v_out [batch, n_out], v_in [batch, n_in] or None): the noise model's variances, given instead of
+        fitted (a comparison of several models of one recording under one noise level)."""
+        if self.reweight != "spectral":
+            raise ValueError("final_problem needs the spectral noise model (reweight='spectral')")
+        stage = self.stages[-1]
+        observed = self._channels(stage, None)
+        road = outputs["road"].double()
+        if self.pu_known and self.quarter_car:
+            road = outputs["pu"].double()[:, None] * road
+        offset = int(outputs.get("input_offset", 0))
+        n_steps = outputs["targets"].shape[1]
+        window = n_steps if stage.n_steps is None else min(int(stage.n_steps), n_steps)
+        targets = outputs["targets"][:, :window].double()
+        prepared = self.response.prepare(road, offset, window)
+        params = params.double()
+        residual = self._residual(targets, prepared, params, observed, offset)
+        if variances is None:
+            noise = self._noise_model(targets, prepared, params, observed, offset, False, residual)
+        else:
+            v_out, v_in = variances
+            linear = None if v_in is None else self.response.model
+            noise = SpectralNoise(v_out, v_in, linear, None if v_in is None else self.h)
+        noisy = None if self.param_prior is None else self._noise_floor(residual, targets, observed)
+        return LeastSquaresProblem(
+            targets,
+            prepared,
+            self.h,
+            scaled_road=self.pu_known,
+            observed=observed,
+            known=self.known if known is None else known,
+            weights=None,
+            model=self.response,
+            input_offset=offset,
+            noise=noise,
+            **self._prior(outputs, params, True, noisy),
+        )
+
     @staticmethod
     def _attempt_score(relative: Tensor, n_terms: int | None, problem, params: Tensor) -> Tensor:
         """[batch] what the last stage minimised, comparable across attempts (lower is better). With the
@@ -541,7 +594,17 @@ class GaussNewtonRefinement(Callback):
         omega = 2 * math.pi * torch.fft.rfftfreq(targets.shape[1], d=self.h, dtype=torch.float64)
         # the linear model's own parameters (a delay after them changes the phase, not the noise's power)
         H, _ = frequency_response(linear, params[:, : linear.n_params].double(), omega)
-        v_out, v_in = estimate_variances(residual, H, linear.n_input, reference)
+        leverage = None
+        if self.noise_leverage:  # the fit's leverage under the white output noise just fitted
+            columns = 1 + (~self.known).nonzero().squeeze(1)
+            jacobian = self.response.sensitivities(params.double(), road, offset, targets.shape[1])
+            jacobian = jacobian[:, :, channels][..., columns]
+            leverage = spectral_leverage(jacobian, None, params)
+            v_out, v_in = estimate_variances(residual, H, linear.n_input, reference, leverage=leverage)
+            if bool((v_out > 0).all()) and bool(torch.isfinite(v_in).all()):  # once more, whitened by that fit
+                first = SpectralNoise(v_out, v_in.clamp_min(0.0), linear, self.h)
+                leverage = spectral_leverage(jacobian, first, params.double())
+        v_out, v_in = estimate_variances(residual, H, linear.n_input, reference, leverage=leverage)
         # An input "noise" far below any accelerometer's floor is the hold's interpolation error
         # between samples (deterministic, concentrated near Nyquist), not noise: modelling it as
         # white input noise biases the weakly identified p3 of the sprung model on noise-free data
@@ -552,7 +615,11 @@ class GaussNewtonRefinement(Callback):
         negligible = (v_in < self.min_input_noise**2 * input_power).all(1)
         v_out = torch.where(negligible[:, None], v_alone, v_out)
         v_in = torch.where(negligible[:, None], torch.zeros_like(v_in), v_in)
-        return SpectralNoise(v_out, v_in, linear, self.h, frozen_at=params.double() if frozen else None)
+        noise = SpectralNoise(v_out, v_in, linear, self.h, frozen_at=params.double() if frozen else None)
+        if self.noise_leverage:
+            log_std = input_noise_log_std(H, v_out, v_in.clamp_min(1e-300), targets.shape[1], leverage)
+            noise.v_in_log_std = torch.where(negligible[:, None], torch.zeros_like(log_std), log_std)
+        return noise
 
     def _measured_loss(self, outputs, road: Tensor, params: Tensor, measured, demean: bool = False) -> Tensor:
         """½ Σ (weighted) residual² on the measured channels over the full window [batch] (inf if not finite);

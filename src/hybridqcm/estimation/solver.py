@@ -347,6 +347,19 @@ class NonlinearLeastSquares:
     def after_line_search(self, index: Tensor, full_step_accepted: Tensor, any_step_accepted: Tensor) -> None:
         """Update method state after the line search of the samples ``index``."""
 
+    def objective(self, problem: LeastSquaresProblem, params: Tensor) -> Tensor:
+        """The loss every sample's solve minimises at θ ``params`` [batch, n_theta]: ½ Σ r² of the weighted or
+        noise-whitened residual plus the prior's ½ Σ λ (θ − μ)² [batch] (inf where not finite). What a
+        profile likelihood or a model comparison reads after the solve (SolverResult.loss is the data part)."""
+        with torch_threads(self.config.num_threads), torch.no_grad():
+            obs = problem.observed_index
+            targets = problem.targets.to(torch.float64)[:, :, obs].contiguous()
+            inputs = problem.inputs if isinstance(problem.inputs, PreparedInputs) else problem.inputs.to(torch.float64)
+            road = problem.model.prepare(inputs, *problem.window)
+            self._weights = None if problem.weights is None else problem.weights[:, obs].to(torch.float64).contiguous()
+            index = torch.arange(params.shape[0])
+            return self._loss_at(problem, params.detach().to(torch.float64), targets, road, index)
+
     # --- the loop -----------------------------------------------------------------------
     def solve(
         self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None
@@ -581,6 +594,7 @@ class NonlinearLeastSquares:
                 if cfg.parametrization != "unconstrained"
                 else torch.ones(pos.numel(), dtype=torch.bool)
             )
+            positive &= torch.isfinite(trial).all(1)  # an overflowing step (log space) is a failed trial
             trial_loss = torch.full((pos.numel(),), math.inf, dtype=params.dtype)
             if bool(positive.any()):
                 # Evaluate only positive trials; the others count as Armijo failures.
