@@ -118,9 +118,11 @@ def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, tmp_path, override
     assert message in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_body_models_are_refused_for_the_road_driven_model(tiny_dataset, tmp_path):
+def test_body_models_are_refused_for_the_euler_reproduction(tiny_dataset, tmp_path):
+    """Body models exist for the exact continuous-time models only (tests/test_occupant_vehicle.py);
+    the tiny file is our Euler generator's, which the Euler recursion fits."""
     proc = _app(tmp_path, "experiment=exp5_random_init", f"data.path={tiny_dataset}", "occupant.models=[body1]")
-    assert proc.returncode != 0 and "road-free seat model" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode != 0 and "exact continuous-time model" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def _foreign(path, **kw):

@@ -143,7 +143,7 @@ def build_refinement(cfg, plan):
             cfg,
             plan,
             plan["occupant"],
-            lambda r, k, prior, restarts=True: _refinement(cfg, plan, r, k, prior, None, True, restarts),
+            lambda r, k, prior, restarts=True, centre=None: _refinement(cfg, plan, r, k, prior, centre, True, restarts),
         )
     return _refinement(cfg, plan, response, known_mask, param_prior, centre)
 
@@ -172,6 +172,7 @@ def _refinement(
         stages,
         known=known_mask,
         pu_known=bool(cfg.pu_known),
+        observed=tuple(plan["observed"]),  # what a finished fit is weighed on without the module (occupant models)
         h=plan["h"],
         response=response,
         reweight=reweight,
@@ -337,7 +338,8 @@ def run(cfg) -> dict:
         return {}
 
     columns, markers = store.merge(blocks, n_samples)
-    if plan.get("occupant") is not None and cfg.plots:  # a person at a glance: fitted apparent mass vs a3/a2
+    # a person at a glance: fitted apparent mass vs the measured a3/a2
+    if plan.get("occupant") is not None and cfg.plots and {"a3", "a2"} <= set(plan["observed"]):
         pictures = plot_first_recordings(run_dir, plan, run_dir / "estimates.csv")
         if cfg.tensorboard and pictures:
             from hybridqcm.tracking import log_estimation_to_tensorboard

@@ -11,8 +11,9 @@
                                              candidate, known, or none
     delay_max_ms: 20                         the largest delay searched (either sign)
 
-Only the road-free seat model (``base_excitation: seat``) has occupant models and a delay today;
-elsewhere the occupant is rigid and the channels share one clock, and asking for more is refused.
+Occupant models exist for the road-free seat (``base_excitation: seat``) and sprung models and for the
+road-driven quarter car with the exact model (exp 8, 10: ``occupant_linear_model``); the channel delay
+for the seat model only. Asking for more is refused.
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ from hybridqcm.apps.common import ConfigError
 from hybridqcm.physics.occupant import N_MODES, OCCUPANT_MODELS, body_prior, body_start
 
 
-def occupant_plan(cfg, base: str | None) -> dict | None:
-    """The validated occupant and delay settings, or None when the plain rigid model is asked for."""
+def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
+    """The validated occupant and delay settings, or None when the plain rigid model is asked for.
+    ``base``: the road-free model (seat, sprung) or None (road-driven, fitted with ``model``)."""
     occupant = cfg.get("occupant") or {}
     models = occupant.get("models", ["rigid"])
     if isinstance(models, str) or models is None:
@@ -54,11 +56,17 @@ def occupant_plan(cfg, base: str | None) -> dict | None:
     plain = models == ["rigid"] and (delay is None or (str(delay) not in ("estimate", "auto") and float(delay) == 0.0))
     if plain:
         return None
-    if base != "seat":
+    if base != "seat" and not (delay is None or (str(delay) not in ("estimate", "auto") and float(delay) == 0.0)):
         raise ConfigError(
-            f"occupant.models={models}, delay={delay!r}: body models and the channel delay are available for "
-            f"the road-free seat model (base_excitation: seat, e.g. experiment=occupant_roadfree); "
-            f"this run fits {base or 'the road-driven quarter car'} with a rigid occupant on one clock"
+            f"delay={delay!r}: the channel delay is available for the road-free seat model (base_excitation: seat, "
+            f"e.g. experiment=occupant_roadfree); this run fits {base or 'the road-driven quarter car'} on one clock "
+            f"(delay=null)"
+        )
+    if base is None and model != "exact":
+        raise ConfigError(
+            f"occupant.models={models}: body models need the exact continuous-time model (dynamics=exact); "
+            f"this run fits the source's Euler recursion (dynamics={cfg.get('dynamics', 'auto')}, a file from "
+            f"our Euler generator) with a rigid occupant"
         )
     return {
         "models": models,
@@ -106,25 +114,58 @@ def delay_margin(cfg, h: float) -> int:
     return math.ceil(float(cfg.get("delay_max_ms", 20)) / 1000.0 / h - 1e-9) + 2
 
 
+def occupant_linear_model(base: str | None, n_modes: int, scaled_road: bool = False):
+    """The LinearModel of an occupant with ``n_modes`` body modes (0: rigid) for the road-free ``base``
+    (seat, sprung) or, with None, the road-driven quarter car (``scaled_road``: its input is p_u u).
+    Its parameters are the rigid model's, then the body's (r_i, k_i, c_i) per mode."""
+    from hybridqcm.physics import linear_models as lm
+
+    if base == "seat":
+        return lm.SeatBaseExcitation() if n_modes == 0 else lm.SeatOccupantBaseExcitation(n_modes)
+    if base == "sprung":
+        return lm.SprungBaseExcitation() if n_modes == 0 else lm.SprungOccupantBaseExcitation(n_modes)
+    if base is None:
+        return lm.QuarterCarRoad(scaled_road) if n_modes == 0 else lm.QuarterCarOccupantRoad(n_modes, scaled_road)
+    raise ValueError(f"occupant models: no model for base_excitation={base!r}; choose seat, sprung or null")
+
+
+def _vehicle_settings(cfg, plan, names) -> tuple:
+    """(mean [n], std [n]) of the run's vehicle prior over the parameter ``names`` (std inf where it has none)
+    and the restarts' centre [n] (None unless restarts go around the reference vehicle), as the rigid run
+    has them (apps/estimate.build_refinement)."""
+    from hybridqcm.physics.parameters import PARAM_NAMES, PhysicalConstants
+
+    p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
+    reference = torch.stack([p_ref[PARAM_NAMES.index(n)] for n in names])
+    std = torch.full_like(reference, math.inf)
+    if plan["vehicle_prior"] is not None:
+        listed = torch.tensor([n in plan["vehicle_prior"]["params"] for n in names])
+        std = torch.where(listed, plan["vehicle_prior"]["rel_std"] * reference, std)
+    return reference, std, (reference if plan["restarts_around"] == "reference" else None)
+
+
 def build_selection(cfg, plan, occupant: dict, make_refinement):
     """The candidates' refinements and the selection over them (estimation/occupant.py).
 
-    ``make_refinement(response, known [n_params] bool, param_prior | None, restarts: bool)`` builds one
-    candidate's GaussNewtonRefinement with the run's stages and noise model, with or without its restarts."""
+    ``make_refinement(response, known [n_params] bool, param_prior | None, restarts: bool[, centre])`` builds
+    one candidate's GaussNewtonRefinement with the run's stages and noise model, with or without its
+    restarts (around ``centre`` where given). The sprung and road-driven models keep the rigid run's
+    vehicle prior and restart centre on their p1..pN; the body's prior and start come after them."""
     from hybridqcm.estimation.delay import DelayedResponse
     from hybridqcm.estimation.occupant import OccupantSelection
     from hybridqcm.estimation.response import ExactResponse
-    from hybridqcm.physics.linear_models import SeatBaseExcitation, SeatOccupantBaseExcitation
 
+    base = plan["base_excitation"]
     delay = occupant["delay"]
 
     def candidate(name: str, tau_setting):
         modes = N_MODES[name]
-        linear = SeatBaseExcitation() if modes == 0 else SeatOccupantBaseExcitation(modes)
-        response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), "unknown")
+        linear = occupant_linear_model(base, modes, bool(cfg.pu_known))
+        n_vehicle = linear.n_params - 3 * modes  # the rigid model's parameters come first
+        response = ExactResponse(linear, plan["h"], str(cfg.hold), int(cfg.substeps), plan["initial_state"])
         start = body_start(modes)
         mean, std = body_prior(modes)
-        known = torch.zeros(2 + 3 * modes, dtype=torch.bool)
+        known = torch.zeros(linear.n_params, dtype=torch.bool)
         known[plan["known"]] = True
         if tau_setting is not None:
             response = DelayedResponse(response, occupant["max_delay"])
@@ -133,14 +174,22 @@ def build_selection(cfg, plan, occupant: dict, make_refinement):
             mean = torch.cat([mean, torch.zeros(1, dtype=torch.float64)])
             std = torch.cat([std, torch.full((1,), occupant["delay_prior"], dtype=torch.float64)])
             known = torch.cat([known, torch.tensor([tau_setting != "estimate"])])
-        prior = None
-        if (occupant["body_prior"] and modes > 0) or (tau_setting == "estimate" and occupant["delay_prior"] < math.inf):
-            full_mean = torch.cat([torch.ones(2, dtype=torch.float64), mean])
-            full_std = torch.cat([torch.full((2,), math.inf, dtype=torch.float64), std])
-            if not occupant["body_prior"]:
-                full_std[2 : 2 + 3 * modes] = math.inf
-            prior = (full_mean, full_std)
-        return (make_refinement(response, known, prior, False), make_refinement(response, known, prior, True)), start
+        if not occupant["body_prior"]:
+            std[: 3 * modes] = math.inf
+        centre = None
+        if base == "seat":
+            vehicle_mean = torch.ones(n_vehicle, dtype=torch.float64)
+            vehicle_std = torch.full((n_vehicle,), math.inf, dtype=torch.float64)
+        else:  # the vehicle's prior and restart centre as in the rigid run
+            vehicle_mean, vehicle_std, centre = _vehicle_settings(cfg, plan, linear.param_names[:n_vehicle])
+            centre = None if centre is None else torch.cat([centre, start])
+        full_std = torch.cat([vehicle_std, std])
+        prior = (torch.cat([vehicle_mean, mean]), full_std) if bool(torch.isfinite(full_std).any()) else None
+        pair = (
+            make_refinement(response, known, prior, False, centre),
+            make_refinement(response, known, prior, True, centre),
+        )
+        return pair, start
 
     # auto: every model on one clock, then the winner once more with the delay estimated (evidence decides);
     # each candidate in one attempt, the chosen one restarted where it does not fit (rescue)

@@ -493,7 +493,7 @@ def validate(cfg) -> dict:
             f"noise_sigma={sigma} (the source's multiplicative noise) and sensor={sensor.kind}: choose one"
         )
     margin = cfg.get("input_margin", "auto")
-    occupant = occupant_plan(cfg, base)
+    occupant = occupant_plan(cfg, base, model)
     # a channel delay reads the input that far beyond the window's ends too
     lead = max(4, delay_margin(cfg, h_file or 0.01)) if occupant is not None else 4
     tail = max(8, lead)

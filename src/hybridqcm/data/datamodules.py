@@ -46,6 +46,7 @@ from hybridqcm.data.channels import (
 )
 from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
 from hybridqcm.data.sensor import SensorModel, additive_augmentation, apply_to_channels, build_sensor
+from hybridqcm.physics.occupant import OCCUPANT_MODELS
 
 log = logging.getLogger(__name__)
 
@@ -335,6 +336,13 @@ class HDF5DataModule(_BaseDataModule):
                     f"{self.path}: /{split} lacks dataset(s) {missing} needed for channels "
                     f"inputs={self.spec.inputs} targets={self.spec.targets} aux={self.spec.aux}; it has {have}"
                 )
+            occupant = info["splits"][split].get("occupant", "rigid")
+            if split == self.train_split and "fit" in stages and self.spec.aux and occupant != "rigid":
+                # the physics residual a3 = -p1 (v3 - v2) - p2 (q3 - q2) is the rigid occupant's equation
+                raise DatasetError(
+                    f"{self.path}: /{split} holds seated persons (occupant = {occupant}); the physics-residual "
+                    f"loss (aux {list(self.spec.aux)}) assumes a rigid occupant: train the labelled CNN on it"
+                )
             stored = info["splits"][split]["n_steps"]
             if stored is not None and self.window > stored:
                 raise DatasetError(
@@ -525,8 +533,17 @@ class SimulatedStream(IterableDataset):
             yield batch
 
 
+# data.occupant: one occupant model for every sample, or "mixed": rigid, body1, body2 drawn per sample
+STREAM_OCCUPANTS = ("rigid", "body1", "body2", "mixed")
+
+
 class StreamSimulator:
-    """Callable (n, generator) -> arrays dict of n fresh samples (picklable, for DataLoader workers)."""
+    """Callable (n, generator) -> arrays dict of n fresh samples (picklable, for DataLoader workers).
+
+    occupant: "rigid", "body1", "body2" (a seated person, physics/seated.py; continuous physics) or "mixed"
+    (each sample's occupant drawn from the three with equal probability, its index in OCCUPANT_MODELS in
+    `occupant` [n]; no `occupant_params` then, their widths differ). A person's params keep p1 = C3/M,
+    p2 = K3/M with M the static mass."""
 
     def __init__(
         self,
@@ -539,11 +556,17 @@ class StreamSimulator:
         n_waves: int = 1000,
         physics: str = "euler",
         warmup_s: float | Sequence[float] = 0.0,
+        occupant: str = "rigid",
     ) -> None:
-        from hybridqcm.data.simulate import check_physics, check_warmup
+        from hybridqcm.data.simulate import check_occupant_physics, check_physics, check_warmup
         from hybridqcm.physics import RoadProfile, build_prior, road_class_index
 
         self.physics = check_physics(physics)
+        if occupant not in STREAM_OCCUPANTS:
+            raise ValueError(f"data.occupant = {occupant!r} is not known; choose one of {list(STREAM_OCCUPANTS)}")
+        for name in ("body1",) if occupant == "mixed" else (occupant,):
+            check_occupant_physics(name, self.physics)
+        self.occupant = occupant
         self.warmup_s = check_warmup(warmup_s, "data.warmup_s")
         if not float(h) > 0:
             raise ValueError(f"data.h must be > 0, got {h}")
@@ -582,6 +605,22 @@ class StreamSimulator:
         return self._basis
 
     def __call__(self, n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        if self.occupant == "mixed":  # a third of each, drawn per sample; one simulation per occupant model
+            kinds = torch.randint(0, 3, (n,), generator=generator)
+            parts = [self._simulate(int((kinds == i).sum()), generator, name) for i, name in enumerate(OCCUPANT_MODELS)]
+            for i, part in enumerate(parts):
+                part["occupant"] = torch.full((part["accel"].shape[0],), i, dtype=torch.long)
+            parts = [p for p in parts if p["accel"].shape[0] > 0]
+            return {
+                k: torch.cat([p[k] for p in parts])
+                if isinstance(parts[0][k], torch.Tensor)
+                else sum(p[k] for p in parts)
+                for k in parts[0]
+                if k != "occupant_params"
+            }
+        return self._simulate(n, generator, self.occupant)
+
+    def _simulate(self, n: int, generator: torch.Generator, occupant: str) -> dict[str, torch.Tensor]:
         from hybridqcm.data.simulate import simulate_samples
 
         pick = torch.multinomial(self.class_weights, n, replacement=True, generator=generator)
@@ -599,6 +638,8 @@ class StreamSimulator:
             self.physics,
             self.warmup_s,
             basis=self.basis(),
+            occupant=occupant,
+            body_rng=generator,
         )
         arrays["profile_id"] = arrays.pop("profile")
         return arrays
@@ -631,15 +672,30 @@ class StreamingDataModule(_BaseDataModule):
         test_split: str = "test",
         limit_test: int | None = None,
         replay: float = 0.0,
+        occupant: str = "rigid",
         **kwargs: Any,
     ) -> None:
         super().__init__(**kwargs)
+        if occupant != "rigid" and self.spec.aux:
+            # the physics residual a3 = -p1 (v3 - v2) - p2 (q3 - q2) is the rigid occupant's equation
+            raise ValueError(
+                f"data.occupant = {occupant!r}: the physics-residual loss (aux {list(self.spec.aux)}) assumes a rigid "
+                f"occupant, which a seated person is not; train the labelled CNN (experiment=exp1_labelled_persons)"
+            )
         # above 0.5 the previous step's fresh part would be smaller than the replayed part
         if not (isinstance(replay, (int, float)) and 0.0 <= float(replay) <= 0.5):
             raise ValueError(f"StreamingDataModule: data.replay must be a number in [0, 0.5], got {replay!r}")
         self.replay = float(replay)
         self.simulator = StreamSimulator(
-            prior, road_classes, self.window, h, speed_kmh, integrator, physics=physics, warmup_s=warmup_s
+            prior,
+            road_classes,
+            self.window,
+            h,
+            speed_kmh,
+            integrator,
+            physics=physics,
+            warmup_s=warmup_s,
+            occupant=occupant,
         )
         if int(samples_per_epoch) < 1 or int(val_samples) < 0 or int(test_samples) < 0:
             raise ValueError(

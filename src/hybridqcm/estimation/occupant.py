@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hybridqcm.physics.occupant import derived
+from hybridqcm.physics.occupant import MODE_PARAMS, derived
 
 from .profile import profile_interval
 from .refinement import GaussNewtonRefinement
@@ -139,6 +139,13 @@ class OccupantSelection:
         self._all = {**self.candidates, **{f"{n}+delay": r for n, r in self.delayed.items()}}
         self.response = _union_layout(self._all)
         self.max_modes = max((self._modes(r) for r in self._all.values()), default=0)
+        # the rigid model's parameters, before the body's: (p1, p2) of the seat, p1..pN of a vehicle
+        leads = {
+            r.response.n_params - 3 * self._modes(r) - ("tau" in r.response.theta_names) for r in self._all.values()
+        }
+        if len(leads) != 1:
+            raise ValueError(f"occupant models: the candidates disagree on the rigid model's parameters ({leads})")
+        self.n_lead = leads.pop()
         self.extra_columns = (
             ["occupant_model"]
             + [f"logz_{n}" for n in self.names]
@@ -157,7 +164,7 @@ class OccupantSelection:
         return self.refine(outputs, module)
 
     def refine(self, outputs: Mapping, module=None) -> dict:
-        init = outputs["init"].double()[:, :2]
+        init = outputs["init"].double()[:, : self.n_lead]  # the batch's own vehicle per recording
         b = init.shape[0]
         records = {}
         for name, refinement in self.candidates.items():
@@ -205,10 +212,10 @@ class OccupantSelection:
             extra[f"logz_{name}"] = logz_t[:, j]
             extra[f"m3_{name}"] = self.K3 / records[name]["params"][:, 1].double()
         extra["m3_interval"] = ["profile" if bool(p) else "laplace" for p in profiled]
-        params = record["params"][:, : self.response.n_params]
-        names = self.response.theta_names[: self.response.n_params]
-        body = torch.nan_to_num(params[:, [i for i, n in enumerate(names) if n != "tau"]], nan=0.0)
-        for key, value in derived(body[:, : 2 + 3 * self.max_modes], self.K3).items():
+        names = self.response.theta_names
+        wanted = ["p1", "p2"] + [f"{k}{i}" for i in range(1, self.max_modes + 1) for k in MODE_PARAMS]
+        body = torch.nan_to_num(record["params"][:, [names.index(n) for n in wanted]].double(), nan=0.0)
+        for key, value in derived(body, self.K3).items():
             extra[key] = value
         modes = torch.tensor([self._modes(self._all[self.names[int(c)]]) for c in choice])
         for i in range(1, self.max_modes + 1):  # no such mode in the chosen model: not a number
@@ -316,8 +323,8 @@ class OccupantSelection:
         for j, name in enumerate(big.theta_names):
             if name in small.theta_names:
                 embedded[:, j] = theirs[:, small.theta_names.index(name)]
-            elif 2 <= j < big.n_params and name != "tau":  # a new body mode's (r, k, c)
-                embedded[:, j] = 0.1 if name.startswith("r") else fill[j - 2]
+            elif self.n_lead <= j < big.n_params and name != "tau":  # a new body mode's (r, k, c)
+                embedded[:, j] = 0.1 if name.startswith("r") else fill[j - self.n_lead]
         refinement = self._all[larger]
         sub = _select(outputs, rows, b)
         variances = (v_out[rows], None if v_in is None else v_in[rows])
@@ -435,7 +442,7 @@ class OccupantSelection:
         }  # fmt: skip
         return {
             "index": records[self.names[0]]["index"],
-            "init": records[self.names[0]]["init"][:, :2],
+            "init": records[self.names[0]]["init"][:, : self.n_lead],
             "stages": stages,
             "final": merged,
             "params": params,

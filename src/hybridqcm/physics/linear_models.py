@@ -229,3 +229,126 @@ class SeatOccupantBaseExcitation(LinearModel):
         B = torch.zeros(b, 2 + 2 * n, 1, dtype=p.dtype, device=p.device)
         B = torch.cat([-torch.ones(b, 1, 1, dtype=p.dtype, device=p.device), B[:, 1:]], -2)  # out of place (vmap)
         return A, B, C[:, None, :], torch.zeros(b, 1, 1, dtype=p.dtype, device=p.device)
+
+
+def _hang_body(A: Tensor, B: Tensor, C: Tensor, E: Tensor, body: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A rigid-occupant model's matrices with the person's body modes hung on its seat pan (SPEC § 10).
+
+    The rigid model (A [b, 2v, 2v], B [b, 2v, m], C [b, o, 2v], E [b, o, m]) must have the state
+    (v velocities, then their v displacements), the pan's velocity first, output 0 = a3 = C[0] x with
+    E[0] = 0, and A's pan row equal to C[0] (the pan's velocity state moves with a3, less a driving
+    acceleration through B). body [b, 3n]: (r_i, k_i, c_i) per mode (physics/occupant.py). Returns the
+    matrices of the state (v velocities, dy_1..dy_n, v displacements, y_1..y_n), y_i = q_i - q_pan:
+
+        a3  = R C[0] x + Σ r_i (c_i dy_i + k_i y_i),     R = 1 + Σ r_i
+        dy_i' = -(c_i dy_i + k_i y_i) - a3,   y_i' = dy_i
+
+    every other row and output as the rigid model's (none of them sees the body but through the pan).
+    Built out of place (torch.func.jacfwd/vmap differentiate it)."""
+    b, N = A.shape[0], A.shape[-1]
+    v, n = N // 2, body.shape[-1] // 3
+    modes = body.reshape(b, n, 3)
+    r, k, c = modes[..., 0], modes[..., 1], modes[..., 2]
+    R = 1.0 + r.sum(-1)
+
+    def widen(rows: Tensor) -> Tensor:  # [b, k, 2v] -> [b, k, 2v + 2n]: zero columns for (dy, y)
+        zeros = rows.new_zeros(rows.shape[0], rows.shape[1], n)
+        return torch.cat([rows[..., :v], zeros, rows[..., v:], zeros], -1)
+
+    pan = widen(R[:, None, None] * C[:, :1])  # [b, 1, 2v + 2n]
+    pan = pan + torch.cat([pan.new_zeros(b, 1, v), (r * c)[:, None], pan.new_zeros(b, 1, v), (r * k)[:, None]], -1)
+    own = torch.cat(
+        [A.new_zeros(b, n, v), torch.diag_embed(c), A.new_zeros(b, n, v), torch.diag_embed(k)], -1
+    )  # [b, n, 2v + 2n]
+    kinematics = torch.cat(
+        [torch.eye(v + n, dtype=A.dtype, device=A.device).expand(b, -1, -1), A.new_zeros(b, v + n, v + n)], -1
+    )
+    A_new = torch.cat([pan, widen(A[:, 1:v]), -pan.expand(b, n, -1) - own, kinematics], -2)
+    zeros_in = B.new_zeros(b, n, B.shape[-1])
+    B_new = torch.cat([B[:, :v], zeros_in, B[:, v:], zeros_in], -2)
+    C_new = torch.cat([pan, widen(C[:, 1:])], -2)
+    return A_new, B_new, C_new, E
+
+
+class _PersonOnPan(LinearModel):
+    """A rigid-occupant model (``rigid``) with a seated person of ``n_modes`` body modes on its pan:
+    params (rigid's p, r1, k1, c1[, r2, k2, c2]) (physics/occupant.py's body parameters after the
+    vehicle's), state (velocities, dy1[, dy2], displacements, y1[, y2]) (_hang_body)."""
+
+    linear_in_params = False
+
+    def __init__(self, rigid: LinearModel, n_modes: int, name: str) -> None:
+        from hybridqcm.physics.occupant import MODE_PARAMS
+
+        if n_modes not in (1, 2):
+            raise ValueError(f"{name}: n_modes must be 1 or 2 (0 is the rigid occupant: {rigid.name}), got {n_modes!r}")
+        self.rigid, self.n_modes = rigid, int(n_modes)
+        self.name = name
+        modes = range(1, self.n_modes + 1)
+        self.param_names = tuple(rigid.param_names) + tuple(f"{k}{i}" for i in modes for k in MODE_PARAMS)
+        v = rigid.n_state // 2
+        self.state_names = (
+            tuple(rigid.state_names[:v])
+            + tuple(f"dy{i}" for i in modes)
+            + tuple(rigid.state_names[v:])
+            + tuple(f"y{i}" for i in modes)
+        )
+        self.input_names = tuple(rigid.input_names)
+        self.output_names = tuple(rigid.output_names)
+
+    def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        self.check_params(p)
+        P = self.rigid.n_params
+        return _hang_body(*self.rigid.matrices(p[:, :P]), p[:, P:])
+
+
+class SprungOccupantBaseExcitation(_PersonOnPan):
+    """Road-free sprung part (SprungBaseExcitation: a1 drives chassis + seat, outputs a3, a2) with a
+    seated person of ``n_modes`` body modes on the seat pan; params (p1..p6, r1, k1, c1[, r2, k2, c2]),
+    state (dw3, dw2, dy1[, dy2], w3, w2, y1[, y2]), w3 = q_pan - q1, w2 = q2 - q1, y_i = q_i - q_pan.
+
+    Newton per body (z = w3 - w2 the pan's deflection on the seat spring; masses m_s (pan + the body's
+    rigid part), m_i (body modes), M = m_s + Σ m_i the static mass; k_i, c_i per unit m_i):
+
+        m_s a3    = -C3 z' - K3 z + Σ m_i (c_i y_i' + k_i y_i)     (pan: seat spring below, bodies above)
+        m_i a_i   = -m_i (c_i y_i' + k_i y_i)                      (body i, a_i = a3 + y_i'')
+        m2 a2     = C3 z' + K3 z - C2 w2' - K2 w2                  (chassis: the seat spring's force only)
+
+    Divided by m_s = M/R, by m_i and by m2, with p1 = C3/M, p2 = K3/M, p3 = C3/m2, p5 = K3/m2 (their
+    meaning kept: the chassis sees C3 z' + K3 z, whatever rides on the pan), r_i = m_i/m_s:
+
+        a3 = R (-p1 z' - p2 z) + Σ r_i (c_i y_i' + k_i y_i)
+        a2 = p3 z' + p5 z - p4 w2' - p6 w2
+        w3'' = a3 - a1,  w2'' = a2 - a1,  y_i'' = -(c_i y_i' + k_i y_i) - a3
+
+    Its seat part is SeatOccupantBaseExcitation's; r_i -> 0 is SprungBaseExcitation.
+    """
+
+    def __init__(self, n_modes: int = 1) -> None:
+        super().__init__(SprungBaseExcitation(), n_modes, f"sprung_body{int(n_modes)}_base_excitation")
+
+
+class QuarterCarOccupantRoad(_PersonOnPan):
+    """The road-driven quarter car (QuarterCarRoad) with a seated person of ``n_modes`` body modes on the
+    seat pan; params (p1..p10, r1, k1, c1[, r2, k2, c2]), state (v3, v2, v1, dy1[, dy2], q3, q2, q1,
+    y1[, y2]), index 3 the pan, y_i = q_i - q3; input u (or f = p_u u with ``scaled_road``); outputs
+    (a3, a2, a1), a3 the pan's acceleration.
+
+    Newton per body (z = q3 - q2; as SprungOccupantBaseExcitation, the wheel as in SPEC § 1):
+
+        m_s a3 = -C3 z' - K3 z + Σ m_i (c_i y_i' + k_i y_i)
+        m_i a_i = -m_i (c_i y_i' + k_i y_i)                       (a_i = a3 + y_i'')
+        m2 a2  = C3 z' + K3 z - C2 (v2 - v1) - K2 (q2 - q1)
+        m1 a1  = C2 (v2 - v1) + K2 (q2 - q1) - C1 v1 - K1 (q1 - u)
+
+    so a3 = R (-p1 z' - p2 z) + Σ r_i (c_i y_i' + k_i y_i), the chassis and wheel rows are SPEC § 1's
+    (p3 = C3/m2, p5 = K3/m2 on the pan's deflection), y_i'' = -(c_i y_i' + k_i y_i) - a3: the matrix of
+    physics/seated.py (qcm-simulate occupant=body1|body2) with the states reordered.
+    r_i -> 0 is QuarterCarRoad.
+    """
+
+    def __init__(self, n_modes: int = 1, scaled_road: bool = False) -> None:
+        rigid = QuarterCarRoad(scaled_road=scaled_road)
+        self.scaled_road = rigid.scaled_road
+        suffix = "_scaled_road" if self.scaled_road else "_road"
+        super().__init__(rigid, n_modes, f"quarter_car_body{int(n_modes)}{suffix}")
