@@ -119,6 +119,7 @@ def test_two_processes_give_the_single_process_estimates(tiny_dataset, tmp_path)
     assert not (runs["two"] / "shards").exists()  # merged, then removed
 
 
+@pytest.mark.slow
 def test_more_processes_than_blocks_leaves_a_rank_idle_not_failing(tiny_dataset, tmp_path):
     """One block on two ranks (a small file, or a resumed run with one block left): rank 1 has nothing
     to do. Lightning's own predict sampler asserted there; the run must give the single-process rows."""

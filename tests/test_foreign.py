@@ -24,6 +24,7 @@ fs = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(fs)
 
 
+@pytest.mark.slow
 def test_foreign_simulator_agrees_with_dop853():
     """Same vehicles, same fine road (np.interp between its points), tyre damper on: the logger's
     accelerations agree with a tight DOP853 integration to 1e-7 of their range."""
@@ -127,6 +128,7 @@ def test_exp5_on_foreign_recordings(foreign, tmp_path):
     assert not ((status == "converged") & ~good).any()
 
 
+@pytest.mark.slow
 def test_vehicle_prior_keeps_the_occupant_under_noise(foreign, tmp_path):
     """All channels and the road at 5 % noise: without a prior p3 = C3/m2 and p5 = K3/m2 wander and drag
     p1, p2 (and some fits run to p <= 0); the reference vehicle's prior on the noisy samples keeps m3
