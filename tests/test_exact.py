@@ -698,3 +698,27 @@ def test_outputs_from_a_batch_first_held_input_equal_the_time_first_ones(case):
         for given in (held, batch_first):
             out = exact_outputs(model, p, x0, w, H, hold, 4, start=6, n_steps=130, held=given)
             assert _column_error(out, raw) <= 1e-13
+
+
+def test_an_eigen_decomposition_that_fails_to_converge_is_one_not_ok_sample(monkeypatch):
+    """LAPACK raises for the whole batch when one matrix's QR iteration fails (seen on a trial step with torch
+    2.11's LAPACK): the others keep their decomposition, that one is not ok (the step recursion takes it)."""
+    from hybridqcm.estimation import _modal
+
+    real_eig = torch.linalg.eig
+    sentinel = 12345.0
+
+    def eig(M):
+        if bool((M[..., 0, 0] == sentinel).any()):
+            raise torch.linalg.LinAlgError("torch.linalg.eig: The algorithm failed to converge (error code: 4).")
+        return real_eig(M)
+
+    A = torch.randn(3, 4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    scale = torch.ones(3, 4, dtype=torch.float64)
+    lam_all, *_ = _modal._eigen(A, scale)
+    A[1, 0, 0] = sentinel
+    monkeypatch.setattr(_modal.torch.linalg, "eig", eig)
+    lam, V, V_inv, cond, ok = _modal._eigen(A, scale)
+    assert ok.tolist() == [True, False, True]
+    torch.testing.assert_close(lam[[0, 2]], lam_all[[0, 2]])
+    torch.testing.assert_close(V[[0, 2]] @ torch.diag_embed(lam[[0, 2]]) @ V_inv[[0, 2]], A[[0, 2]].to(lam.dtype))

@@ -108,6 +108,27 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
     return ell, dell
 
 
+def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """torch.linalg.eig of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]). LAPACK's QR iteration
+    can fail to converge on a trial step's ill-conditioned matrix, and torch raises for the whole batch
+    then; such a matrix is one not-ok sample (identity eigenvectors, zero eigenvalues), not an error."""
+    try:
+        lam, V = torch.linalg.eig(M)
+        return lam, V, torch.ones(M.shape[0], dtype=torch.bool, device=M.device)
+    except torch.linalg.LinAlgError:
+        n = M.shape[-1]
+        lam = torch.zeros(M.shape[:-1], dtype=torch.complex128 if M.dtype == torch.float64 else torch.complex64)
+        V = torch.eye(n, dtype=lam.dtype).expand(M.shape[0], n, n).clone()
+        converged = torch.zeros(M.shape[0], dtype=torch.bool)
+        for i in range(M.shape[0]):
+            try:
+                lam[i], V[i] = torch.linalg.eig(M[i])
+                converged[i] = True
+            except torch.linalg.LinAlgError:
+                pass
+        return lam.to(M.device), V.to(M.device), converged.to(M.device)
+
+
 def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """A [b, n, n] = V diag(lambda) V^-1 from the balanced D^-1 A D (scale [b, n] = D):
     -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
@@ -117,11 +138,11 @@ def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Te
     finite = torch.isfinite(balanced).all(-1).all(-1)
     # a non-finite matrix (a failed trial step) or defective eigenvectors: not ok, left to the recursion
     balanced = torch.where(finite[:, None, None], balanced, torch.zeros_like(balanced))
-    lam, Vb = torch.linalg.eig(balanced)
+    lam, Vb, converged = _eig(balanced)
     Vb_inv, info = torch.linalg.inv_ex(Vb)
     V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
     cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)
-    ok = finite & (info == 0) & torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
+    ok = finite & converged & (info == 0) & torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
     return lam, V, V_inv, cond, ok
 
 
