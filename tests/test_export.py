@@ -91,6 +91,7 @@ def test_contract_names_units_and_window(checkpoints):
     assert unet["input"]["shape"] == ["batch", 2, 256] and unet["window"] == 512 and unet["output"]["units"] == "m/s^2"
 
 
+@pytest.mark.slow  # a faster check of the same behaviour stays in the default suite
 def test_cli_synthetic_signals_and_time_steps(checkpoints, tmp_path):
     command = [
         sys.executable,

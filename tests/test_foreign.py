@@ -91,6 +91,7 @@ def foreign(tmp_path_factory):
     }
 
 
+@pytest.mark.slow  # a faster check of the same behaviour stays in the default suite
 def test_occupant_mass_from_foreign_recordings(foreign, tmp_path):
     """Road-free seat model (a3, a2), the rigid occupant on one clock (issue 12's model; the persons default
     is tested in test_occupant.py): noise-free every m3 within 0.5 % and converged; at 5 % additive

@@ -106,6 +106,7 @@ def test_the_euler_model_on_continuous_data_is_flagged_not_converged(continuous,
     assert all(r["status"] != "converged" for r, w in zip(rows, wrong) if w)
 
 
+@pytest.mark.slow  # a faster check of the same behaviour stays in the default suite
 def test_roadfree_on_a_file_without_road_and_with_an_unrecorded_channel(continuous, tmp_path):
     """A logger's file: accel only (a1 never recorded: NaN), no road, no params, no physics attribute."""
     path, params = continuous

@@ -168,6 +168,7 @@ def _estimate(run_dir, data, *extra):
     return subprocess.run(command, capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow  # a faster check of the same behaviour stays in the default suite
 def test_console_overwrite_keeps_the_users_files_and_a_busy_folder_is_refused(seat_file, tmp_path):
     run_dir = tmp_path / "run"
     first = _estimate(run_dir, seat_file)

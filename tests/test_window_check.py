@@ -108,6 +108,7 @@ def _rows(run_dir, name="estimates.csv"):
         return list(csv.DictReader(handle))
 
 
+@pytest.mark.slow  # a faster check of the same behaviour stays in the default suite
 def test_a_window_without_information_gets_its_status_and_the_others_their_estimates(
     drives, tmp_path, monkeypatch, capsys
 ):
