@@ -218,6 +218,11 @@ def read_file(path: Path):
     return accel, h, truth
 
 
+def _first(truth: dict, n: int) -> dict:
+    """The truth of the first n recordings (arrays per recording, nested dicts of them)."""
+    return {k: _first(v, n) if isinstance(v, dict) else v[:n] for k, v in truth.items()}
+
+
 def _foreign_sim():
     spec = importlib.util.spec_from_file_location("foreign_sim", Path(__file__).with_name("foreign_sim.py"))
     module = importlib.util.module_from_spec(spec)
@@ -337,6 +342,7 @@ def main(argv=None) -> None:
     ap.add_argument("--json", help="output JSON; '{name}' in it is each file's stem (one file each)")
     ap.add_argument("--synthetic", choices=(*KINDS, "mixed"), help="make recordings here instead of reading files")
     ap.add_argument("--n", type=int, default=200)
+    ap.add_argument("--first", type=int, help="a file's first N recordings only (the ones a run estimated)")
     ap.add_argument("--steps", type=int, default=512)
     ap.add_argument("--h", type=float, default=0.01)
     ap.add_argument("--classes", nargs="+", default=["A", "B"])
@@ -379,6 +385,8 @@ def main(argv=None) -> None:
     results = []
     for label, load in sources:
         accel, h, truth = load()
+        if args.first is not None:
+            accel, truth = accel[: args.first], _first(truth, args.first)
         per = bounds(accel, h, truth, file_noise[label])
         floor = _noise_floor(accel, h)
         if file_noise[label] == 0 and floor > 0.04:

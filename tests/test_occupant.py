@@ -219,3 +219,17 @@ def test_persons_are_weighed_by_their_static_mass(tmp_path):
     err = (torch.tensor([float(r["m3"]) for r in rows]) / torch.tensor(truth) - 1).abs()
     assert err.max() < 0.01
     assert all(r["occupant_model"].startswith("body") for r in rows)
+
+
+def test_the_interval_joins_close_candidates_and_better_rejected_ones():
+    """Recording 0: the chosen candidate (0) and one that fits at weight e^-2 > 0.05 join, one at e^-5 does not.
+    Recording 1: a candidate the residual tests reject but with 89 nats more evidence than the chosen one
+    joins (another simulator's person: its answer was the truth's); a rejected one with less does not."""
+    from hybridqcm.estimation.occupant import _interval_members
+
+    logz = torch.tensor([[0.0, -2.0, -5.0], [-89.0, 0.0, -95.0]], dtype=torch.float64)
+    fits = torch.tensor([[True, True, True], [True, False, False]])
+    members = _interval_members(logz, fits, torch.tensor([0, 0]), 0.05)
+    assert members.tolist() == [[True, True, False], [True, True, False]]
+    logz[1, 1] = -math.inf  # a candidate that did not run
+    assert _interval_members(logz, fits, torch.tensor([0, 0]), 0.05)[1].tolist() == [True, False, False]

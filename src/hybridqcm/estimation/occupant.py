@@ -36,8 +36,9 @@ The static mass M = K3 / p2 is the winner's. Its 95 % interval is the profile-li
 of p2 under the winner (estimation/profile.py: under sensor noise the posterior of a person's static
 mass and the share of the body that resonates is a banana, and the Laplace interval misses on one
 side), joined with the Laplace intervals of the other candidates that fit and whose evidence weight
-exp(log Z_c − log Z_max) is at least ``interval_weight``: two models the data cannot tell apart give
-an interval that holds both answers.
+exp(log Z_c − log Z_max) is at least ``interval_weight``, and with those the residual tests reject that
+have more evidence than the winner: two models the data cannot tell apart give an interval that holds
+both answers.
 
 Results are in one layout whatever the winner (``SelectionLayout``): the largest model's
 parameters, τ and initial state, with NaN for what the chosen model has not (a rigid occupant has
@@ -482,11 +483,7 @@ class OccupantSelection:
                     torch.where(p2_low > 0, self.K3 / p2_low.clamp_min(1e-300), torch.full_like(p2_low, math.inf)),
                 )
                 profiled[rows] = True
-        best = logz.gather(1, choice[:, None])
-        weight = torch.exp(logz - best)  # 0 where -inf
-        chosen = torch.zeros_like(fits)
-        chosen[torch.arange(b), choice] = True
-        member = chosen | (fits & (weight >= self.interval_weight))
+        member = _interval_members(logz, fits, choice, self.interval_weight)
         member &= torch.isfinite(low) & ~torch.isnan(high)
         low = torch.where(member, low, torch.full_like(low, math.inf)).amin(1)
         high = torch.where(member, high, torch.full_like(high, -math.inf)).amax(1)
@@ -522,6 +519,18 @@ class OccupantSelection:
         high = p2 + ((high - p2).square() + spread.square()).sqrt()
         low = p2 - ((p2 - low).square() + spread.square()).sqrt()
         return low, high, reached
+
+
+def _interval_members(logz: Tensor, fits: Tensor, choice: Tensor, interval_weight: float) -> Tensor:
+    """[b, C] bool: the candidates whose intervals m3's interval joins — the chosen one, those that fit with an
+    evidence weight exp(log Z_c - log Z_chosen) of at least ``interval_weight``, and those with more evidence
+    than the chosen one although the residual tests reject them (a model that explains the data better but
+    not to the noise floor: under sensor noise its answer, 50 % from the chosen one's, was the truth's)."""
+    b = choice.numel()
+    weight = torch.exp(logz - logz.gather(1, choice[:, None]))  # 0 where -inf
+    chosen = torch.zeros_like(fits)
+    chosen[torch.arange(b), choice] = True
+    return chosen | ((fits | (weight > 1)) & (weight >= interval_weight))
 
 
 def _fit(refinement: GaussNewtonRefinement, outputs: Mapping, module) -> dict:
