@@ -1,14 +1,17 @@
 """Issue 28's table: the occupant mass of seated persons, before (rigid occupant, one clock) and after
-(`experiment=occupant_persons`), each file beside its Cramér–Rao bound, and the time of both side by side.
+(`experiment=occupant_roadfree`'s default), each file beside its Cramér–Rao bound, and the time of both side by side.
 
     .venv/bin/python bench/persons_table.py run   [--n 100] [--files rigid_n0 body1_n5 ...]   # the runs
+    .venv/bin/python bench/persons_table.py import --csv RUN/estimates.csv --file body1_n5      # a run made elsewhere
     .venv/bin/python bench/persons_table.py table [--out docs/results/persons.md]              # the table
 
 The recordings come from the second simulator (bench/foreign_sim.py; data/persons/*.h5, made as its
 docstring says, 400 each) and the bounds from bench/occupant_crb.py (data/persons/crb_<file>.json). `run`
 estimates the first --n recordings of each file twice, into outputs/persons/<file>__rigid (the old default,
-`occupant_roadfree`) and outputs/persons/<file> (`occupant_persons`), on two processes; a run folder that
-holds a summary.json is kept. `table` reads the run folders (estimates.csv against the file's truth) and
+`occupant_roadfree occupant.models=[rigid] delay=null`) and outputs/persons/<file> (`occupant_roadfree`'s
+default: rigid, body1, body2 by evidence, delay auto), on two processes; a run folder that holds a
+summary.json is kept. `import CSV FILE` files an estimates.csv made elsewhere (a larger machine's run of
+the same command) as FILE's "after" run. `table` reads the run folders (estimates.csv against the file's truth) and
 writes the markdown table with the commands that produced it.
 """
 
@@ -38,7 +41,11 @@ FILES = (
     "body2_n0",
     "mixed_n5",
 )
-METHODS = {"rigid": "occupant_roadfree", "persons": "occupant_persons"}
+# before: the rigid occupant on one clock (the old default); after: occupant_roadfree's default (persons, delay auto)
+METHODS = {
+    "rigid": ["experiment=occupant_roadfree", "occupant.models=[rigid]", "delay=null"],
+    "persons": ["experiment=occupant_roadfree"],
+}
 NOISE = {"n0": 0.0, "n1": 0.01, "n5": 0.05, "n10": 0.10}
 
 
@@ -49,7 +56,7 @@ def _run_dir(name: str, method: str) -> Path:
 def _command(name: str, method: str, n: int) -> list[str]:
     return [
         str(ROOT / ".venv" / "bin" / "qcm-estimate"),
-        f"experiment={METHODS[method]}",
+        *METHODS[method],
         f"data.path={DATA / (name + '.h5')}",
         f"n_samples={n}",
         f"hydra.run.dir={_run_dir(name, method)}",
@@ -67,7 +74,7 @@ def run(args) -> None:
     for name in args.files:
         if not (DATA / f"{name}.h5").is_file():
             sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
-        for method in METHODS:
+        for method in args.methods:
             if (_run_dir(name, method) / "summary.json").is_file() and not args.force:
                 print(f"{name} {method}: kept")
                 continue
@@ -86,7 +93,7 @@ def _truth(name: str) -> tuple[np.ndarray, dict]:
 
 def score(name: str, method: str) -> dict | None:
     folder = _run_dir(name, method)
-    if not (folder / "summary.json").is_file():
+    if not (folder / "estimates.csv").is_file():
         return None
     with open(folder / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
@@ -99,7 +106,8 @@ def score(name: str, method: str) -> dict | None:
     true = truth[idx]
     err = np.abs(m3 / true - 1)
     inside = (low <= true) & (true <= high)
-    summary = json.loads((folder / "summary.json").read_text())
+    # a run made elsewhere (bench/persons_table.py import) has its estimates without this machine's timing
+    summary = json.loads((folder / "summary.json").read_text()) if (folder / "summary.json").is_file() else {}
     return {
         "n": len(rows),
         "mean": float(err.mean()),
@@ -140,7 +148,8 @@ def table(args) -> None:
         "`bench/persons_table.py run` (the first N recordings of each file of the second simulator, "
         "`bench/foreign_sim.py`; `data/persons/`, 100 Hz, 512 samples, a3 on the seat pan and a2 on the chassis, "
         "no road, no network). before: `qcm-estimate experiment=occupant_roadfree` (a rigid occupant on one "
-        "clock); after: `qcm-estimate experiment=occupant_persons`. Bound: the Cramér–Rao bound of the static "
+        "clock, `occupant.models=[rigid] delay=null`); after: `qcm-estimate experiment=occupant_roadfree`, its default "
+        "(rigid, body1, body2 by Laplace evidence, the channel delay where evidence asks for it). Bound: the Cramér–Rao bound of the static "
         "mass as E|error| (`bench/occupant_crb.py`, τ unknown, each recording's own occupant model). "
         "dishonest: `converged`, more than 10 % off and the truth outside the 95 % interval.",
         "",
@@ -173,6 +182,21 @@ def table(args) -> None:
     print("\n".join(lines))
 
 
+def import_run(args) -> None:
+    """An estimates.csv of the "after" command made on another machine, filed as FILE's run (no timing)."""
+    import shutil
+
+    source = Path(args.csv)
+    if not source.is_file():
+        sys.exit(f"{source}: no such file")
+    folder = _run_dir(args.file, "persons")
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "summary.json").unlink(missing_ok=True)
+    shutil.copyfile(source, folder / "estimates.csv")
+    (folder / "source.txt").write_text(f"{source}\n")
+    print(f"{args.file}: {source} -> {folder / 'estimates.csv'}")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="command", required=True)
@@ -180,11 +204,15 @@ def main(argv=None) -> None:
     r.add_argument("--n", type=int, default=100)
     r.add_argument("--files", nargs="+", default=list(FILES))
     r.add_argument("--force", action="store_true", help="run again where a summary.json exists")
+    r.add_argument("--methods", nargs="+", choices=list(METHODS), default=list(METHODS))
     t = sub.add_parser("table", help="write the markdown table")
     t.add_argument("--files", nargs="+", default=list(FILES))
     t.add_argument("--out", default=str(ROOT / "docs" / "results" / "persons.md"))
+    i = sub.add_parser("import", help="file an estimates.csv made elsewhere as a file's after-run")
+    i.add_argument("--csv", required=True)
+    i.add_argument("--file", required=True, choices=FILES)
     args = ap.parse_args(argv)
-    run(args) if args.command == "run" else table(args)
+    {"run": run, "table": table, "import": import_run}[args.command](args)
 
 
 if __name__ == "__main__":
