@@ -398,6 +398,12 @@ class DatasetWriter:
             raise
         os.close(fd)
         self._tmp = Path(tmp)
+        # While the file is open a stop request is recorded, never raised where it lands: HDF5 writes through
+        # the GuardedFile's Python methods also when h5py objects are garbage-collected in the middle of other
+        # work, and an exception raised in there breaks the file (the close then segfaulted). It is raised at
+        # the next safe point: write()'s check_stop, once per chunk, or __exit__.
+        self._stops = deferred(raise_on_exit=False)
+        self._stops.__enter__()
         try:
             # through a GuardedFile: a full disk is one DatasetError, never HDF5's segfault (data/h5file.py)
             self._handle, self._guard = open_guarded(self._tmp)
@@ -412,6 +418,7 @@ class DatasetWriter:
                 self._guard.close()
             self._tmp.unlink(missing_ok=True)
             self._release()
+            self._stops.__exit__(None, None, None)
             raise
         return self
 
@@ -492,14 +499,14 @@ class DatasetWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         assert self._handle is not None and self._tmp is not None
-        with deferred(raise_on_exit=False):  # a stop request during the close: raised below
-            try:
-                self._handle.flush()
-                self._handle.close()
-            finally:
-                self._handle = None
-                if self._guard is not None:
-                    self._guard.close()
+        try:
+            self._handle.flush()
+            self._handle.close()
+        finally:
+            self._handle = None
+            if self._guard is not None:
+                self._guard.close()
+            self._stops.__exit__(None, None, None)  # the app's handlers again; a stop request is raised below
         if exc_type is None and pending() is not None:
             self._tmp.unlink(missing_ok=True)
             self._release()
