@@ -65,6 +65,24 @@ def tiny_datamodule(path, module, **kwargs):
     )
 
 
+def make_foreign(path, n: int = 6, **options):
+    """A file of the second simulator (bench/foreign_sim.py make, 512 steps; options as its flags, e.g.
+    occupant="body1", delay_ms=5) -> its /test/truth_m3 [n]."""
+    import importlib.util
+
+    import h5py
+
+    spec = importlib.util.spec_from_file_location("foreign_sim", REPO_ROOT / "bench" / "foreign_sim.py")
+    fs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fs)
+    args = ["make", "--out", str(path), "--n", str(n), "--steps", "512"]
+    for key, value in options.items():
+        args += [f"--{key.replace('_', '-')}", str(value)]
+    fs.main(args)
+    with h5py.File(path, "r") as f:
+        return f["test/truth_m3"][()]
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT

@@ -10,6 +10,7 @@ import sys
 import pytest
 import torch
 
+from conftest import make_foreign
 from hybridqcm.estimation.delay import DelayedResponse
 from hybridqcm.estimation.exact import exact_outputs
 from hybridqcm.estimation.noise import frequency_response
@@ -140,22 +141,7 @@ def test_body_models_are_refused_for_the_euler_reproduction(tiny_dataset, tmp_pa
 
 
 def _foreign(path, **kw):
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location(
-        "foreign_sim", Path(__file__).resolve().parents[1] / "bench" / "foreign_sim.py"
-    )
-    fs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fs)
-    args = ["make", "--out", str(path), "--n", str(kw.pop("n", 6)), "--steps", "512"]
-    for key, value in kw.items():
-        args += [f"--{key.replace('_', '-')}", str(value)]
-    fs.main(args)
-    import h5py
-
-    with h5py.File(path, "r") as f:
-        return f["test/truth_m3"][()]
+    return make_foreign(path, **{"n": 6, **kw})
 
 
 def _estimates(run_dir):

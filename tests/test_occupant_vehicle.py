@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from conftest import make_foreign
 from hybridqcm.estimation.exact import exact_outputs
 from hybridqcm.estimation.noise import frequency_response
 from hybridqcm.physics.linear_models import (
@@ -276,18 +277,7 @@ def test_the_evidence_reads_the_measured_channels_with_the_wheel_forcing(persons
 
 # ----------------------------------------------------------------------------------------------- the app
 def _foreign(path, **kw):
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location(
-        "foreign_sim", Path(__file__).resolve().parents[1] / "bench" / "foreign_sim.py"
-    )
-    fs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fs)
-    args = ["make", "--out", str(path), "--n", str(kw.pop("n", 3)), "--steps", "512"]
-    for key, value in kw.items():
-        args += [f"--{key.replace('_', '-')}", str(value)]
-    fs.main(args)
+    return make_foreign(path, **{"n": 3, **kw})
 
 
 @pytest.fixture(scope="module")
