@@ -46,10 +46,10 @@ def known_loads(path, split: str, n_samples: int | None) -> np.ndarray:
     negative = np.flatnonzero(loads < 0)
     if negative.size:
         i = int(negative[0])
-        raise DatasetError(f"{path}: /{split}/known_mass[{i}] = {loads[i]!r} kg is negative: loads are >= 0 kg")
+        raise DatasetError(f"{path}: /{split}/known_mass[{i}] = {float(loads[i])!r} kg is negative: loads are >= 0 kg")
     if np.unique(loads).size < 2:
         raise DatasetError(
-            f"{path}: /{split}/known_mass: all {loads.size} loads are {loads[0]!r} kg; a calibration needs drives "
+            f"{path}: /{split}/known_mass: all {loads.size} loads are {float(loads[0])!r} kg; a calibration needs drives "
             "at different loads (e.g. 0, 40, 80, 120 kg)"
         )
     return loads

@@ -182,15 +182,18 @@ def fit_seat_law(loads, p2, p2_std, p1=None, p1_std=None, law: str = "power", re
         raise CalibrationError(f"calibration: {loads.size} loads for {p2.size} p2 values")
     bad = np.flatnonzero(~np.isfinite(loads) | (loads < 0))
     if bad.size:
-        raise CalibrationError(f"calibration: known_mass[{int(bad[0])}] = {loads[bad[0]]!r} kg: give loads >= 0 kg")
+        raise CalibrationError(
+            f"calibration: known_mass[{int(bad[0])}] = {float(loads[bad[0]])!r} kg: give loads >= 0 kg"
+        )
     if np.any(~np.isfinite(p2) | (p2 <= 0)):
         raise CalibrationError("calibration: a fitted p2 is not a positive number (leave such recordings out)")
     distinct = np.unique(loads)
     n_free = 3 if law == "power" else 2
     if distinct.size < n_free:
         what = "all loads are equal" if distinct.size == 1 else f"{distinct.size} distinct loads"
+        distinct = [float(x) for x in distinct]
         raise CalibrationError(
-            f"calibration: {what} ({distinct.tolist()} kg): the {law} law needs at least {n_free} different loads "
+            f"calibration: {what} ({distinct} kg): the {law} law needs at least {n_free} different loads "
             "(e.g. 0, 40, 80, 120 kg)"
         )
     rel = np.maximum(np.where(np.isfinite(p2_std), p2_std / p2, np.inf), rel_floor)
