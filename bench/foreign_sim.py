@@ -50,6 +50,15 @@ Deliberately shares no code with `hybridqcm` (numpy, scipy and h5py only) and di
   exact for any tau, not interpolated; a whole number of fine steps uses the fine state itself. Delays per
   recording ~ U(A, B) come from their own stream (seed, 2).
 
+* foam seat (`--seat-law power --seat-exponent e`, `--pan-mass m`, `--known-loads L1 L2 ...`; issue 31): a rigid
+  seat pan of m kg sits on the spring under the (rigid) occupant; with the power law the seat's K3 and C3 are the
+  reference's times (S / 80 kg)^e, S the static load on the spring (pan + occupant), so no single K3 fits all
+  occupants. `--known-loads` replaces the occupants by ballast of those masses, cycled over the recordings
+  (a calibration drive per recording; 0 = the empty seat) and writes them as `/test/known_mass` [M] (kg);
+  truth: `/test/truth_occupant_mass` (the occupant alone), `/test/truth_pan`, `/test/truth_K3`, `/test/truth_C3`
+  per recording (the law in truth_K3's attrs); `/test/truth_m3` stays the static mass on the spring (pan +
+  occupant), as for persons. A person (`--occupant body1` ...) gets its pan set to --pan-mass.
+
 `make` writes what another producer would: `/test/accel` float64 [M, steps, 3] (a3, a2, a1), `/test/road`
 (sampled at the logger's instants), `/test/params` (p1..p10 from the constants, for scoring), attrs
 `schema` and `h` only (no `physics`: a foreign file is continuous with an unknown initial state), plus
@@ -269,6 +278,31 @@ def iso_road(
     return np.fft.irfft(coef, n_fft)[:n_points]
 
 
+def apply_seat(v, law: str, exponent: float, pan_mass: float | None, known_loads=None):
+    """A foam seat (in place; see the module docstring): the occupant's mass becomes a known load where
+    `known_loads` is given (recording i carries known_loads[i % len]), a rigid seat pan of `pan_mass` kg
+    moves with a rigid occupant (a person's pan is set to it), and with law `power` the seat's K3 and C3
+    become K3 (S / 80 kg)^exponent, C3 (S / 80 kg)^exponent, S = everything on the seat spring (pan +
+    occupant). Adds v["occupant_mass"] (the occupant alone, [n]) and v["pan"]."""
+    n = len(v["m3"])
+    if known_loads is not None:
+        v["m3"] = np.resize(np.asarray(known_loads, float), n)
+    if "occupant" in v:  # a person: its own pan, unless one is given
+        if pan_mass is not None:
+            v["m_s"] = v["m_s"] - v["pan"] + pan_mass
+            v["pan"] = np.full(n, float(pan_mass))
+        v["occupant_mass"] = v["M"].copy()
+        v["m3"] = v["pan"] + v["M"]
+    else:  # a rigid occupant rigidly on a rigid pan: one mass on the spring
+        v["pan"] = np.full(n, float(pan_mass or 0.0))
+        v["occupant_mass"] = v["m3"].copy()
+        v["m3"] = v["m3"] + v["pan"]
+    if law == "power":
+        factor = (v["m3"] / 80.0) ** exponent
+        v["K3"], v["C3"] = v["K3"] * factor, v["C3"] * factor
+    return v
+
+
 def simulate(
     v,
     steps: int,
@@ -385,6 +419,17 @@ def make(args) -> None:
         sys.exit(f"foreign_sim make: --classes {args.classes}: each one of {list(ISO_CLASSES)}")
     if args.delay_ms_range is not None and args.delay_ms != 0:
         sys.exit("foreign_sim make: --delay-ms and --delay-ms-range: give one")
+    if args.pan_mass is not None and not (np.isfinite(args.pan_mass) and args.pan_mass >= 0):
+        sys.exit(f"foreign_sim make: --pan-mass = {args.pan_mass} is out of range (>= 0 kg)")
+    if not (np.isfinite(args.seat_exponent) and args.seat_exponent < 1):
+        sys.exit(f"foreign_sim make: --seat-exponent = {args.seat_exponent}: give a number below 1")
+    if args.known_loads is not None:
+        if args.occupant != "rigid":
+            sys.exit("foreign_sim make: --known-loads are ballast: they take --occupant rigid")
+        if any(not (np.isfinite(x) and x >= 0) for x in args.known_loads):
+            sys.exit(f"foreign_sim make: --known-loads {args.known_loads}: each a load >= 0 kg")
+        if min(args.known_loads) + (args.pan_mass or 0.0) <= 0:
+            sys.exit("foreign_sim make: an empty seat (load 0) needs a seat pan (--pan-mass > 0)")
     late = args.delay_ms if args.delay_ms_range is None else args.delay_ms_range[1]
     if late / 1000 > args.warmup[0]:
         sys.exit(f"foreign_sim make: a3 {late} ms late needs a warm-up of at least that (--warmup {args.warmup[0]})")
@@ -396,6 +441,9 @@ def make(args) -> None:
     person = args.occupant != "rigid"
     if person:
         draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]))
+    seat = args.seat_law != "linear" or args.pan_mass is not None or args.known_loads is not None
+    if seat:
+        apply_seat(v, args.seat_law, args.seat_exponent, args.pan_mass, args.known_loads)
     delay_s = None
     if args.delay_ms_range is not None:
         delay_s = np.random.default_rng([args.seed, 2]).uniform(*args.delay_ms_range, args.n) / 1000
@@ -449,8 +497,21 @@ def make(args) -> None:
                 g["truth_body"].attrs["columns"] = ",".join(PERSON_COLUMNS)
             if delay_s is not None:
                 g["truth_delay_s"] = delay_s
+            if seat:
+                g["truth_occupant_mass"] = v["occupant_mass"]
+                g["truth_C3"] = v["C3"]
+                if not person:
+                    g["truth_pan"] = v["pan"]
+                law = {"seat_law": args.seat_law, "seat_exponent": args.seat_exponent, "reference_load_kg": 80.0}
+                law |= {"K3_ref": REF["K3"], "C3_ref": REF["C3"]}
+                g["truth_K3"].attrs.update(law)
+                if args.known_loads is not None:
+                    g["known_mass"] = v["occupant_mass"]
         tmp.rename(out)
     extra = f", occupant {args.occupant}" if person else ""
+    if seat:
+        extra += f", seat {args.seat_law}" + (f" e = {args.seat_exponent}" if args.seat_law == "power" else "")
+        extra += f", pan {args.pan_mass or 0.0} kg" + (f", known loads {args.known_loads}" if args.known_loads else "")
     if delay_s is not None:
         extra += f", a3 late by {1000 * delay_s.min():.3g}..{1000 * delay_s.max():.3g} ms"
     print(
@@ -959,6 +1020,10 @@ def main(argv=None) -> None:
     mk.add_argument("--occupant", choices=(*OCCUPANTS, "mixed"), default="rigid", help="rigid mass or seated person")
     mk.add_argument("--delay-ms", type=float, default=0.0, help="a3's logger this many ms behind a2's")
     mk.add_argument("--delay-ms-range", type=float, nargs=2, metavar=("A", "B"), help="a3 late by U(A, B) ms each")
+    mk.add_argument("--seat-law", choices=("linear", "power"), default="linear", help="K3, C3 over the static load")
+    mk.add_argument("--seat-exponent", type=float, default=0.5, help="power law: K3, C3 ∝ (load / 80 kg)^this")
+    mk.add_argument("--pan-mass", type=float, default=None, help="a rigid seat pan on the spring [kg]")
+    mk.add_argument("--known-loads", type=float, nargs="+", help="ballast [kg], cycled over the recordings")
     sc = sub.add_parser("score", help="score a qcm-estimate run folder against the file's truth")
     sc.add_argument("run")
     sc.add_argument("--data")

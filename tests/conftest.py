@@ -76,8 +76,9 @@ def make_foreign(path, n: int = 6, **options):
     fs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(fs)
     args = ["make", "--out", str(path), "--n", str(n), "--steps", "512"]
-    for key, value in options.items():
-        args += [f"--{key.replace('_', '-')}", str(value)]
+    for key, value in options.items():  # a list or tuple: a flag of several values (known_loads=[0, 40])
+        values = value if isinstance(value, (list, tuple)) else [value]
+        args += [f"--{key.replace('_', '-')}", *map(str, values)]
     fs.main(args)
     with h5py.File(path, "r") as f:
         return f["test/truth_m3"][()]

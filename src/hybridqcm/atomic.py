@@ -50,3 +50,23 @@ def atomic_open(path: str | Path, mode: str = "w", **kwargs):
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_create_text(path: str | Path, text: str, overwrite: bool = False) -> Path:
+    """Write `text` to a new file `path`, complete or not at all: exclusively (os.link of the finished
+    temporary file fails with FileExistsError if `path` exists or appeared meanwhile: another's file is
+    never replaced), or replacing it with ``overwrite``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.chmod(tmp, 0o644)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path

@@ -256,7 +256,10 @@ def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path 
     """Fail early, before Hydra composes anything, on an unknown experiment or one of the other app's task.
 
     Experiments of both apps share configs/experiment/; each declares `task: train` or `task: estimate`."""
-    app, other = {"train": ("qcm-train", "qcm-estimate"), "estimate": ("qcm-estimate", "qcm-train")}[task]
+    apps = {"train": ("qcm-train", "qcm-estimate"), "estimate": ("qcm-estimate", "qcm-train")}
+    if task not in apps:  # an app without experiments (qcm-calibrate): Hydra refuses the override itself
+        return
+    app, other = apps[task]
     for arg in args:
         key, _, value = arg.partition("=")
         if key.lstrip("+~") != "experiment" or not value or value == "null":

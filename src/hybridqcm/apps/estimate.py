@@ -25,6 +25,7 @@ import warnings
 from pathlib import Path
 
 import lightning
+import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
@@ -57,6 +58,7 @@ from hybridqcm.apps.estimate_plan import (
     validate,
 )
 from hybridqcm.apps.estimate_report import (
+    SEAT_COLUMNS,
     STATUS_HEADER,
     block_stage_stats,
     block_tables,
@@ -255,17 +257,38 @@ def build_trainer(cfg, callbacks, run_dir: Path) -> lightning.Trainer:
 
 
 # --------------------------------------------------------------------------------------------------
-def run(cfg) -> dict:
+def seat_plan(cfg, plan):
+    """The seat file's law (seat_file=, estimation/calibration.py) or None; only the road-free seat model
+    reads one. The key is not ``seat``: that names a seat of a half / full car file (apps/estimate_seat.py)."""
+    path = cfg.get("seat_file")
+    if path is None:
+        return None
+    from hybridqcm.estimation.calibration import load_seat
+
+    if plan is None or plan["base_excitation"] != "seat":
+        raise ConfigError(
+            f"seat_file={path}: a seat calibration is used by the road-free seat model "
+            f"(experiment=occupant_roadfree, base_excitation: seat); this run fits "
+            f"{'the ' + str(cfg.get('vehicle_model')) if plan is None else plan['base_excitation'] or 'the road'}"
+        )
+    return load_seat(path)
+
+
+def run(cfg, run_dir: Path | None = None) -> dict:
+    """The estimation run into ``run_dir`` (default: the Hydra job's folder, else the working directory)."""
     if str(cfg.get("vehicle_model", "quarter_car")) != "quarter_car":  # the half and full car (issue 30)
         from hybridqcm.apps.estimate_vehicle import run_vehicle
 
+        seat_plan(cfg, None)
         return run_vehicle(cfg, build_trainer)
     t_start = time.perf_counter()
     plan = validate(cfg)
+    seat = seat_plan(cfg, plan)
     drive = drive_plan(cfg, plan)  # aggregate=drive: the file's drives checked now (None: per window only)
-    run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
+    if run_dir is None:
+        run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     common.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
-    inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt]
+    inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt, cfg.get("seat_file")]
     store = ShardStore(run_dir, run_fingerprint(cfg, inputs_used))
     if rank_zero_only.rank == 0:  # under a cluster launcher every rank runs this: one clears
         runfolder.prepare_run_dir(
@@ -288,17 +311,18 @@ def run(cfg) -> dict:
     theta_names = list(refinement.response.theta_names)
     n_theta_params = refinement.response.n_params  # with body modes and a delay: more than the n_params scored
     extra = list(getattr(refinement, "extra_columns", []))
-    tables = functools.partial(block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra)
-    skipped = functools.partial(
-        skipped_tables, header=estimates_header(theta_names, n_theta_params, extra), n_scored=n_params
+    tables = functools.partial(
+        block_tables, n_params=n_theta_params, K3=float(cfg.K3), n_scored=n_params, extra=extra, seat=seat
     )
+    header = estimates_header(theta_names, n_theta_params, [*extra, *(SEAT_COLUMNS if seat is not None else ())])
+    skipped = functools.partial(skipped_tables, header=header, n_scored=n_params)
     if drive is not None:  # each window's shared parameters and covariance travel with its block
         tables = drive_columns(tables, refinement, n_theta_params)
         skipped = drive_skipped_columns(skipped, n_theta_params)
     writer = ShardWriter(
         store,
         refinement,
-        estimates_header(theta_names, n_theta_params, extra),
+        header,
         STATUS_HEADER,
         tables,
         block_stage_stats,
@@ -389,6 +413,7 @@ def run(cfg) -> dict:
             cfg, plan, drive, columns, run_dir, model_names(refinement), theta_names[:n_theta_params]
         )
     summary["noise"] = noise
+    summary["mass_scale"] = _mass_scale(cfg, seat, columns, run_dir)
     summary["seconds_total"] = time.perf_counter() - t_start
     # This process's peak resident memory after the solve and at the end (spawned ranks excluded).
     summary["max_rss_mib"] = {"solve": rss_solve, "total": _max_rss_mib(), "ranks": _max_rss_mib(children=True)}
@@ -398,6 +423,35 @@ def run(cfg) -> dict:
         store.remove()
     print_report(cfg, summary, table_rows, run_dir)
     return summary
+
+
+def _mass_scale(cfg, seat, columns, run_dir: Path) -> dict:
+    """summary.json's word on the mass scale: uncalibrated (m3 = K3 / p2 with the reference K3) or the seat
+    file's law, and how many occupant masses lie outside the calibration's loads (extrapolated, warned)."""
+    if seat is None:
+        return {"calibrated": False, "K3": float(cfg.K3), "note": "m3 = K3 / p2 with the reference seat's K3"}
+    import csv
+
+    with open(run_dir / "estimates.csv", newline="") as handle:
+        occupant = np.array([float(r["occupant_mass"]) for r in csv.DictReader(handle)])
+    fitted = np.isfinite(occupant)
+    outside = int((fitted & ~seat.covers(occupant)).sum())
+    if outside:
+        print(
+            f"warning: {outside} of {int(fitted.sum())} occupant masses lie outside the calibration's loads "
+            f"{min(seat.loads):g}..{max(seat.loads):g} kg (the seat law extrapolated; calibrate with heavier or "
+            f"lighter loads)"
+        )
+    return {
+        "calibrated": True,
+        "seat_file": str(cfg.seat_file),
+        "law": seat.law,
+        "K3_ref": seat.K3_ref,
+        "exponent": seat.exponent,
+        "pan_mass": seat.pan_mass,
+        "loads_kg": seat.loads,
+        "extrapolated": outside,
+    }
 
 
 def _per_process_seconds(markers) -> list[float]:

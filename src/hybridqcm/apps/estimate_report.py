@@ -70,15 +70,26 @@ def m3_interval(params: torch.Tensor, std: torch.Tensor, K3: float) -> tuple[tor
     return m3, m3_std, m3_low, m3_high
 
 
+# With a seat file (qcm-estimate seat_file=...; estimation/calibration.py): the occupant alone from the seat's law
+SEAT_COLUMNS = ("occupant_mass", "occupant_mass_low", "occupant_mass_high")
+
+
 def block_tables(
-    record: Mapping, n_params: int, K3: float, n_scored: int | None = None, extra: Sequence[str] = ()
+    record: Mapping,
+    n_params: int,
+    K3: float,
+    n_scored: int | None = None,
+    extra: Sequence[str] = (),
+    seat=None,
 ) -> tuple[list, list, dict]:
     """One refined block (GaussNewtonRefinement.refine's record) -> (estimate rows, status rows, columns).
 
     columns: index [b], params [b, n_scored], std [b, n_scored] (the first n_scored parameters, those
     the file's truth holds; default all), status [b], iterations [b], restarts [b], m3_low, m3_high [b]
     (what the run's metrics need), as tensors. A record may carry its own m3 interval (``m3_low``,
-    ``m3_high``: an occupant-model selection's, wider where models disagree) and ``extra`` columns."""
+    ``m3_high``: an occupant-model selection's, wider where models disagree) and ``extra`` columns.
+    ``seat`` (a calibration.SeatLaw): SEAT_COLUMNS last, from p2 and its interval (the image of m3's under
+    m3 = K3 / p2) and the seat's covariance."""
     result = record["final"]
     theta, theta_std = record["params"], result.std
     params, std = theta[:, :n_params], theta_std[:, :n_params]
@@ -88,6 +99,11 @@ def block_tables(
     if "m3_low" in record:
         m3_low, m3_high = record["m3_low"].double(), record["m3_high"].double()
     extra_values = [record["extra"][name] for name in extra]
+    if seat is not None:
+        p2 = params[:, 1].double().numpy()
+        p2_low = torch.where(m3_high.isfinite(), K3 / m3_high.double(), torch.zeros_like(m3_high.double())).numpy()
+        p2_high = (K3 / m3_low.double()).numpy()
+        extra_values += [torch.as_tensor(c) for c in seat.occupant_interval(p2, p2_low, p2_high)]
     index = record["index"]
     rows, status_rows = [], []
     condition = result.condition_number
