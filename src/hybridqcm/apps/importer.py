@@ -106,6 +106,7 @@ def run(cfg: DictConfig) -> dict:
         "duration_s": duration,
         "channels": list(data.channels),
         "road": data.has_road,
+        "known_mass": None if data.known_mass is None else sorted({float(x) for x in data.known_mass}),
         "units": data.source_units,
         "samples": data.n_samples,
         "n_steps": data.n_steps,
@@ -118,7 +119,8 @@ def run(cfg: DictConfig) -> dict:
         [
             "channels",
             ", ".join(f"{c} (in {data.source_units[c]})" for c in data.channels)
-            + (", road (in m)" if summary["road"] else ""),
+            + (", road (in m)" if summary["road"] else "")
+            + (", known_mass (in kg)" if data.known_mass is not None else ""),
         ],
         [
             "written",

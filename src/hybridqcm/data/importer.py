@@ -2,7 +2,8 @@
 
 A CSV recording has a header line and one row per sample:
 
-    t,a3,a2[,a1][,road][,recording]        time in seconds, accelerations in m/s² or g, road in metres
+    t,a3,a2[,a1][,road][,known_mass][,recording]    time in seconds, accelerations in m/s² or g, road in metres,
+                                                     known_mass in kg
 
 Any subset of the acceleration channels a3 (seat / occupant), a2 (chassis / seat base) and
 a1 (wheel) may be present, under the user's own names (`columns={"a3": "seat_z"}`). The rate
@@ -13,6 +14,8 @@ The result is in the layout of hdf5.py with the leading sample axis M:
 
     accel      float32 [M, T, 3]  (a3, a2, a1) in m/s², NaN in channels that were not recorded
     road       float32 [M, T]     u in metres, only when the CSV has a road column
+    known_mass float64 [M]        kg, the known load on the seat (qcm-calibrate), only when the CSV has a
+                                  known_mass column; constant within each sample, >= 0 and finite
     profile_id int32   [M]        index of the recording a sample was cut from (windows of one drive share a road)
     t_start    float64 [M]        the CSV time of each sample's first step [s]
 
@@ -55,6 +58,7 @@ SCHEMA_V2 = "hybridqcm.dataset/2"
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901, exact by definition)
 CHANNELS = ("a3", "a2", "a1")  # column order of accel
 ROAD = "road"
+KNOWN_MASS = "known_mass"  # kg on the seat, one value per sample (qcm-calibrate's drives with known loads)
 UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "m/s²": 1.0, "g": STANDARD_GRAVITY}
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 DEFAULT_TIME_COLUMNS = ("t", "time")
@@ -67,6 +71,7 @@ class ImportedRecordings:
 
     accel: np.ndarray  # float32 [M, T, 3], m/s², NaN where not recorded
     road: np.ndarray | None  # float32 [M, T] metres, or None
+    known_mass: np.ndarray | None  # float64 [M] kg, or None
     profile_id: np.ndarray  # int32 [M]
     t_start: np.ndarray  # float64 [M] seconds
     h: float  # sampling period [s]
@@ -119,9 +124,11 @@ def _resolve_columns(
     """(time column name, {channel or 'road': CSV column name}) for the columns to import."""
     present = set(header)
     columns = dict(columns or {})
-    unknown = sorted(set(columns) - set(CHANNELS) - {ROAD})
+    unknown = sorted(set(columns) - set(CHANNELS) - {ROAD, KNOWN_MASS})
     if unknown:
-        raise RecordingError(f"{path}: columns.{unknown[0]} is not a channel; map a3, a2, a1 or road to a CSV column")
+        raise RecordingError(
+            f"{path}: columns.{unknown[0]} is not a channel; map a3, a2, a1, road or known_mass to a CSV column"
+        )
     if time_column is None:
         time_column = next((name for name in DEFAULT_TIME_COLUMNS if name in present), None)
         if time_column is None:
@@ -134,7 +141,7 @@ def _resolve_columns(
             f"{path}: column {time_column!r} (time_column) is missing from the header (line 1) {list(header)}"
         )
     mapping: dict[str, str] = {}
-    for key in (*CHANNELS, ROAD):
+    for key in (*CHANNELS, ROAD, KNOWN_MASS):
         if key in columns:
             name = columns[key]
             if name is None:  # not named: the column of the channel's own name, when present
@@ -166,7 +173,7 @@ def _resolve_columns(
     duplicated = sorted({name for name in used if used.count(name) > 1})
     if duplicated:
         raise RecordingError(
-            f"{path}: column {duplicated[0]!r} is mapped to more than one role (time, a3, a2, a1, road, recording)"
+            f"{path}: column {duplicated[0]!r} is mapped to more than one role (time, a3, a2, a1, road, known_mass, recording)"
         )
     return time_column, mapping
 
@@ -269,6 +276,7 @@ class RecordingLayout:
     window: int | None
     stride: int | None
     file_bytes: int
+    known_mass: np.ndarray | None = None  # float64 [M] kg, or None (no known_mass column)
 
     @property
     def n_samples(self) -> int:
@@ -380,8 +388,11 @@ def scan_recordings(
     csv_checks.check_header(path, header, wanted)
     size = path.stat().st_size
 
-    # pass 1: time and recording ids only
+    # pass 1: time and recording ids only (and where the known load changes: its value kept at those rows only)
     times, row_parts = [], []
+    load_name = mapping.get(KNOWN_MASS)
+    load_at: list[int] = []  # data index where the known load takes a new value
+    load_value: list[float] = []  # that value [kg]
     names: list[str] = []
     starts: list[int] = []
     seen: set[str] = set()
@@ -391,6 +402,19 @@ def scan_recordings(
         for block in _blocks(path, header, sep, wanted, encoding, _short_row(path, header, wanted)):
             times.append(_floats(path, time_name, block) * TIME_UNITS[time_unit])
             row_parts.append(block.rows)
+            if load_name is not None:
+                load = _floats(path, load_name, block)  # finite, or a one-line error naming the cell
+                negative = np.flatnonzero(load < 0)
+                if negative.size:
+                    i = int(negative[0])
+                    raise RecordingError(
+                        f"{path}: column {load_name!r} (known_mass), {_where(int(block.rows[i]))}: "
+                        f"{float(load[i])!r} kg is negative (the known load on the seat is >= 0 kg)"
+                    )
+                change = np.flatnonzero(load[1:] != load[:-1]) + 1
+                firsts = ([0] if not load_value or load[0] != load_value[-1] else []) + change.tolist()
+                load_at.extend(count + i for i in firsts)
+                load_value.extend(float(load[i]) for i in firsts)
             if recording_column:
                 block.explain(recording_column)  # an id is used as text: no parse failure would show a quote
                 ids = np.asarray([c.strip() for c in csv_stream.strings(block.cells[recording_column])], dtype=object)
@@ -458,6 +482,9 @@ def scan_recordings(
                 )
             cuts.extend((r, start, window) for start in range(a, b - window + 1, stride))
         n_steps = window
+    known_mass = None
+    if load_name is not None:
+        known_mass = _known_mass(path, load_name, cuts, names, rows, np.asarray(load_at), np.asarray(load_value))
     channels = tuple(c for c in CHANNELS if c in mapping)
     return RecordingLayout(
         path=path,
@@ -480,7 +507,27 @@ def scan_recordings(
         window=window,
         stride=stride if window is not None else None,
         file_bytes=size,
+        known_mass=known_mass,
     )
+
+
+def _known_mass(
+    path: Path, name: str, cuts, names: list[str], rows: np.ndarray, at: np.ndarray, value: np.ndarray
+) -> np.ndarray:
+    """Each sample's known load float64 [M] kg from the rows ``at`` [k] where the column takes a new ``value`` [k]
+    (at[0] = 0); a load that changes inside a sample is an error naming the row where it changes."""
+    out = np.empty(len(cuts), dtype=np.float64)
+    for m, (r, start, length) in enumerate(cuts):
+        k = int(np.searchsorted(at, start, side="right")) - 1
+        if k + 1 < at.size and at[k + 1] < start + length:
+            i = int(at[k + 1])
+            raise RecordingError(
+                f"{path}: column {name!r} (known_mass), {_where(int(rows[i]))}: the known load changes from "
+                f"{float(value[k])!r} to {float(value[k + 1])!r} kg inside a sample of recording {names[r]!r} starting at "
+                f"{_where(int(rows[start]))}; keep it constant within each recording or window"
+            )
+        out[m] = value[k]
+    return out
 
 
 def iter_windows(layout: RecordingLayout, progress: bool = False):
@@ -575,6 +622,7 @@ def read_recordings(
     return ImportedRecordings(
         accel=accel,
         road=road,
+        known_mass=layout.known_mass,
         profile_id=layout.profile_id,
         t_start=layout.t_start,
         h=layout.h,
@@ -596,7 +644,10 @@ def _file_attrs(data, source: str, created_by: str, extra: Mapping | None = None
         "n_steps": int(data.n_steps),
         "created_by": created_by,
         "source": str(source),
-        "units": json.dumps({"accel": "m/s2", "road": "m", "time": "s"}),
+        "units": json.dumps(
+            {"accel": "m/s2", "road": "m", "time": "s"}
+            | ({"known_mass": "kg"} if getattr(data, "known_mass", None) is not None else {})
+        ),
         "source_units": json.dumps(data.source_units),
         "source_columns": json.dumps(data.source_columns),
         "channels": json.dumps(list(data.channels)),
@@ -683,6 +734,8 @@ def _write_slabs(handle, guard, output: Path, layout, windows, split, source, cr
         )
         group.create_dataset("profile_id", data=layout.profile_id)
         group.create_dataset("t_start", data=np.asarray(layout.t_start, dtype=np.float64))
+        if getattr(layout, "known_mass", None) is not None:
+            group.create_dataset("known_mass", data=np.asarray(layout.known_mass, dtype=np.float64))
     raise_if_failed(guard, output)
     block_a = np.empty((slab, T, 3), dtype=np.float32)
     block_r = np.empty((slab, T), dtype=np.float32) if road is not None else None
@@ -753,6 +806,8 @@ def write_recordings(
             arrays = {"accel": data.accel, "profile_id": data.profile_id, "t_start": data.t_start}
             if data.road is not None:
                 arrays["road"] = data.road
+            if data.known_mass is not None:
+                arrays["known_mass"] = np.asarray(data.known_mass, dtype=np.float64)
             for key, array in arrays.items():
                 chunked = array.ndim > 1 and array.shape[0] > 0
                 group.create_dataset(
