@@ -1,7 +1,7 @@
 """Seat calibration measured (issue 31): calibrate on ballast drives, estimate unknown occupants, score both.
 
     PYTHONPATH=src .venv/bin/python bench/calibration_table.py --out outputs/calibration_table [--cal 40 --unknown 40
-        --noise 0 0.05 --loads 0 40 80 120 --exponent 0.5 --pan 12]
+        --noise 0 0.05 --loads 0 40 80 120 --exponent 0.5 --pan 12 --law power --persons 40]
 
 Per noise level: bench/foreign_sim.py make writes the calibration file (--known-loads cycled over --cal drives)
 and a file of --unknown rigid occupants (30-150 kg) on the same foam seat (other seeds); qcm-calibrate fits the
@@ -9,6 +9,9 @@ seat; qcm-estimate experiment=occupant_roadfree occupant.models=[rigid] delay=nu
 Scored against the files' truth: occupant_mass (calibrated) against /test/truth_occupant_mass, and the
 uncalibrated answer m3 = K3_ref / p2 (what a user without a calibration reads as the occupant) against it too;
 mean / max relative error, share within 2 %, 95 % interval coverage. Prints a markdown table.
+--persons N: at every noise level above 0 also N seated persons (foreign_sim --occupant body1: one body mode,
+the pan set to --pan) on the same seat, estimated with occupant_roadfree's default models (rigid, body1, body2,
+delay auto) and the same seat file.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ def _run(cmd: list[str]) -> None:
         sys.exit(f"{' '.join(cmd)}\n{proc.stderr[-2000:]}")
 
 
-def _score(run_dir: Path, data: Path) -> dict:
+def _score(run_dir: Path, data: Path, labels=(("calibrated", "occupant_mass"), ("uncalibrated m3", "m3"))) -> dict:
     with open(run_dir / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     with h5py.File(data, "r") as f:
@@ -42,7 +45,7 @@ def _score(run_dir: Path, data: Path) -> dict:
         return (np.array([float(r[f"{name}{k}"]) for r in rows]) for k in ("", "_low", "_high"))
 
     out = {}
-    for label, name in (("calibrated", "occupant_mass"), ("uncalibrated m3", "m3")):
+    for label, name in labels:
         value, low, high = columns(name)
         err = np.abs(value / truth - 1)
         out[label] = {
@@ -66,6 +69,8 @@ def main(argv=None) -> None:
     ap.add_argument("--exponent", type=float, default=0.5)
     ap.add_argument("--pan", type=float, default=12.0)
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--law", default="power", help="qcm-calibrate's law= (power or linear)")
+    ap.add_argument("--persons", type=int, default=0, help="seated persons (body1) per noise level above 0")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=False)
@@ -81,13 +86,22 @@ def main(argv=None) -> None:
         _run([*sim, "--out", str(unknown), "--n", str(args.unknown), "--seed", str(args.seed + 2 * k + 1)])
         common = ["progress=false", "plots=false"]
         _run([py, "-m", "hybridqcm.apps.calibrate", f"data.path={cal}", f"output={seat_file}",
-              f"hydra.run.dir={out / (tag + '_calibrate')}", "progress=false"])  # fmt: skip
+              f"hydra.run.dir={out / (tag + '_calibrate')}", "progress=false", f"law={args.law}"])  # fmt: skip
         run_dir = out / f"{tag}_estimate"
         _run([py, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree", "occupant.models=[rigid]",
               "delay=null", f"data.path={unknown}", f"seat_file={seat_file}", f"hydra.run.dir={run_dir}", *common])  # fmt: skip
         law = json.loads(seat_file.read_text())
         score = _score(run_dir, unknown)
         score |= {"noise": noise, "law": {k: law[k] for k in ("K3_ref", "exponent", "pan_mass")}}
+        if args.persons and noise > 0:
+            persons, person_dir = out / f"{tag}_persons.h5", out / f"{tag}_persons_estimate"
+            _run([*sim, "--out", str(persons), "--n", str(args.persons), "--seed", str(args.seed + 50 + k),
+                  "--occupant", "body1"])  # fmt: skip
+            _run([py, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree", f"data.path={persons}",
+                  f"seat_file={seat_file}", f"hydra.run.dir={person_dir}", *common])  # fmt: skip
+            person = _score(person_dir, persons, (("persons (body1), default models", "occupant_mass"),))
+            score["persons (body1), default models"] = person["persons (body1), default models"]
+            score["persons_converged"] = f"{person['converged']}/{person['n']}"
         results.append(score)
     (out / "table.json").write_text(json.dumps(results, indent=1))
     print(f"calibration: {args.cal} drives at loads {args.loads} kg; {args.unknown} unknown rigid occupants 30-150 kg;")
@@ -97,13 +111,17 @@ def main(argv=None) -> None:
     for r in results:
         law = r["law"]
         fitted = f"{law['K3_ref']:.0f}, {law['exponent']:.3f}, {law['pan_mass']:.2f} kg"
-        for label in ("calibrated", "uncalibrated m3"):
+        for label in ("calibrated", "uncalibrated m3", "persons (body1), default models"):
+            if label not in r:
+                continue
             s = r[label]
             print(
                 f"| {r['noise']:g} | {fitted} | {label} | {100 * s['mean']:.3g} % | {100 * s['max']:.3g} % | "
                 f"{100 * s['within_2pct']:.0f} % | {100 * s['coverage']:.0f} % |"
             )
     print(f"\nconverged: {', '.join(str(r['converged']) + '/' + str(r['n']) for r in results)}")
+    if args.persons:
+        print(f"persons converged: {', '.join(r['persons_converged'] for r in results if 'persons_converged' in r)}")
 
 
 if __name__ == "__main__":
