@@ -42,7 +42,8 @@ _NEVER_LISTED = (LOCK, MANIFEST, ".hydra")
 _begun: dict[int, Path] = {}
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether a process of that pid exists (one of another user counts: it is alive)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -59,7 +60,7 @@ def lock_holder(run_dir: str | os.PathLike) -> dict | None:
         pid = int(record.get("pid", 0))
     except (OSError, ValueError, AttributeError):
         return None
-    return record if pid > 0 and _pid_alive(pid) else None
+    return record if pid > 0 and pid_alive(pid) else None
 
 
 def _busy(run_dir: Path, holder: dict) -> ConfigError:

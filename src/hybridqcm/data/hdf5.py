@@ -38,6 +38,7 @@ import numpy as np
 
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
 from hybridqcm.interrupt import check_stop, deferred, pending
+from hybridqcm.runfiles import pid_alive
 
 SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
@@ -535,16 +536,6 @@ class DatasetWriter:
             self._release()
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def acquire_write_lock(path: str | os.PathLike) -> Path:
     """Create `.<name>.lock` beside `path` exclusively (O_EXCL) with our pid; FileExistsError if a live writer holds it.
 
@@ -559,7 +550,7 @@ def acquire_write_lock(path: str | os.PathLike) -> Path:
                 pid = int(lock.read_text().strip() or 0)
             except (OSError, ValueError):
                 pid = 0
-            if pid > 0 and not _pid_alive(pid):
+            if pid > 0 and not pid_alive(pid):
                 lock.unlink(missing_ok=True)  # its writer died: the lock is stale
                 continue
             raise FileExistsError(
