@@ -188,9 +188,10 @@ def test_a_seat_file_is_created_exclusively(tmp_path):
 def test_seat_file_is_refused_outside_the_road_free_seat_model(tmp_path, tiny_dataset):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.common import CONFIG_DIR, ConfigError
     from hybridqcm.apps.estimate import seat_plan
     from hybridqcm.apps.estimate_plan import validate
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.errors import ConfigError
 
     _, seat_file = _document(tmp_path)
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
@@ -261,7 +262,8 @@ def test_calibrate_refuses_an_existing_output_before_any_work(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from hybridqcm.apps.calibrate import run
-    from hybridqcm.apps.common import CONFIG_DIR, ConfigError
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.errors import ConfigError
 
     (tmp_path / "seat.json").write_text("the user's")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridqcm.apps import runfolder
+from hybridqcm import runfolder
 from hybridqcm.data.hdf5 import DatasetWriter, acquire_write_lock, read_split
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")

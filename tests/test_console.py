@@ -149,7 +149,7 @@ def test_help_lists_only_the_groups_and_experiments_the_app_takes():
     from hydra import compose, initialize_config_dir
     from hydra.errors import MissingConfigException
 
-    from hybridqcm.apps.common import CONFIG_DIR
+    from hybridqcm.config import CONFIG_DIR
 
     bin_dir = Path(sys.executable).parent
     from hybridqcm.apps.common import app_groups_help

@@ -10,8 +10,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.common import CONFIG_DIR
 from hybridqcm.apps.estimate import run
+from hybridqcm.config import CONFIG_DIR
 from hybridqcm.estimation.front import HybridEstimator, equation_error_params
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
 

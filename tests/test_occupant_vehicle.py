@@ -291,15 +291,15 @@ def persons_file(tmp_path_factory):
 def _cfg(*overrides):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.common import CONFIG_DIR
+    from hybridqcm.config import CONFIG_DIR
 
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose("estimate", overrides=list(overrides))
 
 
 def test_occupant_settings_per_model(tiny_dataset, persons_file):
-    from hybridqcm.apps.common import ConfigError
     from hybridqcm.apps.estimate_plan import validate
+    from hybridqcm.errors import ConfigError
 
     body = "occupant.models=[rigid,body1]"
     sprung = validate(_cfg("experiment=sprung_roadfree", f"data.path={persons_file}", body))

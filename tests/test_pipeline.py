@@ -100,7 +100,7 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
         (root / name / "checkpoints").mkdir(parents=True)
         (root / name / "checkpoints" / "last.ckpt").write_bytes(b"")
         (root / name / "test_metrics.json").write_text("{}")
-    from hybridqcm.apps.runfolder import write_completion_marker
+    from hybridqcm.runfolder import write_completion_marker
 
     by_name = {s.name: s for s in stages.demo_stages(str(root), str(tmp_path / "d.h5"))}
     for name in ("exp2_physics", "exp9_unet"):  # finished runs leave their marker last

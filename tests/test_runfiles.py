@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridqcm import runfiles
-from hybridqcm.apps import runfolder
+from hybridqcm import runfiles, runfolder
 from hybridqcm.errors import ConfigError
 
 BIN = Path(sys.executable).parent

@@ -59,8 +59,8 @@ def _tampered(source: Path, target: Path, edit) -> Path:
 
 
 def test_error_hierarchy_keeps_old_names():
-    from hybridqcm.apps.common import ConfigError as AppConfigError
     from hybridqcm.data.hdf5 import DatasetError as DataDatasetError
+    from hybridqcm.errors import ConfigError as AppConfigError
     from hybridqcm.estimation.front import CheckpointKindError
     from hybridqcm.models.modules import CheckpointMismatch
 

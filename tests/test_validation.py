@@ -15,8 +15,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.common import CONFIG_DIR, check_task_name
+from hybridqcm import config
 from hybridqcm.apps.estimate import coverage_95, validate
+from hybridqcm.config import CONFIG_DIR, check_task_name
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.testing import synthetic_samples, write_dataset
 
@@ -115,14 +116,13 @@ def test_read_only_run_folder_is_found_before_solving(files, tmp_path):
 
 def test_read_only_run_folder_check(tmp_path, monkeypatch):
     """The writability probe itself (runs as root too: the probe's failure is simulated)."""
-    from hybridqcm.apps import common
 
     def deny(self, *args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
     monkeypatch.setattr(Path, "write_text", deny)
     with pytest.raises(ConfigError, match=r"hydra.run.dir=.*: run folder is not writable \(Permission denied\)"):
-        common.check_writable_dir(tmp_path / "run")
+        config.check_writable_dir(tmp_path / "run")
 
 
 @pytest.mark.parametrize("name", ["../../x", "a/b", "..", ""])

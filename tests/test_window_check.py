@@ -92,8 +92,8 @@ def _estimate(run_dir: Path, data: Path, monkeypatch, *extra) -> dict:
     """qcm-estimate experiment=occupant_roadfree in this process (its run folder: the working directory)."""
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.common import CONFIG_DIR
     from hybridqcm.apps.estimate import run
+    from hybridqcm.config import CONFIG_DIR
 
     overrides = ["experiment=occupant_roadfree", f"data.path={data}", "n_steps=100", "progress=false"]
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):

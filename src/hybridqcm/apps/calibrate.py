@@ -19,11 +19,12 @@ import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf.errors import MissingMandatoryValue
 
+from hybridqcm import config
 from hybridqcm.apps import common
-from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm.apps.common import fail
 from hybridqcm.atomic import atomic_create_text, atomic_write_text
 from hybridqcm.data.hdf5 import read_split
-from hybridqcm.errors import DatasetError, HybridQCMError
+from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation.calibration import LAWS, CalibrationError, SeatLaw, fit_seat_law, seat_document
 
 
@@ -111,7 +112,7 @@ def run(cfg) -> dict:
     split = str(cfg.data.split)
     loads_all = known_loads(path, split, cfg.n_samples)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    common.check_writable_dir(run_dir)
+    config.check_writable_dir(run_dir)
     rows = fit_recordings(cfg, run_dir)
     index = np.array([int(r["index"]) for r in rows])
     value = {k: np.array([float(r[k]) for r in rows]) for k in ("p1", "p2", "std_p1", "std_p2")}

@@ -8,9 +8,12 @@ import logging
 import os
 import sys
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
+
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides, check_task_name, experiments_for
+from hybridqcm.errors import ConfigError
 
 
 def _register_resolvers() -> None:
@@ -55,9 +58,6 @@ def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
 
 _register_resolvers()
 
-# The configs live at the repository root (configs/); HYBRIDQCM_CONFIG_DIR points elsewhere.
-CONFIG_DIR = Path(os.environ.get("HYBRIDQCM_CONFIG_DIR", Path(__file__).resolve().parents[3] / "configs"))
-
 
 def fail(error: BaseException | str, code: int = 2) -> NoReturn:
     """Print a one-line error (no traceback: the message names the file, key and value) and exit."""
@@ -84,91 +84,6 @@ def interrupted_exit(error: KeyboardInterrupt) -> NoReturn:
     name = signal.Signals(signum).name
     print(f"error: interrupted by {name}; temporary files removed, outputs left as they were", file=sys.stderr)
     sys.exit(128 + int(signum))
-
-
-def check_writable_dir(path: str | Path, key: str = "hydra.run.dir") -> Path:
-    """Create `path` if needed and prove it writable (a probe file), before any work; ConfigError otherwise."""
-    path = Path(path)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / f".write-probe-{os.getpid()}"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as error:
-        raise ConfigError(f"{key}={path}: run folder is not writable ({error.strerror or error})") from None
-    return path
-
-
-def check_task_name(name) -> None:
-    """task_name names a folder under outputs/: one plain path component, no separators or '..'."""
-    text = str(name)
-    if not text or text in (".", "..") or "/" in text or "\\" in text or "\0" in text:
-        raise ConfigError(f"task_name={text!r} must be a plain folder name (no '/', '..' or empty)")
-
-
-def _devices_ok(devices) -> bool:
-    """Lightning's `devices`: a count >= 1, -1 (all), "auto", or device indices (a list, or "0,1")."""
-    if isinstance(devices, str):
-        text = devices.strip()
-        if text == "auto":
-            return True
-        parts = [p.strip() for p in text.split(",") if p.strip()]
-        if not parts or not all(p.lstrip("-").isdigit() for p in parts):
-            return False
-        devices = [int(p) for p in parts] if "," in text else int(parts[0])
-    if isinstance(devices, bool):
-        return False
-    if isinstance(devices, int):
-        return devices >= 1 or devices == -1
-    try:
-        items = list(devices)
-    except TypeError:
-        return False
-    return bool(items) and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in items)
-
-
-def check_trainer_settings(group, prefix: str = "trainer") -> None:
-    """trainer.devices and trainer.num_nodes as Lightning takes them, in one line naming the key and
-    value, before any work (Lightning's own message came wrapped in Hydra's, or as a traceback)."""
-    group = group or {}
-    if not _devices_ok(group.get("devices", 1)):
-        raise ConfigError(
-            f"{prefix}.devices={group.get('devices')!r}: give a number of devices >= 1, -1 (all), auto, "
-            f"or device indices such as [0,1]"
-        )
-    nodes = group.get("num_nodes", 1)
-    if isinstance(nodes, bool) or not isinstance(nodes, int) or nodes < 1:
-        raise ConfigError(f"{prefix}.num_nodes={nodes!r}: give a number of nodes >= 1")
-
-
-def _markdown_cell(value) -> str:
-    return str(value).replace("|", "\\|").replace("\n", " ")
-
-
-def print_table(title: str, header: Sequence[str], rows: Iterable[Sequence], markdown: bool | None = None) -> None:
-    """A console table: rich on a terminal, a markdown table when stdout is not one (a log file, a pipe).
-
-    markdown=None picks by `sys.stdout.isatty()`. A rich table in a file is cut at the console's
-    width (80 columns when there is no terminal); the markdown form is never cut, and pastes into docs."""
-    rows = [[str(x) for x in row] for row in rows]
-    if markdown is None:
-        markdown = not sys.stdout.isatty()
-    if markdown:
-        cells = [[_markdown_cell(c) for c in header]] + [[_markdown_cell(c) for c in row] for row in rows]
-        widths = [max(len(row[i]) for row in cells if i < len(row)) for i in range(len(header))]
-        lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(row, widths)) + " |" for row in cells]
-        lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
-        print("\n".join(["", f"{title}", "", *lines, ""]), flush=True)
-        return
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=title, title_justify="left")
-    for column in header:
-        table.add_column(str(column))
-    for row in rows:
-        table.add_row(*row)
-    Console().print(table)
 
 
 class _DropMessages(logging.Filter):
@@ -232,53 +147,6 @@ def quiet_third_party() -> None:
             logger.addFilter(noise)
     for pattern in _NOISE_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
-
-
-from hybridqcm.errors import ConfigError  # noqa: E402 - kept importable here (apps.common.ConfigError)
-
-
-def experiment_task(path: Path) -> str | None:
-    """The `task:` an experiment config declares (train or estimate), None if unreadable or absent."""
-    import yaml
-
-    try:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-    except yaml.YAMLError:
-        return None
-    return data.get("task") if isinstance(data, dict) else None
-
-
-def experiments_for(task: str, config_dir: Path = CONFIG_DIR) -> list[str]:
-    return sorted(p.stem for p in (Path(config_dir) / "experiment").glob("*.yaml") if experiment_task(p) == task)
-
-
-def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path = CONFIG_DIR) -> None:
-    """Fail early, before Hydra composes anything, on an unknown experiment or one of the other app's task.
-
-    Experiments of both apps share configs/experiment/; each declares `task: train` or `task: estimate`."""
-    apps = {"train": ("qcm-train", "qcm-estimate"), "estimate": ("qcm-estimate", "qcm-train")}
-    if task not in apps:  # an app without experiments (qcm-calibrate): Hydra refuses the override itself
-        return
-    app, other = apps[task]
-    for arg in args:
-        key, _, value = arg.partition("=")
-        if key.lstrip("+~") != "experiment" or not value or value == "null":
-            continue
-        for name in (n.strip() for n in value.split(",")):
-            path = Path(config_dir) / "experiment" / f"{name}.yaml"
-            if not path.is_file():
-                raise ConfigError(
-                    f"unknown experiment {name!r} (no {path}); {app} experiments: "
-                    f"{', '.join(experiments_for(task, config_dir))}"
-                )
-            declared = experiment_task(path)
-            if declared != task:
-                raise ConfigError(
-                    f"experiment {name!r} is not a{'n' if task == 'estimate' else ''} "
-                    f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
-                    f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
-                    f"the others run with {other}"
-                )
 
 
 def run_hydra_app(config_name: str, task: str, entry) -> None:

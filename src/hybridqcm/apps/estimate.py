@@ -34,8 +34,9 @@ from lightning.pytorch.accelerators import CUDAAccelerator
 from lightning.pytorch.strategies import DDPStrategy
 from omegaconf import DictConfig
 
-from hybridqcm.apps import common, runfolder
-from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm import config, runfolder
+from hybridqcm.apps import common
+from hybridqcm.apps.common import fail
 from hybridqcm.apps.estimate_drive import (
     aggregate_drives,
     drive_columns,
@@ -74,7 +75,7 @@ from hybridqcm.apps.estimate_report import (
 )
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.errors import DatasetError, HybridQCMError
+from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation.front import HybridEstimator
 from hybridqcm.estimation.refinement import GaussNewtonStage
 from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
@@ -287,7 +288,7 @@ def run(cfg, run_dir: Path | None = None) -> dict:
     drive = drive_plan(cfg, plan)  # aggregate=drive: the file's drives checked now (None: per window only)
     if run_dir is None:
         run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    common.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
+    config.check_writable_dir(run_dir)  # a read-only folder is found now, not after all the solving
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt, cfg.get("seat_file")]
     store = ShardStore(run_dir, run_fingerprint(cfg, inputs_used))
     if rank_zero_only.rank == 0:  # under a cluster launcher every rank runs this: one clears

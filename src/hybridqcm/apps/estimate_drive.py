@@ -47,9 +47,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridqcm.apps.common import ConfigError, print_table
 from hybridqcm.atomic import atomic_write_csv
-from hybridqcm.errors import DatasetError
+from hybridqcm.console import print_table
+from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.drive import (
     Gaussian,
     InformationCombiner,

@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from hybridqcm.apps.common import ConfigError
+from hybridqcm.errors import ConfigError
 from hybridqcm.physics.occupant import N_MODES, OCCUPANT_MODELS, body_prior, body_start
 
 

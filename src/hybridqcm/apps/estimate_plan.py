@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridqcm.apps import common
-from hybridqcm.apps.common import CONFIG_DIR, ConfigError
+from hybridqcm import config
+from hybridqcm.config import CONFIG_DIR
+from hybridqcm.errors import ConfigError
 
 PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
 CHANNELS = ("a3", "a2", "a1")
@@ -48,7 +49,7 @@ def resolve_model(cfg, info: Mapping) -> tuple[str, str]:
 
 def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
     """Fail early (before Hydra composes: a training experiment would fail there obscurely)."""
-    common.check_experiment_overrides(args, "estimate", config_dir)
+    config.check_experiment_overrides(args, "estimate", config_dir)
 
 
 def _param_index(names: Sequence[str], key: str) -> list[int]:
@@ -269,9 +270,9 @@ def validate(cfg) -> dict:
 
     check_known_keys(cfg)
     check_setting_types(cfg)
-    common.check_trainer_settings(cfg.get("trainer"))
+    config.check_trainer_settings(cfg.get("trainer"))
     window_check_settings(cfg)
-    common.check_task_name(cfg.get("task_name", "estimate"))
+    config.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
     longest = str(cfg.n_steps) == "max"  # the longest window the file holds, resolved below

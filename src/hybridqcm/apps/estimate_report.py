@@ -18,9 +18,9 @@ from pathlib import Path
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from hybridqcm.apps.common import print_table
 from hybridqcm.apps.estimate_plan import PARAM_NAMES
 from hybridqcm.atomic import atomic_write_csv
+from hybridqcm.console import print_table
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
 from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS, is_skipped
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from hybridqcm.apps.common import ConfigError
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.data.vehicle_files import QUARTER_CAR, seat_split_info, vehicle_of
+from hybridqcm.errors import ConfigError
 
 
 def seat_view_plan(cfg, path, split: str, info: dict, base: str | None) -> dict | None:

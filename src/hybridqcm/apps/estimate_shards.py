@@ -29,8 +29,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import move_data_to_device
 from omegaconf import OmegaConf
 
-from hybridqcm import runfiles
-from hybridqcm.apps import runfolder
+from hybridqcm import runfiles, runfolder
 from hybridqcm.atomic import atomic_open, atomic_write_csv, atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.refinement import GaussNewtonRefinement

@@ -27,8 +27,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-from hybridqcm.apps import common, runfolder
-from hybridqcm.apps.common import ConfigError
+from hybridqcm import config, runfolder
 from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows
 from hybridqcm.apps.estimate_plan import (
     check_known_keys,
@@ -55,6 +54,7 @@ from hybridqcm.data.vehicle_files import (
     vehicle_layout,
     vehicle_of,
 )
+from hybridqcm.errors import ConfigError
 from hybridqcm.estimation.draws import NormalStream
 from hybridqcm.estimation.noise import SpectralNoise, estimate_variances
 from hybridqcm.estimation.refinement import GaussNewtonStage
@@ -97,8 +97,8 @@ def validate_vehicle(cfg) -> dict:
     """Every setting and input checked before any work; returns the plan. ConfigError/DatasetError otherwise."""
     check_known_keys(cfg)
     check_setting_types(cfg, own=("init.equation_error",))  # true, false or seats: checked below
-    common.check_trainer_settings(cfg.get("trainer"))
-    common.check_task_name(cfg.get("task_name", "estimate"))
+    config.check_trainer_settings(cfg.get("trainer"))
+    config.check_task_name(cfg.get("task_name", "estimate"))
     if cfg.get("task") != "estimate":
         raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
     kind = str(cfg.vehicle_model)
@@ -359,7 +359,7 @@ def run_vehicle(cfg, build_trainer) -> dict:
     t_start = time.perf_counter()
     plan = validate_vehicle(cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    common.check_writable_dir(run_dir)
+    config.check_writable_dir(run_dir)
     store = ShardStore(run_dir, run_fingerprint(cfg, [plan["path"]]))
     if rank_zero_only.rank == 0:
         runfolder.prepare_run_dir(

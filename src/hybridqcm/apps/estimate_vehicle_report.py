@@ -16,9 +16,9 @@ from pathlib import Path
 
 import torch
 
-from hybridqcm.apps.common import print_table
 from hybridqcm.apps.estimate_report import coverage_95
 from hybridqcm.atomic import atomic_write_csv
+from hybridqcm.console import print_table
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution
 from hybridqcm.physics.vehicle_geometry import VehicleLayout

@@ -23,7 +23,8 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from hybridqcm.apps.common import ConfigError, fail
+from hybridqcm.apps.common import fail
+from hybridqcm.errors import ConfigError
 
 FORMATS = ("torchscript", "onnx")
 SPEC_H = 0.01  # the step size the networks are trained at (SPEC §5) when neither the data nor the checkpoint says

@@ -16,16 +16,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import (
-    CONFIG_DIR,
-    check_task_name_overrides,
-    fail,
-    install_signal_handlers,
-    interrupted_exit,
-    print_table,
-    run_folder,
-)
+from hybridqcm.apps.common import check_task_name_overrides, fail, install_signal_handlers, interrupted_exit, run_folder
 from hybridqcm.atomic import atomic_write_text
+from hybridqcm.config import CONFIG_DIR
+from hybridqcm.console import print_table
 from hybridqcm.data.importer import import_recordings
 from hybridqcm.data.two_loggers import import_two_loggers
 

@@ -23,9 +23,9 @@ import sys
 from importlib import resources
 from pathlib import Path
 
-from hybridqcm.apps.common import print_table
 from hybridqcm.apps.stages import PIPELINES
 from hybridqcm.apps.stages import load_manifest as _load_manifest
+from hybridqcm.console import print_table
 from hybridqcm.metrics import COLUMNS, read_error_distribution
 
 DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json", "outputs/noise/manifest.json")

@@ -22,10 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridqcm.apps import common, runfolder
-from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail, print_table
+from hybridqcm import config, runfolder
+from hybridqcm.apps import common
+from hybridqcm.apps.common import fail
 from hybridqcm.atomic import atomic_write_csv, atomic_write_text
-from hybridqcm.errors import HybridQCMError
+from hybridqcm.config import CONFIG_DIR
+from hybridqcm.console import print_table
+from hybridqcm.errors import ConfigError, HybridQCMError
 
 MODES = ("train", "evaluate")
 ARTEFACTS = ("posterior.pt", "training.csv", "sbi_metrics.csv", "sbc.csv", "checks.json", "plots", runfolder.MARKER)
@@ -214,7 +217,7 @@ def run(cfg) -> list[dict] | None:
     if mode == "evaluate" and not cfg.ckpt:
         raise ConfigError("qcm-sbi evaluate needs ckpt=PATH (the posterior.pt written by qcm-sbi train)")
     run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    common.check_writable_dir(run_dir)
+    config.check_writable_dir(run_dir)
     runfolder.prepare_run_dir(run_dir, ARTEFACTS, bool(cfg.overwrite), inputs=[cfg.ckpt])
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))

@@ -22,18 +22,10 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from hybridqcm.apps.common import (
-    CONFIG_DIR,
-    ConfigError,
-    check_task_name,
-    check_writable_dir,
-    fail,
-    install_signal_handlers,
-    interrupted_exit,
-    print_table,
-    run_folder,
-)
+from hybridqcm.apps.common import fail, install_signal_handlers, interrupted_exit, run_folder
 from hybridqcm.atomic import atomic_write_text
+from hybridqcm.config import CONFIG_DIR, check_task_name, check_writable_dir
+from hybridqcm.console import print_table
 from hybridqcm.data.simulate import (
     DEFAULT_WARMUP_S,
     check_occupant_physics,
@@ -42,6 +34,7 @@ from hybridqcm.data.simulate import (
     kmh_to_mps,
     write_dataset,
 )
+from hybridqcm.errors import ConfigError
 from hybridqcm.physics.parameters import PARAM_NAMES, is_stable, reference_params, system_matrix
 from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.road import RoadProfile

@@ -18,7 +18,7 @@ from collections.abc import Mapping
 import torch
 from omegaconf import OmegaConf
 
-from hybridqcm.apps.common import print_table
+from hybridqcm.console import print_table
 from hybridqcm.data.vehicle_simulate import write_vehicle_dataset
 from hybridqcm.physics.road import RoadProfile
 from hybridqcm.physics.sedan import reference_physical, seat

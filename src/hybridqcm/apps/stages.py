@@ -14,7 +14,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hybridqcm.apps.runfolder import marker_matches
+from hybridqcm.runfolder import marker_matches
 
 BIN = Path(sys.executable).parent
 MARKED_APPS = ("qcm-train", "qcm-estimate")  # apps that write a completion marker (apps/runfolder.py)

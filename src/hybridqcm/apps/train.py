@@ -24,11 +24,13 @@ from pathlib import Path
 
 import yaml
 
-from hybridqcm.apps import common, runfolder
-from hybridqcm.apps.common import CONFIG_DIR, ConfigError, fail
+from hybridqcm import config, runfolder
+from hybridqcm.apps import common
+from hybridqcm.apps.common import fail
 from hybridqcm.apps.train_report import MultirunSummary, summarize_multirun, write_test_outputs  # noqa: F401 (public here)
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.errors import HybridQCMError
+from hybridqcm.config import CONFIG_DIR
+from hybridqcm.errors import ConfigError, HybridQCMError
 
 log = logging.getLogger("qcm-train")
 
@@ -37,7 +39,7 @@ log = logging.getLogger("qcm-train")
 # small helpers
 def check_experiment_overrides(args: Sequence[str], config_dir: Path = CONFIG_DIR) -> None:
     """Fail early (before Hydra composes anything) for unknown or non-training experiments."""
-    common.check_experiment_overrides(args, "train", config_dir)
+    config.check_experiment_overrides(args, "train", config_dir)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -236,7 +238,7 @@ def _prepare(cfg) -> dict:
 
     check_top_level_keys(cfg)
     check_logger_callbacks(cfg)
-    common.check_trainer_settings(cfg.get("trainer"))
+    config.check_trainer_settings(cfg.get("trainer"))
     check_optimizer(cfg.get("model"))
     model = load_model(cfg, train)
     if cfg.get("denoiser_ckpt"):
@@ -265,10 +267,10 @@ def train(cfg) -> dict[str, float]:
     from hydra.utils import instantiate
 
     L.seed_everything(int(cfg.get("seed", 0)), workers=True)
-    common.check_task_name(cfg.get("task_name", "train"))
+    config.check_task_name(cfg.get("task_name", "train"))
     parts = prepare(cfg)
     model, datamodule = parts["model"], parts["datamodule"]
-    out_dir = common.check_writable_dir(Path(cfg.paths.output_dir))
+    out_dir = config.check_writable_dir(Path(cfg.paths.output_dir))
     runfolder.prepare_run_dir(
         out_dir,
         runfolder.TRAIN_ARTEFACTS,
