@@ -265,8 +265,10 @@ def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.apps.estimate_occupant import delay_margin, occupant_plan
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
-    from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
+    from hybridqcm.errors import CheckpointError
+    from hybridqcm.estimation.front import check_networks
     from hybridqcm.estimation.fusion import check_cnn_prior
+    from hybridqcm.models.checkpoint import load_checkpoint
 
     check_known_keys(cfg)
     check_setting_types(cfg)
@@ -378,8 +380,8 @@ def validate(cfg) -> dict:
     for key, kind in kinds.items():
         if cfg.get(key):
             try:
-                networks[key] = load_network(cfg[key], kind, key)
-            except CheckpointKindError as error:
+                networks[key] = load_checkpoint(cfg[key], kind, key)
+            except CheckpointError as error:
                 raise ConfigError(str(error)) from None
     if cfg.init.cnn and not cfg.cnn_ckpt:
         raise ConfigError(
@@ -461,7 +463,7 @@ def validate(cfg) -> dict:
             networks.get("cae_ckpt"),
             h_file or 0.01,
         )
-    except CheckpointKindError as error:
+    except CheckpointError as error:
         raise ConfigError(str(error)) from None
     try:  # init.cnn_prior=network: the CNN must predict its variance (estimation/fusion.py)
         check_cnn_prior(

@@ -1,6 +1,6 @@
 """Networks (plain nn.Modules) and LightningModules of the estimators, denoiser and completion U-Net."""
 
-from hybridqcm.models.base import CheckpointMismatch, QCMModule
+from hybridqcm.models.base import QCMModule
 from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
 from hybridqcm.models.networks import DenoisingCAE, ParameterCNN, SpectralCNN, UNet1d, count_parameters
 from hybridqcm.models.physics_losses import least_squares_p12, physics_residual, physics_residual_loss
@@ -13,7 +13,6 @@ __all__ = [
     "DenoisingAutoencoder",
     "CompletionUNet",
     "QCMModule",
-    "CheckpointMismatch",
     "ParameterCNN",
     "SpectralCNN",
     "DenoisingCAE",

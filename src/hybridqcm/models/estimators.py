@@ -25,8 +25,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from hybridqcm.data.datamodules import apply_noise
+from hybridqcm.errors import CheckpointError
 from hybridqcm.metrics import ErrorDistribution
-from hybridqcm.models.base import CheckpointMismatch, QCMModule, _plain
+from hybridqcm.models.base import QCMModule, _plain
 from hybridqcm.models.physics_losses import balanced_residual_loss, least_squares_p12, physics_residual_loss
 from hybridqcm.models.uncertainty import calibration_rows, clamp_log_var, gaussian_nll
 
@@ -86,7 +87,7 @@ class ParameterEstimator(QCMModule):
     def attach_denoiser(self, denoiser: DenoisingAutoencoder) -> None:
         """Use a CAE on the inputs before estimating (inference only; never saved with this model)."""
         if list(denoiser.hparams.channels) != list(self.hparams.input_channels):
-            raise CheckpointMismatch(
+            raise CheckpointError(
                 f"denoiser channels {list(denoiser.hparams.channels)} differ from the estimator's "
                 f"inputs {list(self.hparams.input_channels)}"
             )
@@ -340,7 +341,7 @@ class GaussianEstimator(ParameterEstimator):
         if list(source.hparams.target_channels) != list(self.hparams.target_channels) or int(
             source.hparams.window
         ) != int(self.hparams.window):
-            raise CheckpointMismatch(
+            raise CheckpointError(
                 f"model.init_from={path}: predicts {list(source.hparams.target_channels)} from {source.hparams.window} "
                 f"steps; this model {list(self.hparams.target_channels)} from {self.hparams.window}"
             )
@@ -352,7 +353,7 @@ class GaussianEstimator(ParameterEstimator):
                 own[key][:n] = value
                 own[key][n:] = 0.0
             elif key not in own or own[key].shape != value.shape:
-                raise CheckpointMismatch(f"model.init_from={path}: network layer {key} does not match this model's")
+                raise CheckpointError(f"model.init_from={path}: network layer {key} does not match this model's")
             else:
                 own[key] = value
         self.net.load_state_dict(own)
