@@ -9,8 +9,9 @@ from torch.utils.data import DataLoader
 
 from hybridqcm.data.channels import ChannelError, required_keys, select_channels, select_params
 from hybridqcm.data.datamodules import HDF5DataModule, SimulatedStream, StreamingDataModule, apply_noise
-from hybridqcm.data.hdf5 import DatasetError, DatasetWriter
+from hybridqcm.data.hdf5 import DatasetWriter
 from hybridqcm.data.simulate import simulate_samples, write_dataset
+from hybridqcm.errors import DatasetError
 from hybridqcm.physics import RoadProfile, build_prior
 
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
-from hybridqcm.data.hdf5 import DatasetError, DatasetWriter, read_split
+from hybridqcm.data.hdf5 import DatasetWriter, read_split
+from hybridqcm.errors import DatasetError
 
 BIN = Path(sys.executable).parent
 LIMIT = 256 * 1024  # bytes any one file of the process may have

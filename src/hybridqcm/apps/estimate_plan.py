@@ -132,7 +132,7 @@ def vehicle_prior_settings(cfg) -> dict | None:
 
 def check_positive_params(path: Path, split: str, params, n: int) -> None:
     """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
-    from hybridqcm.data.hdf5 import DatasetError
+    from hybridqcm.errors import DatasetError
 
     values = np.asarray(params[:n], dtype=np.float64)
     if values.ndim != 2 or values.shape[1] != 10:
@@ -264,8 +264,8 @@ def check_setting_types(cfg, own: tuple[str, ...] = ()) -> None:
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.apps.estimate_occupant import delay_margin, occupant_plan
-    from hybridqcm.data.hdf5 import DatasetError, dataset_info
-    from hybridqcm.errors import CheckpointError
+    from hybridqcm.data.hdf5 import dataset_info
+    from hybridqcm.errors import CheckpointError, DatasetError
     from hybridqcm.estimation.front import check_networks
     from hybridqcm.estimation.fusion import check_cnn_prior
     from hybridqcm.models.checkpoint import load_checkpoint

@@ -270,8 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.errors import CheckpointError
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     args = build_parser().parse_args(argv)
     if args.n_check < 1:

@@ -81,7 +81,8 @@ def _split_has(path, split, channels) -> bool:
     if not path or not split or not Path(str(path)).is_file():
         return True
     from hybridqcm.data.channels import required_keys
-    from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.data.hdf5 import dataset_info
+    from hybridqcm.errors import DatasetError
 
     try:
         stored = dataset_info(path)["splits"].get(str(split))
@@ -330,8 +331,7 @@ def train(cfg) -> dict[str, float]:
 def _user_errors() -> tuple[type[BaseException], ...]:
     from hydra.errors import InstantiationException
 
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.errors import CheckpointError
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     return (
         HybridQCMError,
@@ -347,8 +347,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 def run(cfg) -> float | None:
     """Hydra task function: train/test, return `optimized_metric` (for sweepers)."""
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.errors import CheckpointError
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     try:
         # Every input is validated in prepare(), which train() runs before any training step;

@@ -20,7 +20,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.errors import DatasetError
 
 CHANNEL_NAMES: tuple[str, ...] = ("a3", "a2", "a1", "v3", "v2", "v1", "q3", "q2", "q1", "u", "pu_u")
 PARAM_CHANNELS: tuple[str, ...] = tuple(f"p{i}" for i in range(1, 11))

@@ -44,8 +44,9 @@ from hybridqcm.data.channels import (
     select_params,
     validate_channels,
 )
-from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
+from hybridqcm.data.hdf5 import dataset_info, read_split
 from hybridqcm.data.sensor import SensorModel, additive_augmentation, apply_to_channels, build_sensor
+from hybridqcm.errors import DatasetError
 from hybridqcm.physics.occupant import OCCUPANT_MODELS
 
 log = logging.getLogger(__name__)

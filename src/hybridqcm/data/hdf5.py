@@ -37,6 +37,7 @@ import h5py
 import numpy as np
 
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
+from hybridqcm.errors import DatasetError
 from hybridqcm.interrupt import check_stop, deferred, pending
 from hybridqcm.runfiles import pid_alive
 
@@ -58,9 +59,6 @@ LAYOUT: dict[str, tuple[np.dtype, tuple]] = {
     "state0": (np.dtype("float64"), (6,)),
 }
 TIME_KEYS = ("accel", "vel", "disp", "road")
-
-
-from hybridqcm.errors import DatasetError  # noqa: E402 - kept importable here (data.hdf5.DatasetError)
 
 
 def _trailing_shape(key: str, n_steps: int) -> tuple[int, ...]:

@@ -51,7 +51,6 @@ import numpy as np
 from hybridqcm.data import csv_checks, csv_stream
 from hybridqcm.data.csv_checks import RecordingError
 from hybridqcm.data.h5file import open_guarded, raise_if_failed, writing
-from hybridqcm.data.hdf5 import DatasetError  # noqa: F401 - importable here
 from hybridqcm.interrupt import check_stop, deferred
 
 SCHEMA_V2 = "hybridqcm.dataset/2"

@@ -44,9 +44,7 @@ def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> Non
             f"{list(unet.hparams.input_channels)} -> {list(unet.hparams.target_channels)}"
         )
     if cnn is not None and list(cnn.hparams.input_channels) != ["a3", "a2"]:
-        raise CheckpointError(
-            f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']"
-        )
+        raise CheckpointError(f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']")
     if cnn is not None and list(cnn.hparams.target_channels) != ["p1", "p2"]:
         raise CheckpointError(
             f"cnn_ckpt: estimator targets {list(cnn.hparams.target_channels)}, but the initialiser needs ['p1', 'p2']"
@@ -56,13 +54,9 @@ def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> Non
             continue
         physics = net.hparams.get("physics", "euler")
         if physics != "euler":
-            raise CheckpointError(
-                f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)"
-            )
+            raise CheckpointError(f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)")
         if h is not None and abs(float(net.hparams.get("h", 0.01)) - float(h)) > 1e-9 * float(h):
-            raise CheckpointError(
-                f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s"
-            )
+            raise CheckpointError(f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s")
 
 
 # ----------------------------------------------------------------------------------------------
