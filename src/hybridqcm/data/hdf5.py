@@ -39,12 +39,12 @@ import numpy as np
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
 from hybridqcm.errors import DatasetError
 from hybridqcm.interrupt import check_stop, deferred, pending
+from hybridqcm.physics.parameters import CHANNELS
 from hybridqcm.runfiles import pid_alive
 
 SCHEMA = "hybridqcm.dataset/2"
 SCHEMA_FAMILY = "hybridqcm.dataset/"
 SUPPORTED_SCHEMAS = ("hybridqcm.dataset/1", SCHEMA)
-ACCEL_CHANNELS = ("a3", "a2", "a1")
 PHYSICS = ("continuous", "euler")  # the values of the `physics` attribute (absent: continuous, another producer)
 
 # key -> (dtype, trailing shape given n_steps); the leading dimension is the sample count M.
@@ -249,7 +249,7 @@ def recorded_channels(path: str | os.PathLike, split: str = "test") -> list[str]
     """Accelerometer channels of /<split>/accel (of a3, a2, a1) that hold any finite value."""
     arrays = read_split(path, split, ("accel",))
     finite = np.isfinite(arrays["accel"]).any(axis=(0, 1))
-    return [name for name, ok in zip(ACCEL_CHANNELS, finite) if ok]
+    return [name for name, ok in zip(CHANNELS, finite) if ok]
 
 
 def read_split(

@@ -52,10 +52,10 @@ from hybridqcm.data import csv_checks, csv_stream
 from hybridqcm.data.csv_checks import RecordingError
 from hybridqcm.data.h5file import open_guarded, raise_if_failed, writing
 from hybridqcm.interrupt import check_stop, deferred
+from hybridqcm.physics.parameters import CHANNELS
 
 SCHEMA_V2 = "hybridqcm.dataset/2"
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901, exact by definition)
-CHANNELS = ("a3", "a2", "a1")  # column order of accel
 ROAD = "road"
 KNOWN_MASS = "known_mass"  # kg on the seat, one value per sample (qcm-calibrate's drives with known loads)
 UNITS = {"m/s2": 1.0, "m/s^2": 1.0, "m/s²": 1.0, "g": STANDARD_GRAVITY}

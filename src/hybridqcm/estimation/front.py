@@ -19,11 +19,11 @@ from torch import Tensor
 
 from hybridqcm.errors import CheckpointError
 from hybridqcm.models.checkpoint import load_checkpoint
+from hybridqcm.physics.parameters import CHANNELS
 
 from .fusion import check_cnn_prior, network_prior
 from .sensitivity import N_PARAMS
 
-CHANNELS = ("a3", "a2", "a1")
 # Road-free (base-excitation) models: the measured channel that drives the model, the channels it
 # predicts, and how many of p1.. it holds (SPEC §9; physics.linear_models).
 BASE_EXCITATION = {"seat": ("a2", ("a3",), 2), "sprung": ("a1", ("a3", "a2"), 6)}

@@ -30,6 +30,7 @@ from hybridqcm.metrics import ErrorDistribution
 from hybridqcm.models.base import QCMModule, _plain
 from hybridqcm.models.physics_losses import balanced_residual_loss, least_squares_p12, physics_residual_loss
 from hybridqcm.models.uncertainty import calibration_rows, clamp_log_var, gaussian_nll
+from hybridqcm.physics.parameters import REFERENCE_VEHICLE
 
 if TYPE_CHECKING:
     from hybridqcm.models.signal_models import DenoisingAutoencoder
@@ -257,7 +258,7 @@ class GaussianEstimator(ParameterEstimator):
         loss: str = "gaussian_nll",
         nll_beta: float = 0.5,
         log_var_range: Sequence[float] = (-16.0, 4.0),
-        K3: float = 98935.0,
+        K3: float = REFERENCE_VEHICLE.K3,
         train_noise_max: float = 0.0,
         plot_every_n_epochs: int = 5,
         h: float = 0.01,
