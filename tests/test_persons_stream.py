@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hybridqcm.data.datamodules import StreamingDataModule, StreamSimulator
+from hybridqcm.data.datamodules import StreamingDataModule
 from hybridqcm.data.simulate import simulate_samples
+from hybridqcm.data.stream import StreamSimulator
 
 KW = dict(n_steps=300, physics="continuous", warmup_s=(2.0, 5.0))
 

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from hybridqcm.data.datamodules import apply_noise
+from hybridqcm.data.batches import apply_noise
 from hybridqcm.errors import CheckpointError
 from hybridqcm.metrics import ErrorDistribution
 from hybridqcm.models.base import QCMModule, _plain
