@@ -32,7 +32,7 @@ def _child(reader: str, csv: str, out: str, window: int, old_source: str | None)
     kwargs = {"recording_column": "recording", "window": window} if _has_recording(csv) else {"window": window}
     started = time.perf_counter()
     if reader == "new":
-        from hybridqcm.data.importer import import_recordings
+        from hybridqcm.data.import_writer import import_recordings
 
         layout = import_recordings(csv, out, overwrite=True, **kwargs)
         rows = layout.n_rows

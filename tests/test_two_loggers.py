@@ -16,7 +16,8 @@ import h5py
 import numpy as np
 import pytest
 
-from hybridqcm.data.importer import LoggerRecording, RecordingError, read_logger
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.logger_csv import LoggerRecording, read_logger
 from hybridqcm.data.two_loggers import align, lowpass_resample, resample, vertical
 
 REPO = Path(__file__).resolve().parents[1]

@@ -1,6 +1,6 @@
 """Two loggers, two clocks: a seat and a floor recording of one drive onto one time grid (issue 32).
 
-Phone apps and stand-alone loggers record three axes with gravity (importer.read_logger), each on its
+Phone apps and stand-alone loggers record three axes with gravity (logger_csv.read_logger), each on its
 own clock: its own start, its own irregular sample times, its own rate error and its own orientation.
 The road-free estimator needs the seat's vertical acceleration a3 and the floor's a2 on one grid:
 
@@ -39,7 +39,7 @@ The road-free estimator needs the seat's vertical acceleration a3 and the floor'
    half-width at each end), a3 = seat, a2 = floor.
 
 Memory: per logger its time stamps and axes (32 bytes a row: an hour at 1 kHz is 115 MB), then the two
-vertical signals on the grid; windows are written as they are cut (importer.write_windows).
+vertical signals on the grid; windows are written as they are cut (import_writer.write_windows).
 """
 
 from __future__ import annotations
@@ -52,7 +52,9 @@ from pathlib import Path
 import numpy as np
 from scipy.special import i0  # numpy's i0 is a Python-level series, 20x slower
 
-from hybridqcm.data.importer import RecordingError, read_logger, write_windows
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.import_writer import write_windows
+from hybridqcm.data.logger_csv import read_logger
 
 XCORR_HALF_WIDTH = 16  # samples: the filter's half-width for the alignment's own resampling
 MIN_DRIFT_SEGMENTS = 6  # segments a drift must rest on to be applied
@@ -251,7 +253,7 @@ def align(
     min_peak: float = 8.0,
     nperseg: int = 1024,
 ) -> Alignment:
-    """The seat's and the floor's recordings (importer.LoggerRecording) on one grid (module docstring).
+    """The seat's and the floor's recordings (logger_csv.LoggerRecording) on one grid (module docstring).
     Raises RecordingError (one line) when they share no motion (not the same drive, or no time in common)
     or have too little in common."""
     names = f"{seat.path} and {floor.path}"
@@ -386,7 +388,7 @@ def align(
 
 @dataclass
 class AlignedLayout:
-    """What importer.write_windows needs of two aligned loggers cut into windows."""
+    """What import_writer.write_windows needs of two aligned loggers cut into windows."""
 
     h: float
     n_steps: int
