@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from hybridqcm import runfolder
-from hybridqcm.data.hdf5 import DatasetWriter, acquire_write_lock, read_split
+from hybridqcm.data.dataset_writer import DatasetWriter, acquire_write_lock
+from hybridqcm.data.hdf5 import read_split
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 ENV = {**os.environ, "PYTHONPATH": SRC}

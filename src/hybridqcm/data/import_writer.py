@@ -182,7 +182,7 @@ def write_recordings(
 ) -> Path:
     """Write `data` as a schema-2 dataset file, atomically (temporary file beside it, renamed when complete).
 
-    No `physics` attribute (module docstring). DatasetWriter is not used because it refuses
+    No `physics` attribute (module docstring). dataset_writer.DatasetWriter is not used because it refuses
     non-finite values, and NaN is how a channel that was not recorded is marked.
     """
     output = Path(output)

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from hybridqcm import __version__
-from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.physics.continuous import simulate_continuous, time_basis
 from hybridqcm.physics.integrators import METHODS, simulate
 from hybridqcm.physics.occupant import N_MODES

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.simulate import SplitSummary, _class_list, _user, _warmups, check_warmup
 from hybridqcm.physics.continuous import time_basis
 from hybridqcm.physics.two_track_road import TwoTrackRoad
