@@ -182,10 +182,15 @@ MODELS_LAYERS = {
     "hybridqcm.models.estimators": {
         "hybridqcm.models.base",
         "hybridqcm.models.physics_losses",
+    },
+    "hybridqcm.models.gaussian_estimator": {
+        "hybridqcm.models.base",
+        "hybridqcm.models.estimators",
         "hybridqcm.models.uncertainty",
     },
     "hybridqcm.models.checkpoint": {
         "hybridqcm.models.estimators",
+        "hybridqcm.models.gaussian_estimator",
         "hybridqcm.models.signal_models",
         "hybridqcm.models.untrusted",
     },

@@ -33,7 +33,8 @@ import torch
 from lightning import LightningModule
 
 from hybridqcm.errors import CheckpointError
-from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
+from hybridqcm.models.estimators import LabelledEstimator, PhysicsResidualEstimator
+from hybridqcm.models.gaussian_estimator import GaussianEstimator
 from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 from hybridqcm.models.untrusted import check_config_tree, read_raw
 
