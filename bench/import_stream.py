@@ -77,6 +77,10 @@ def main(argv=None) -> None:
                 text=True,
                 check=True,
             ).stdout
+            # DatasetError lives in hybridqcm.errors (data.hdf5 no longer re-exports it)
+            text = text.replace(
+                "from hybridqcm.data.hdf5 import DatasetError", "from hybridqcm.errors import DatasetError"
+            )
             old_source = str(Path(tmp) / "old_importer.py")
             Path(old_source).write_text(text)
         env = {**os.environ, "PYTHONPATH": str(REPO / "src")}
