@@ -4,8 +4,9 @@
     write_windows(output, layout, windows, ...)  the writer: slabs of windows, atomically and exclusively
     write_recordings(output, data, ...)   ImportedRecordings held in memory (small files, tests)
 
-The file appears complete or not at all: written to a temporary name, published by a link (never over
-another file unless overwrite), removed on any error, Ctrl-C or SIGTERM.
+The file appears complete or not at all: written to a temporary file beside the output and renamed into
+place when complete (an existing output is refused unless overwrite); the temporary file is removed on
+any error, Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
