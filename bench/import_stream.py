@@ -32,7 +32,7 @@ def _child(reader: str, csv: str, out: str, window: int, old_source: str | None)
     kwargs = {"recording_column": "recording", "window": window} if _has_recording(csv) else {"window": window}
     started = time.perf_counter()
     if reader == "new":
-        from hybridqcm.data.importer import import_recordings
+        from hybridqcm.data.import_writer import import_recordings
 
         layout = import_recordings(csv, out, overwrite=True, **kwargs)
         rows = layout.n_rows
@@ -77,6 +77,10 @@ def main(argv=None) -> None:
                 text=True,
                 check=True,
             ).stdout
+            # DatasetError lives in hybridqcm.errors (data.hdf5 no longer re-exports it)
+            text = text.replace(
+                "from hybridqcm.data.hdf5 import DatasetError", "from hybridqcm.errors import DatasetError"
+            )
             old_source = str(Path(tmp) / "old_importer.py")
             Path(old_source).write_text(text)
         env = {**os.environ, "PYTHONPATH": str(REPO / "src")}

@@ -25,7 +25,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from hybridqcm.data.importer import read_logger
+from hybridqcm.data.logger_csv import read_logger
 from hybridqcm.data.two_loggers import align
 
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from hybridqcm import runfolder
-from hybridqcm.data.hdf5 import DatasetWriter, acquire_write_lock, read_split
+from hybridqcm.data.dataset_writer import DatasetWriter, acquire_write_lock
+from hybridqcm.data.hdf5 import read_split
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 ENV = {**os.environ, "PYTHONPATH": SRC}
@@ -139,9 +140,9 @@ def test_completion_marker_names_the_inputs(tmp_path):
 
 
 def test_pipeline_stage_without_marker_is_not_done(tmp_path):
-    from hybridqcm import pipeline
+    from hybridqcm.apps.stages import demo_stages
 
-    stage = next(s for s in pipeline.demo_stages(str(tmp_path), str(tmp_path / "d.h5")) if s.app == "qcm-estimate")
+    stage = next(s for s in demo_stages(str(tmp_path), str(tmp_path / "d.h5")) if s.app == "qcm-estimate")
     run_dir = Path(stage.run_dir)
     run_dir.mkdir(parents=True)
     for name in stage.done_when:  # leftovers of a killed or foreign run

@@ -7,10 +7,13 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
+from hybridqcm.data.batches import apply_noise
 from hybridqcm.data.channels import ChannelError, required_keys, select_channels, select_params
-from hybridqcm.data.datamodules import HDF5DataModule, SimulatedStream, StreamingDataModule, apply_noise
-from hybridqcm.data.hdf5 import DatasetError, DatasetWriter
+from hybridqcm.data.datamodules import HDF5DataModule, StreamingDataModule
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.simulate import simulate_samples, write_dataset
+from hybridqcm.data.stream import SimulatedStream
+from hybridqcm.errors import DatasetError
 from hybridqcm.physics import RoadProfile, build_prior
 
 

@@ -17,7 +17,8 @@ import torch
 from omegaconf import OmegaConf
 
 from hybridqcm.apps.estimate_drive import DrivePlan, aggregate_drives, drive_plan
-from hybridqcm.data.importer import read_recordings, write_recordings
+from hybridqcm.data.import_writer import write_recordings
+from hybridqcm.data.importer import read_recordings
 from hybridqcm.errors import DatasetError
 from hybridqcm.estimation.solver import SolverStatus
 from hybridqcm.estimation.window_check import WindowStatus

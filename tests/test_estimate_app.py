@@ -13,7 +13,7 @@ from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.estimate import ConfigError, build_inputs, check_experiment_overrides, validate
 from hybridqcm.config import CONFIG_DIR
-from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.errors import DatasetError
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints, write_dataset
 
 

@@ -14,8 +14,10 @@ import h5py
 import numpy as np
 import pytest
 
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
-from hybridqcm.data.hdf5 import DatasetError, DatasetWriter, read_split
+from hybridqcm.data.hdf5 import read_split
+from hybridqcm.errors import DatasetError
 
 BIN = Path(sys.executable).parent
 LIMIT = 256 * 1024  # bytes any one file of the process may have
@@ -81,13 +83,13 @@ class _FullAfter(GuardedFile):
 
 
 def test_a_write_that_fails_is_reported_and_the_file_is_not_published(tmp_path, monkeypatch):
-    import hybridqcm.data.hdf5 as hdf5
+    import hybridqcm.data.dataset_writer as dataset_writer
 
     def full_guard(path):
         guard = _FullAfter(path, 64 * 1024)
         return h5py.File(guard, "w"), guard
 
-    monkeypatch.setattr(hdf5, "open_guarded", full_guard)
+    monkeypatch.setattr(dataset_writer, "open_guarded", full_guard)
     target = tmp_path / "d.h5"
     rng = np.random.default_rng(0)
     with pytest.raises(DatasetError, match=rf"{target}: could not be written: No space left on device"):

@@ -10,7 +10,9 @@ import pytest
 
 from conftest import write_tiny_dataset
 from hybridqcm.data import simulate as simulate_module
-from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, DatasetError, DatasetWriter, dataset_info, read_split, recorded_channels
+from hybridqcm.data.dataset_writer import DatasetWriter
+from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, dataset_info, read_split, recorded_channels
+from hybridqcm.errors import DatasetError
 
 ALL_KEYS = tuple(LAYOUT)
 

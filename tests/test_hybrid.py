@@ -6,9 +6,11 @@ import lightning
 import pytest
 import torch
 
-from hybridqcm.estimation.front import CheckpointKindError, HybridEstimator, equation_error_params, load_network
+from hybridqcm.errors import CheckpointError
+from hybridqcm.estimation.front import HybridEstimator, equation_error_params
 from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
+from hybridqcm.models.checkpoint import load_checkpoint
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
 
 H = 0.01
@@ -135,7 +137,7 @@ def test_hybrid_completion_then_a3_recovers_truth(checkpoints, batch):
 def test_callback_runs_in_test_loop_and_cnn_initialises(checkpoints, batch):
     module = HybridEstimator(cnn_ckpt=str(checkpoints["cnn"]), observed=["a3", "a2", "a1"], n_steps=100, h=H)
     prepared = module.prepare({k: batch[k] for k in ("accel", "road", "pu", "init", "index")})
-    expected = load_network(checkpoints["cnn"], "cnn").estimate(
+    expected = load_checkpoint(checkpoints["cnn"], "cnn").estimate(
         batch["accel"][:, :, 0].float(), batch["accel"][:, :, 1].float()
     )
     torch.testing.assert_close(prepared["init"][:, :2], expected.double())
@@ -162,14 +164,14 @@ def test_networks_run_without_tf32_convolutions_and_the_setting_is_restored(chec
 
 
 def test_checkpoint_kind_errors(checkpoints, tmp_path):
-    with pytest.raises(CheckpointKindError, match="cnn_ckpt=.*CompletionUNet.*cnn needs"):
+    with pytest.raises(CheckpointError, match="cnn_ckpt=.*CompletionUNet.*cnn needs"):
         HybridEstimator(cnn_ckpt=str(checkpoints["unet"]))
-    with pytest.raises(CheckpointKindError, match="does not exist"):
+    with pytest.raises(CheckpointError, match="does not exist"):
         HybridEstimator(unet_ckpt=str(tmp_path / "missing.ckpt"))
     junk = tmp_path / "junk.ckpt"
     junk.write_text("not a checkpoint")
-    with pytest.raises(CheckpointKindError, match="not a readable"):
-        load_network(junk, "cae")
+    with pytest.raises(CheckpointError, match="not a readable"):
+        load_checkpoint(junk, "cae")
 
 
 def test_cnn_needs_a2(checkpoints):

@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 import yaml
 
-from hybridqcm.data.importer import RecordingError, read_recordings, write_recordings
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.import_writer import write_recordings
+from hybridqcm.data.importer import read_recordings
 
 G = 9.80665  # standard gravity, m/s² per g (by definition)
 REPO = Path(__file__).resolve().parents[1]

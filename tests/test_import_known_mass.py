@@ -12,7 +12,9 @@ import pytest
 
 from hybridqcm.apps.calibrate import known_loads
 from hybridqcm.data import csv_stream
-from hybridqcm.data.importer import RecordingError, import_recordings, read_recordings
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.import_writer import import_recordings
+from hybridqcm.data.importer import read_recordings
 from test_import import qcm_import
 
 

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from hybridqcm.data import csv_stream
-from hybridqcm.data.importer import RecordingError, import_recordings, read_recordings
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.import_writer import import_recordings
+from hybridqcm.data.importer import read_recordings
 
 
 def _csv(path: Path, header: str, rows: list[str]) -> Path:

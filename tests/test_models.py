@@ -7,10 +7,9 @@ import pytest
 import torch
 
 from conftest import tiny_datamodule
-from hybridqcm.apps.train import load_module
 from hybridqcm.data.simulate import simulate_samples, write_dataset
+from hybridqcm.errors import CheckpointError
 from hybridqcm.models import (
-    CheckpointMismatch,
     CompletionUNet,
     DenoisingAutoencoder,
     DenoisingCAE,
@@ -24,6 +23,7 @@ from hybridqcm.models import (
     physics_residual,
     physics_residual_loss,
 )
+from hybridqcm.models.checkpoint import load_module
 from hybridqcm.models.physics_losses import balanced_residual_loss
 from hybridqcm.models.schedule import one_cycle_lr
 from hybridqcm.physics import RoadProfile, build_prior
@@ -247,7 +247,7 @@ def test_checkpoint_round_trip_and_inference_api(tiny, tmp_path, index):
         assert out.shape == (5, 2, 300) and torch.equal(out, module.complete(a3[:, :300], pu_u[:, :300]))
     # A checkpoint of another class is refused with a clear message.
     other = DenoisingAutoencoder if cls is not DenoisingAutoencoder else CompletionUNet
-    with pytest.raises(CheckpointMismatch, match=f"holds a {cls.__name__} model, expected {other.__name__}"):
+    with pytest.raises(CheckpointError, match=f"holds a {cls.__name__} model, expected {other.__name__}"):
         load_module(str(path), other)
 
 

@@ -1,13 +1,14 @@
-"""The split of models/modules.py (issue 8): old checkpoints and import paths, and the epoch statistics.
+"""The split of models/modules.py (issues 8, 29): old checkpoints, and the epoch statistics.
 
 Facts checked: a checkpoint written before the split loads through the safe loader with every
 tensor unchanged; a checkpoint records the class name only (no module path that a move could
-break); validation/test statistics logged through metrics.ErrorDistribution equal a numpy
+break), and the loader resolves it by that name alone; validation/test statistics logged through metrics.ErrorDistribution equal a numpy
 computation on the same predictions, under the keys the training app and tracking read.
 """
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import lightning as L
@@ -15,13 +16,11 @@ import numpy as np
 import pytest
 import torch
 
-import hybridqcm.models as models
-import hybridqcm.models.modules as old_home
 from conftest import tiny_datamodule
+from hybridqcm.errors import CheckpointError
 from hybridqcm.metrics import ErrorDistribution
-from hybridqcm.models.checkpoint import MODULES, load_checkpoint
+from hybridqcm.models.checkpoint import MODULES, load_checkpoint, stored_class
 from hybridqcm.models.estimators import LabelledEstimator, PhysicsResidualEstimator
-from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
 
 # Written by the pre-split code (class then in hybridqcm.models.modules); present on the dev box only.
 PRE_SPLIT_CKPT = Path("/work/main/outputs/dev/train_exp2_cont2/checkpoints/last.ckpt")
@@ -33,15 +32,33 @@ SMALL_CNN = {
 }
 
 
-def test_old_import_path_names_the_same_classes():
-    for name in ("LabelledEstimator", "GaussianEstimator", "PhysicsResidualEstimator"):
-        assert getattr(old_home, name) is getattr(models, name) is MODULES[name]
-    assert old_home.DenoisingAutoencoder is DenoisingAutoencoder and old_home.CompletionUNet is CompletionUNet
-    assert old_home.CheckpointMismatch is models.CheckpointMismatch and old_home.MODULES is MODULES
-    assert {cls.__module__ for cls in MODULES.values()} == {
-        "hybridqcm.models.estimators",
-        "hybridqcm.models.signal_models",
+def test_checkpoints_name_their_class_only_and_load_by_that_name(tmp_path):
+    """What a pre-split file holds (the class name, hparams, tensors) loads whatever module the class lives in
+    now; a module path (the old home hybridqcm.models.modules is gone) is not a name the loader knows."""
+    assert importlib.util.find_spec("hybridqcm.models.modules") is None
+    assert set(MODULES) == {
+        "LabelledEstimator",
+        "GaussianEstimator",
+        "PhysicsResidualEstimator",
+        "DenoisingAutoencoder",
+        "CompletionUNet",
     }
+    torch.manual_seed(1)
+    written = PhysicsResidualEstimator(net=SMALL_CNN, plot_every_n_epochs=0)
+    raw = {"hybridqcm_class": "PhysicsResidualEstimator", "hyper_parameters": dict(written.hparams)}
+    raw["state_dict"] = {k: v.clone() for k, v in written.state_dict().items()}
+    path = tmp_path / "old.ckpt"
+    torch.save(raw, path)
+    assert stored_class(path) == "PhysicsResidualEstimator"
+    module = load_checkpoint(path, "cnn")
+    assert type(module) is PhysicsResidualEstimator and not module.training
+    assert all(torch.equal(module.state_dict()[k], v) for k, v in raw["state_dict"].items())
+
+    moved = tmp_path / "path.ckpt"
+    torch.save({**raw, "hybridqcm_class": "hybridqcm.models.modules.PhysicsResidualEstimator"}, moved)
+    assert stored_class(moved) == "hybridqcm.models.modules.PhysicsResidualEstimator"
+    with pytest.raises(CheckpointError, match="holds a hybridqcm.models.modules.PhysicsResidualEstimator checkpoint"):
+        load_checkpoint(moved, "cnn")
 
 
 @pytest.mark.skipif(not PRE_SPLIT_CKPT.is_file(), reason="pre-split checkpoint of the dev box not present")

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from hybridqcm.data.datamodules import StreamingDataModule, StreamSimulator
+from hybridqcm.data.datamodules import StreamingDataModule
 from hybridqcm.data.simulate import simulate_samples
+from hybridqcm.data.stream import StreamSimulator
 
 KW = dict(n_steps=300, physics="continuous", warmup_s=(2.0, 5.0))
 
@@ -69,7 +70,8 @@ def test_a_persons_file_refuses_the_physics_residual_but_trains_the_labelled_cnn
     residual's training split is refused in one line."""
     from conftest import write_tiny_dataset
     from hybridqcm.data.datamodules import HDF5DataModule
-    from hybridqcm.data.hdf5 import DatasetError, read_split
+    from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.errors import DatasetError
 
     path = tmp_path / "persons.h5"
     write_tiny_dataset(path, physics="continuous", warmup_s=(2.0, 5.0), occupant="body1")

@@ -14,9 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from hybridqcm.apps.train import load_module
 from hybridqcm.errors import CheckpointError, ConfigError, DatasetError, HybridQCMError
-from hybridqcm.models.checkpoint import load_checkpoint, read_checkpoint
+from hybridqcm.models.checkpoint import load_checkpoint, load_module, read_checkpoint
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 
@@ -58,14 +57,7 @@ def _tampered(source: Path, target: Path, edit) -> Path:
     return target
 
 
-def test_error_hierarchy_keeps_old_names():
-    from hybridqcm.data.hdf5 import DatasetError as DataDatasetError
-    from hybridqcm.errors import ConfigError as AppConfigError
-    from hybridqcm.estimation.front import CheckpointKindError
-    from hybridqcm.models.modules import CheckpointMismatch
-
-    assert AppConfigError is ConfigError and DataDatasetError is DatasetError
-    assert issubclass(CheckpointKindError, CheckpointError) and issubclass(CheckpointMismatch, CheckpointError)
+def test_error_hierarchy():
     for cls in (ConfigError, DatasetError, CheckpointError):
         assert issubclass(cls, HybridQCMError) and issubclass(cls, ValueError)
 
@@ -94,14 +86,10 @@ def test_pickle_payload_is_refused_and_never_runs(tiny_cnn, tmp_path):
         load_checkpoint(evil, "cnn", "cnn_ckpt")
     assert "\n" not in str(info.value)
     assert not marker.exists()
-    # The two apps' legacy entry points go through the same loader.
-    from hybridqcm.estimation.front import CheckpointKindError, load_network
+    # The class-checked entry point (qcm-train's ckpt_path, denoiser_ckpt) goes through the same loader.
     from hybridqcm.models import PhysicsResidualEstimator
-    from hybridqcm.models.modules import CheckpointMismatch
 
-    with pytest.raises(CheckpointKindError, match="refused"):
-        load_network(evil, "cnn", "cnn_ckpt")
-    with pytest.raises(CheckpointMismatch, match="refused"):
+    with pytest.raises(CheckpointError, match="refused"):
         load_module(str(evil), PhysicsResidualEstimator)
     assert not marker.exists()
 
@@ -202,7 +190,7 @@ def test_state_dict_missing_unexpected_or_misshaped_key_is_one_line(tiny_cnn, tm
 
 
 def test_estimator_refuses_cnn_for_other_targets_or_channels(tiny_cnn, tmp_path):
-    from hybridqcm.estimation.front import CheckpointKindError, HybridEstimator
+    from hybridqcm.estimation.front import HybridEstimator
 
     labelled = tmp_path / "labelled.ckpt"
     from hybridqcm.models import LabelledEstimator
@@ -218,15 +206,15 @@ def test_estimator_refuses_cnn_for_other_targets_or_channels(tiny_cnn, tmp_path)
         },
         labelled,
     )
-    with pytest.raises(CheckpointKindError, match=r"targets \['p3', 'p4'\], but the initialiser needs \['p1', 'p2'\]"):
+    with pytest.raises(CheckpointError, match=r"targets \['p3', 'p4'\], but the initialiser needs \['p1', 'p2'\]"):
         HybridEstimator(cnn_ckpt=str(labelled))
     other_h = _tampered(tiny_cnn, tmp_path / "h.ckpt", lambda raw: raw["hyper_parameters"].update(h=0.005))
-    with pytest.raises(CheckpointKindError, match=r"trained at h = 0.005 s, but the data have h = 0.01 s"):
+    with pytest.raises(CheckpointError, match=r"trained at h = 0.005 s, but the data have h = 0.01 s"):
         HybridEstimator(cnn_ckpt=str(other_h), h=0.01)
     continuous = _tampered(
         tiny_cnn, tmp_path / "c.ckpt", lambda raw: raw["hyper_parameters"].update(physics="continuous")
     )
-    with pytest.raises(CheckpointKindError, match="physics = 'continuous'"):
+    with pytest.raises(CheckpointError, match="physics = 'continuous'"):
         HybridEstimator(cnn_ckpt=str(continuous))
 
 

@@ -17,7 +17,7 @@ from hydra.utils import instantiate
 
 from hybridqcm.apps.train import ConfigError, build_datamodule, check_experiment_overrides, prepare, train
 from hybridqcm.config import CONFIG_DIR
-from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.simulate import write_dataset
 from hybridqcm.physics import RoadProfile, build_prior
 

@@ -16,8 +16,10 @@ import h5py
 import numpy as np
 import pytest
 
-from hybridqcm.data.importer import LoggerRecording, RecordingError, read_logger
-from hybridqcm.data.two_loggers import align, lowpass_resample, resample, vertical
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.logger_csv import LoggerRecording, read_logger
+from hybridqcm.data.resample import lowpass_resample, resample
+from hybridqcm.data.two_loggers import align, vertical
 
 REPO = Path(__file__).resolve().parents[1]
 HEADER = "Time (s),Acceleration x (m/s^2),Acceleration y (m/s^2),Acceleration z (m/s^2)"

@@ -75,7 +75,7 @@ def write_dataset(
     path: str | Path, samples: dict[str, Tensor], split: str = "test", with_params: bool = True, h: float = 0.01
 ) -> Path:
     """Write ``samples`` as a SPEC §5 file (float32 signals); optionally without /params."""
-    from hybridqcm.data.hdf5 import DatasetWriter
+    from hybridqcm.data.dataset_writer import DatasetWriter
 
     n, n_steps = samples["road"].shape
     keys = ["accel", "vel", "disp", "road"] + (["params"] if with_params else [])

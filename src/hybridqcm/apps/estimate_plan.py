@@ -132,7 +132,7 @@ def vehicle_prior_settings(cfg) -> dict | None:
 
 def check_positive_params(path: Path, split: str, params, n: int) -> None:
     """The file's true parameters must be finite and > 0 (errors are relative to them); DatasetError otherwise."""
-    from hybridqcm.data.hdf5 import DatasetError
+    from hybridqcm.errors import DatasetError
 
     values = np.asarray(params[:n], dtype=np.float64)
     if values.ndim != 2 or values.shape[1] != 10:
@@ -264,9 +264,11 @@ def check_setting_types(cfg, own: tuple[str, ...] = ()) -> None:
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
     from hybridqcm.apps.estimate_occupant import delay_margin, occupant_plan
-    from hybridqcm.data.hdf5 import DatasetError, dataset_info
-    from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
+    from hybridqcm.data.hdf5 import dataset_info
+    from hybridqcm.errors import CheckpointError, DatasetError
+    from hybridqcm.estimation.front import check_networks
     from hybridqcm.estimation.fusion import check_cnn_prior
+    from hybridqcm.models.checkpoint import load_checkpoint
 
     check_known_keys(cfg)
     check_setting_types(cfg)
@@ -378,8 +380,8 @@ def validate(cfg) -> dict:
     for key, kind in kinds.items():
         if cfg.get(key):
             try:
-                networks[key] = load_network(cfg[key], kind, key)
-            except CheckpointKindError as error:
+                networks[key] = load_checkpoint(cfg[key], kind, key)
+            except CheckpointError as error:
                 raise ConfigError(str(error)) from None
     if cfg.init.cnn and not cfg.cnn_ckpt:
         raise ConfigError(
@@ -461,7 +463,7 @@ def validate(cfg) -> dict:
             networks.get("cae_ckpt"),
             h_file or 0.01,
         )
-    except CheckpointKindError as error:
+    except CheckpointError as error:
         raise ConfigError(str(error)) from None
     try:  # init.cnn_prior=network: the CNN must predict its variance (estimation/fusion.py)
         check_cnn_prior(

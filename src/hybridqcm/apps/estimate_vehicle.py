@@ -45,7 +45,7 @@ from hybridqcm.apps.estimate_vehicle_report import (
     write_vehicle_metrics,
 )
 from hybridqcm.atomic import atomic_write_text
-from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
+from hybridqcm.data.hdf5 import dataset_info, read_split
 from hybridqcm.data.vehicle_files import (
     apply_sensor,
     check_vehicle_physical,
@@ -54,7 +54,7 @@ from hybridqcm.data.vehicle_files import (
     vehicle_layout,
     vehicle_of,
 )
-from hybridqcm.errors import ConfigError
+from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
 from hybridqcm.estimation.noise import SpectralNoise, estimate_variances
 from hybridqcm.estimation.refinement import GaussNewtonStage

@@ -270,8 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.base import CheckpointMismatch
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     args = build_parser().parse_args(argv)
     if args.n_check < 1:
@@ -289,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             args.tol,
             args.overwrite,
         )
-    except (ConfigError, DatasetError, CheckpointMismatch, FileNotFoundError) as error:
+    except (ConfigError, DatasetError, CheckpointError, FileNotFoundError) as error:
         fail(error)
     except ParityError as error:
         fail(error, code=1)

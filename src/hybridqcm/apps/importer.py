@@ -20,7 +20,7 @@ from hybridqcm.apps.common import check_task_name_overrides, fail, install_signa
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.console import print_table
-from hybridqcm.data.importer import import_recordings
+from hybridqcm.data.import_writer import import_recordings
 from hybridqcm.data.two_loggers import import_two_loggers
 
 

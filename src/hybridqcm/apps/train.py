@@ -81,7 +81,8 @@ def _split_has(path, split, channels) -> bool:
     if not path or not split or not Path(str(path)).is_file():
         return True
     from hybridqcm.data.channels import required_keys
-    from hybridqcm.data.hdf5 import DatasetError, dataset_info
+    from hybridqcm.data.hdf5 import dataset_info
+    from hybridqcm.errors import DatasetError
 
     try:
         stored = dataset_info(path)["splits"].get(str(split))
@@ -90,29 +91,11 @@ def _split_has(path, split, channels) -> bool:
     return stored is None or required_keys(channels) <= set(stored["keys"])
 
 
-def load_module(path: str, cls: type):
-    """A checkpoint of class ``cls`` through the one safe loader (weights_only, allow-list, strict keys);
-    CheckpointMismatch (one line) for a missing, refused or foreign one."""
-    from hybridqcm.errors import CheckpointError
-    from hybridqcm.models.base import CheckpointMismatch, stored_model_class
-    from hybridqcm.models.checkpoint import load_checkpoint
-
-    stored = stored_model_class(path)
-    if stored != cls.__name__:
-        raise CheckpointMismatch(
-            f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}"
-        )
-    try:
-        return load_checkpoint(path)
-    except CheckpointError as error:
-        raise CheckpointMismatch(str(error)) from None
-
-
 def load_model(cfg, train: bool):
     """The model: instantiated from cfg.model, or loaded (and class-checked) from cfg.ckpt_path for evaluation."""
     from hydra.utils import get_class, instantiate
 
-    from hybridqcm.models.checkpoint import MODULES
+    from hybridqcm.models.checkpoint import MODULES, load_module
 
     model_cls = get_class(cfg.model._target_)
     if model_cls.__name__ not in MODULES:
@@ -243,6 +226,7 @@ def _prepare(cfg) -> dict:
     model = load_model(cfg, train)
     if cfg.get("denoiser_ckpt"):
         from hybridqcm.models import DenoisingAutoencoder
+        from hybridqcm.models.checkpoint import load_module
 
         if not hasattr(model, "attach_denoiser"):
             raise ConfigError(
@@ -347,14 +331,13 @@ def train(cfg) -> dict[str, float]:
 def _user_errors() -> tuple[type[BaseException], ...]:
     from hydra.errors import InstantiationException
 
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.base import CheckpointMismatch
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     return (
         HybridQCMError,
         ConfigError,
         DatasetError,
-        CheckpointMismatch,
+        CheckpointError,
         FileNotFoundError,
         InstantiationException,
         ValueError,
@@ -364,14 +347,13 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 def run(cfg) -> float | None:
     """Hydra task function: train/test, return `optimized_metric` (for sweepers)."""
-    from hybridqcm.data.hdf5 import DatasetError
-    from hybridqcm.models.base import CheckpointMismatch
+    from hybridqcm.errors import CheckpointError, DatasetError
 
     try:
         # Every input is validated in prepare(), which train() runs before any training step;
         # such errors print as one line. Anything raised later keeps its traceback.
         metrics = train(cfg)
-    except (HybridQCMError, ConfigError, DatasetError, CheckpointMismatch) as error:
+    except (HybridQCMError, ConfigError, DatasetError, CheckpointError) as error:
         fail(error)
     metric = cfg.get("optimized_metric")
     if metric and metric in metrics:

@@ -20,10 +20,10 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from hybridqcm.data.hdf5 import DatasetError
+from hybridqcm.errors import DatasetError
+from hybridqcm.physics.parameters import PARAM_NAMES
 
 CHANNEL_NAMES: tuple[str, ...] = ("a3", "a2", "a1", "v3", "v2", "v1", "q3", "q2", "q1", "u", "pu_u")
-PARAM_CHANNELS: tuple[str, ...] = tuple(f"p{i}" for i in range(1, 11))
 
 # name -> (stored key, column or None)
 _SOURCE: dict[str, tuple[str, int | None]] = {
@@ -51,10 +51,10 @@ def validate_channels(
 ) -> list[str]:
     """Check names; a list is either all time channels or all parameters. Returns the list."""
     names = _as_list(names)
-    valid = set(CHANNEL_NAMES) | (set(PARAM_CHANNELS) if allow_params else set())
+    valid = set(CHANNEL_NAMES) | (set(PARAM_NAMES) if allow_params else set())
     unknown = [n for n in names if n not in valid]
     if unknown:
-        options = list(CHANNEL_NAMES) + (list(PARAM_CHANNELS) if allow_params else [])
+        options = list(CHANNEL_NAMES) + (list(PARAM_NAMES) if allow_params else [])
         raise ChannelError(f"{what}: unknown channel name(s) {unknown}; valid names are {options}")
     if len(set(names)) != len(names):
         raise ChannelError(f"{what}: duplicate channel names in {names}")
@@ -65,7 +65,7 @@ def validate_channels(
 
 
 def is_param(name: str) -> bool:
-    return name in PARAM_CHANNELS
+    return name in PARAM_NAMES
 
 
 def required_keys(names: str | Iterable[str] | None) -> set[str]:
@@ -114,7 +114,7 @@ def select_params(arrays: Mapping, names: Sequence[str]):
         raise ChannelError(f"select_params: {names} are not all parameters p1..p10")
     if "params" not in arrays:
         raise ChannelError(f"parameters {names} need key 'params', which the data lacks (it has {sorted(arrays)})")
-    index = [PARAM_CHANNELS.index(n) for n in names]
+    index = [PARAM_NAMES.index(n) for n in names]
     params = arrays["params"]
     if isinstance(params, torch.Tensor):
         return params[:, index].to(torch.float64)
@@ -131,7 +131,6 @@ def select(arrays: Mapping, names: Sequence[str], dtype=None):
 
 __all__ = [
     "CHANNEL_NAMES",
-    "PARAM_CHANNELS",
     "ChannelError",
     "validate_channels",
     "is_param",

@@ -27,8 +27,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybridqcm.physics.parameters import CHANNELS
+
 KINDS = ("none", "additive", "multiplicative")
-ACCEL = ("a3", "a2", "a1")
 
 
 def _per_channel(value, name: str) -> tuple[float, float, float]:
@@ -222,7 +223,7 @@ def apply_to_channels(sensor: SensorModel, x: Tensor, names: Sequence[str], inde
     """The sensor on the accelerometer channels of x [b, C, N] named `names` (others, e.g. pu_u, untouched)."""
     if not sensor.active:
         return x
-    where = [(c, ACCEL.index(n)) for c, n in enumerate(names) if n in ACCEL]
+    where = [(c, CHANNELS.index(n)) for c, n in enumerate(names) if n in CHANNELS]
     if not where:
         return x
     accel = torch.full((x.shape[0], x.shape[2], 3), float("nan"), dtype=x.dtype)
@@ -242,7 +243,7 @@ def additive_augmentation(
     std = s * RMS of the sample's channel, s ~ U[0, sigma_max] per sample."""
     if sigma_max <= 0:
         return x
-    rows = [c for c, n in enumerate(names) if n in ACCEL]
+    rows = [c for c, n in enumerate(names) if n in CHANNELS]
     if not rows:
         return x
     level = sigma_max * torch.rand(x.shape[0], generator=generator, dtype=torch.float64).to(x.dtype)

@@ -8,6 +8,7 @@ each chunk is written before the next is simulated, so memory stays bounded by t
 from __future__ import annotations
 
 import getpass
+import json
 import math
 import platform
 import time
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from hybridqcm import __version__
-from hybridqcm.data.hdf5 import DatasetWriter
+from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.physics.continuous import simulate_continuous, time_basis
 from hybridqcm.physics.integrators import METHODS, simulate
 from hybridqcm.physics.occupant import N_MODES
@@ -295,6 +296,92 @@ def _user() -> str:
         return "unknown"
 
 
+def _check_settings(n_steps, h, speed_mps, samples_per_profile, profiles_per_chunk, method, physics, occupant):
+    if n_steps < 1 or samples_per_profile < 1 or h <= 0 or speed_mps <= 0:
+        raise ValueError(
+            f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
+            f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}"
+        )
+    if profiles_per_chunk < 1:
+        raise ValueError(f"profiles_per_chunk must be >= 1, got {profiles_per_chunk}")
+    if method not in METHODS:
+        raise ValueError(f"unknown integrator {method!r}; choose one of {METHODS}")
+    check_physics(physics)
+    check_occupant_physics(occupant, physics)
+
+
+def _samples_progress(progress: bool):
+    """A rich progress bar counting samples (nothing when disabled)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("samples"),
+        TimeRemainingColumn(),
+    )
+    return Progress(*columns, disable=not progress, transient=False)
+
+
+def _write_split(writer, split: str, split_index: int, classes: list[int], run: Mapping, advance) -> SplitSummary:
+    """Simulate one split chunk by chunk into ``writer``; ``run``: write_dataset's settings (and basis, n_body)."""
+    seed, samples_per_profile, n_body = run["seed"], run["samples_per_profile"], run["n_body"]
+    generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
+    n_samples = len(classes) * samples_per_profile
+    writer.create_split(
+        split,
+        n_samples,
+        run["n_steps"],
+        extra={"occupant_params": (np.dtype("float64"), (n_body,))} if n_body else None,
+    )
+    writer.set_split_attr(split, "occupant", run["occupant"])
+    body_rng = body_generator(seed, split_index)
+    summary = SplitSummary()
+    start_time = time.perf_counter()
+    # Shuffle the class order so a prefix of the split is a fair mix of classes.
+    order = torch.randperm(len(classes), generator=generator)
+    classes_tensor = torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
+    for first in range(0, len(classes), run["profiles_per_chunk"]):
+        chunk = classes_tensor[first : first + run["profiles_per_chunk"]]
+        batch = simulate_samples(
+            run["prior"],
+            run["road_profile"],
+            chunk,
+            run["n_steps"],
+            run["h"],
+            run["speed_mps"],
+            generator,
+            samples_per_profile,
+            run["method"],
+            run["physics"],
+            run["warmup_s"],
+            run["basis"],
+            run["occupant"],
+            body_rng,
+        )
+        row = first * samples_per_profile
+        if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
+            raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
+        writer.write(
+            split,
+            row,
+            accel=batch["accel"].float().numpy(),
+            vel=batch["vel"].float().numpy(),
+            disp=batch["disp"].float().numpy(),
+            road=batch["road"].float().numpy(),
+            params=batch["params"].numpy(),
+            state0=batch["state0"].numpy(),
+            road_class=batch["road_class"].numpy().astype(np.int8),
+            profile_id=(batch["profile"] + first).numpy().astype(np.int32),
+            **({"occupant_params": batch["occupant_params"].numpy()} if n_body else {}),
+        )
+        summary.update(batch)
+        advance(batch["params"].shape[0])
+    summary.seconds = time.perf_counter() - start_time
+    return summary
+
+
 def write_dataset(
     output: str | Path,
     splits: Mapping[str, Mapping],
@@ -325,17 +412,7 @@ def write_dataset(
     splits: {split: {"profiles": {"A": 200, ...}}}. The same seed gives identical arrays: each
     split has its own generator seeded from (seed, split position).
     """
-    if n_steps < 1 or samples_per_profile < 1 or h <= 0 or speed_mps <= 0:
-        raise ValueError(
-            f"need n_steps >= 1, samples_per_profile >= 1, h > 0, speed > 0; got "
-            f"{n_steps}, {samples_per_profile}, {h}, {speed_mps}"
-        )
-    if profiles_per_chunk < 1:
-        raise ValueError(f"profiles_per_chunk must be >= 1, got {profiles_per_chunk}")
-    if method not in METHODS:
-        raise ValueError(f"unknown integrator {method!r}; choose one of {METHODS}")
-    check_physics(physics)
-    check_occupant_physics(occupant, physics)
+    _check_settings(n_steps, h, speed_mps, samples_per_profile, profiles_per_chunk, method, physics, occupant)
     n_body = 3 * N_MODES[occupant]
     warmup_s = check_warmup(warmup_s)
     prior_h = getattr(prior, "h", None)
@@ -359,79 +436,31 @@ def write_dataset(
         "created_by": f"hybridqcm {__version__} qcm-simulate ({_user()}@{platform.node()})",
         **dict(attrs or {}),
     }
-    summaries: dict[str, SplitSummary] = {}
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("samples"),
-        TimeRemainingColumn(),
-    )
     basis = time_basis(road_profile.omega * speed_mps, n_steps, h) if physics == "continuous" else None
+    run = dict(
+        prior=prior,
+        road_profile=road_profile,
+        n_steps=n_steps,
+        h=h,
+        speed_mps=speed_mps,
+        samples_per_profile=samples_per_profile,
+        seed=seed,
+        profiles_per_chunk=profiles_per_chunk,
+        method=method,
+        physics=physics,
+        warmup_s=warmup_s,
+        basis=basis,
+        occupant=occupant,
+        n_body=n_body,
+    )
+    summaries: dict[str, SplitSummary] = {}
     with (
         DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer,
-        Progress(*columns, disable=not progress, transient=False) as bar,
+        _samples_progress(progress) as bar,
     ):
         task = bar.add_task(f"simulating {Path(output).name}", total=total)
         for split_index, (split, classes) in enumerate(plan.items()):
-            generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
-            n_samples = len(classes) * samples_per_profile
-            writer.create_split(
-                split,
-                n_samples,
-                n_steps,
-                extra={"occupant_params": (np.dtype("float64"), (n_body,))} if n_body else None,
-            )
-            writer.set_split_attr(split, "occupant", occupant)
-            body_rng = body_generator(seed, split_index)
-            summary = summaries.setdefault(split, SplitSummary())
-            start_time = time.perf_counter()
-            # Shuffle the class order so a prefix of the split is a fair mix of classes.
-            order = torch.randperm(len(classes), generator=generator)
-            classes_tensor = (
-                torch.tensor(classes, dtype=torch.long)[order] if classes else torch.zeros(0, dtype=torch.long)
-            )
-            for first in range(0, len(classes), profiles_per_chunk):
-                chunk = classes_tensor[first : first + profiles_per_chunk]
-                batch = simulate_samples(
-                    prior,
-                    road_profile,
-                    chunk,
-                    n_steps,
-                    h,
-                    speed_mps,
-                    generator,
-                    samples_per_profile,
-                    method,
-                    physics,
-                    warmup_s,
-                    basis,
-                    occupant,
-                    body_rng,
-                )
-                row = first * samples_per_profile
-                if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp")):
-                    raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
-                writer.write(
-                    split,
-                    row,
-                    accel=batch["accel"].float().numpy(),
-                    vel=batch["vel"].float().numpy(),
-                    disp=batch["disp"].float().numpy(),
-                    road=batch["road"].float().numpy(),
-                    params=batch["params"].numpy(),
-                    state0=batch["state0"].numpy(),
-                    road_class=batch["road_class"].numpy().astype(np.int8),
-                    profile_id=(batch["profile"] + first).numpy().astype(np.int32),
-                    **({"occupant_params": batch["occupant_params"].numpy()} if n_body else {}),
-                )
-                summary.update(batch)
-                bar.advance(task, batch["params"].shape[0])
-            summary.seconds = time.perf_counter() - start_time
-        import json
-
+            summaries[split] = _write_split(writer, split, split_index, classes, run, lambda n: bar.advance(task, n))
         writer.set_attr("summary", json.dumps({s: v.as_dict() for s, v in summaries.items()}))
     return summaries
 

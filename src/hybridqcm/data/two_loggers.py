@@ -1,6 +1,6 @@
 """Two loggers, two clocks: a seat and a floor recording of one drive onto one time grid (issue 32).
 
-Phone apps and stand-alone loggers record three axes with gravity (importer.read_logger), each on its
+Phone apps and stand-alone loggers record three axes with gravity (logger_csv.read_logger), each on its
 own clock: its own start, its own irregular sample times, its own rate error and its own orientation.
 The road-free estimator needs the seat's vertical acceleration a3 and the floor's a2 on one grid:
 
@@ -15,7 +15,7 @@ The road-free estimator needs the seat's vertical acceleration a3 and the floor'
    and jitter, pass through the same filter and the ratio A3/A2 is untouched; the normalisation keeps its
    gain at DC exactly one under jitter. The quadrature of so sharp a filter on jittered samples is off by
    about the jitter, so it is corrected twice by the quadrature of what the result misses at the samples'
-   own times (:func:`resample`): 4e-4 of the signal at 100 Hz and 5e-5 at 200 Hz with 1 % jitter. The cutoff sits at the Nyquist frequency, not below it, because the
+   own times (data/resample.py): 4e-4 of the signal at 100 Hz and 5e-5 at 200 Hz with 1 % jitter. The cutoff sits at the Nyquist frequency, not below it, because the
    estimator tests its residual for whiteness: resampled white noise with a cutoff at 0.4 of the rate
    failed the Ljung-Box test in every 4.88 s window, at 0.5 with 64 steps in 3 % (1 % nominal), for 100
    and 200 Hz loggers alike (what the sharp edge lets alias from a faster logger is its noise above 50 Hz). No rate is taken from a median step (with 1 % jitter that is 1e-4 off): a logger's
@@ -39,7 +39,7 @@ The road-free estimator needs the seat's vertical acceleration a3 and the floor'
    half-width at each end), a3 = seat, a2 = floor.
 
 Memory: per logger its time stamps and axes (32 bytes a row: an hour at 1 kHz is 115 MB), then the two
-vertical signals on the grid; windows are written as they are cut (importer.write_windows).
+vertical signals on the grid; windows are written as they are cut (import_writer.write_windows).
 """
 
 from __future__ import annotations
@@ -50,9 +50,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.special import i0  # numpy's i0 is a Python-level series, 20x slower
 
-from hybridqcm.data.importer import RecordingError, read_logger, write_windows
+from hybridqcm.data.csv_checks import RecordingError
+from hybridqcm.data.import_writer import write_windows
+from hybridqcm.data.logger_csv import read_logger
+from hybridqcm.data.resample import lowpass_resample, resample
 
 XCORR_HALF_WIDTH = 16  # samples: the filter's half-width for the alignment's own resampling
 MIN_DRIFT_SEGMENTS = 6  # segments a drift must rest on to be applied
@@ -77,80 +79,6 @@ def vertical(xyz: np.ndarray) -> Vertical:
     up = mean / g
     tilt = math.degrees(math.acos(min(1.0, abs(float(up[2])))))
     return Vertical(values=xyz @ up - g, gravity=mean, tilt_deg=tilt)
-
-
-def _trapezoid_weights(t: np.ndarray) -> np.ndarray:
-    w = np.empty_like(t)
-    w[1:-1] = 0.5 * (t[2:] - t[:-2])
-    w[0], w[-1] = 0.5 * (t[1] - t[0]), 0.5 * (t[-1] - t[-2])
-    return w
-
-
-def lowpass_resample(
-    t_in: np.ndarray,
-    x: np.ndarray,
-    t_out: np.ndarray,
-    cutoff_hz: float,
-    half_width_s: float,
-    beta: float = 8.0,
-    chunk: int = 8192,
-) -> np.ndarray:
-    """x [n] sampled at the increasing times t_in [n] (irregular) -> [K] at t_out [K], through the low-pass
-    g(τ) = 2 f_c sinc(2 f_c τ) · I0(β √(1 − (τ/W)²))/I0(β) on |τ| ≤ W (module docstring, step 2)."""
-    t_in, x, t_out = (np.asarray(a, dtype=np.float64) for a in (t_in, x, t_out))
-    w = _trapezoid_weights(t_in)
-    lo = np.searchsorted(t_in, t_out - half_width_s, side="left")
-    hi = np.searchsorted(t_in, t_out + half_width_s, side="right")
-    width = int((hi - lo).max()) if t_out.size else 0
-    out = np.empty(t_out.size)
-    norm = i0(beta)
-    for a in range(0, t_out.size, chunk):
-        b = min(t_out.size, a + chunk)
-        idx = lo[a:b, None] + np.arange(width)[None, :]
-        valid = idx < hi[a:b, None]
-        idx = np.minimum(idx, t_in.size - 1)
-        tau = t_out[a:b, None] - t_in[idx]
-        u = np.clip(tau / half_width_s, -1.0, 1.0)
-        g = 2 * cutoff_hz * np.sinc(2 * cutoff_hz * tau) * i0(beta * np.sqrt(1 - u * u)) / norm
-        g = np.where(valid, g, 0.0) * w[idx]
-        out[a:b] = (g * x[idx]).sum(1) / g.sum(1)
-    return out
-
-
-def band_limited_at(grid: np.ndarray, y: np.ndarray, t: np.ndarray, half_width: int = 64, beta: float = 8.0):
-    """y [K] on the uniform grid [K], band-limited to its Nyquist frequency, at the times t [n]: the
-    Kaiser-windowed sinc interpolation Σ_k y_k sinc((t − T_k)/h) w((t − T_k)/(half_width h))."""
-    h = float(grid[1] - grid[0])
-    out = np.empty(t.size)
-    k0 = np.floor((t - grid[0]) / h).astype(np.int64)
-    offsets = np.arange(-half_width + 1, half_width + 1)
-    norm = i0(beta)
-    for a in range(0, t.size, 8192):
-        b = min(t.size, a + 8192)
-        idx = k0[a:b, None] + offsets[None, :]
-        valid = (idx >= 0) & (idx < grid.size)
-        idx = np.clip(idx, 0, grid.size - 1)
-        tau = (t[a:b, None] - grid[idx]) / h
-        u = np.clip(tau / half_width, -1.0, 1.0)
-        g = np.where(valid, np.sinc(tau) * i0(beta * np.sqrt(1 - u * u)) / norm, 0.0)
-        out[a:b] = (g * y[idx]).sum(1)
-    return out
-
-
-def resample(t_in: np.ndarray, x: np.ndarray, grid: np.ndarray, half_width: int = 64, iterations: int = 2):
-    """x [n] at the irregular times t_in onto the uniform grid [K], band-limited to the grid's Nyquist
-    frequency (module docstring, step 2): the filter's quadrature, then ``iterations`` corrections with the
-    quadrature of what the result misses at the samples' own times (x − the result interpolated there):
-    the quadrature alone is off by about the jitter (1 % jitter: 0.6 % RMS at 100 Hz), each correction
-    takes a factor of ten off (measured: 4e-4 at 100 Hz, 5e-5 at 200 Hz with 1 % jitter, two corrections)."""
-    h = float(grid[1] - grid[0])
-    width = half_width * h
-    y = lowpass_resample(t_in, x, grid, 0.5 / h, width)
-    inside = (t_in > grid[0] + width) & (t_in < grid[-1] - width)  # where the result is whole
-    for _ in range(iterations):
-        missed = np.where(inside, x - band_limited_at(grid, y, t_in, half_width), 0.0)
-        y = y + lowpass_resample(t_in, missed, grid, 0.5 / h, width)
-    return y
 
 
 def _uniform(t: np.ndarray, x: np.ndarray, rate: float, half_width_s: float) -> tuple[float, np.ndarray]:
@@ -238,23 +166,8 @@ class Alignment:
     report: dict = field(default_factory=dict)
 
 
-def align(
-    seat,
-    floor,
-    *,
-    rate: float | None = None,
-    rate_xcorr: float = 100.0,
-    min_overlap_s: float = 10.0,
-    segment_s: float | None = None,
-    max_drift_ppm: float = 300.0,
-    half_width: int = 64,
-    min_peak: float = 8.0,
-    nperseg: int = 1024,
-) -> Alignment:
-    """The seat's and the floor's recordings (importer.LoggerRecording) on one grid (module docstring).
-    Raises RecordingError (one line) when they share no motion (not the same drive, or no time in common)
-    or have too little in common."""
-    names = f"{seat.path} and {floor.path}"
+def _verticals(seat, floor) -> dict:
+    """Each logger's vertical acceleration (gravity's direction), checked to be gravity in m/s²."""
     verticals = {}
     for role, logger in (("seat", seat), ("floor", floor)):
         v = vertical(logger.xyz)
@@ -265,21 +178,12 @@ def align(
                 f"in m/s² (or units=g)"
             )
         verticals[role] = v
-    rates = {"seat": seat.rate_hz, "floor": floor.rate_hz}
-    rate_out = float(rate) if rate is not None else float(round(min(rates.values())))
-    if not rate_out > 0:
-        raise RecordingError(f"{names}: rate = {rate} is not a positive rate [Hz]")
-    rc = min(float(rate_xcorr), rate_out)
-    hw_c = XCORR_HALF_WIDTH / rc
-    ts0, s_u = _uniform(seat.t, verticals["seat"].values, rc, hw_c)
-    tf0, f_u = _uniform(floor.t, verticals["floor"].values, rc, hw_c)
-    for logger, u in ((seat, s_u), (floor, f_u)):
-        if u.size < min_overlap_s * rc:
-            raise RecordingError(
-                f"{logger.path}: {logger.t[-1] - logger.t[0]:.4g} s of recording, shorter than min_overlap_s = "
-                f"{min_overlap_s:g} (the drive is shorter than the time the two loggers must share)"
-            )
-    # coarse offset: the phase correlation's peak in the band where the seat moves with the floor
+    return verticals
+
+
+def _coarse_shift(s_u, f_u, rc: float, min_overlap_s: float, min_peak: float, names: str) -> tuple[int, float]:
+    """The phase correlation's peak in the band where the seat moves with the floor: the shift in samples
+    (f_u[i + shift] pairs with s_u[i]) and the peak over the correlation's typical value."""
     lags, c = _phase_correlation(s_u, f_u, rc, BAND_HZ)
     overlap_n = np.minimum(s_u.size, f_u.size - lags) - np.maximum(0, -lags)
     c = np.where(overlap_n >= min_overlap_s * rc, c, -np.inf)
@@ -292,24 +196,16 @@ def align(
             f"accelerations is {c[k] / spread:.1f} x its typical value, {min_peak:g} needed): the two files do not "
             f"overlap in time, or are not the same drive"
         )
-    shift = int(lags[k])  # f_u[i + shift] pairs with s_u[i]
-    i0, i1 = max(0, -shift), min(s_u.size, f_u.size - shift)
-    tau, tau_sd = _phase_slope(s_u[i0:i1], f_u[i0 + shift : i1 + shift], rc, BAND_HZ, nperseg)
-    lag_mid = tf0 - ts0 + shift / rc + tau  # t_floor - t_seat over the overlap, ~ at its middle
-    seat_lo, seat_hi = max(seat.t[0], floor.t[0] - lag_mid), min(seat.t[-1], floor.t[-1] - lag_mid)
-    overlap = seat_hi - seat_lo
-    if overlap < min_overlap_s:
-        raise RecordingError(f"{names}: {overlap:.3g} s in common, less than min_overlap_s = {min_overlap_s:g}")
-    t_mid = ts0 + 0.5 * (i0 + i1 - 1) / rc
-    # drift: the same delay in segments along the overlap, a weighted line through them. Segments are
-    # taken from the middle outwards, each paired at the lag the line so far predicts (an hour at 300 ppm
-    # drifts by a second: beyond what the phase slope alone takes), the phase slope measuring the rest.
-    seg = float(segment_s) if segment_s else max(min_overlap_s, min(60.0, overlap / 6))
-    n_seg = int(overlap // seg)
-    starts = [seat_lo + j * seg for j in range(n_seg)]
-    starts.sort(key=lambda a: abs(a + 0.5 * seg - t_mid))
+    return int(lags[k]), float(c[k] / spread)
+
+
+def _segment_lags(s_u, f_u, ts0, tf0, rc, starts, seg, t_mid, lag_mid, nperseg):
+    """The delay in segments along the overlap, taken from the middle outwards, each paired at the lag the
+    line so far predicts (an hour at 300 ppm drifts by a second: beyond what the phase slope alone takes),
+    the phase slope measuring the rest. Returns the segments' times and lags and the weighted line
+    (lag at t_mid, drift, its standard error) through them."""
     times, lag_s, lag_sd = [], [], []
-    fit = (lag_mid, 0.0, math.nan)  # (lag at t_mid, drift, its standard error)
+    fit = (lag_mid, 0.0, math.nan)
     for a in starts:
         lo = int(math.ceil((a - ts0) * rc))
         hi = lo + int(seg * rc)
@@ -325,6 +221,67 @@ def align(
         lag_sd.append(sd)
         if len(times) >= 2:
             fit = _line(np.asarray(times) - t_mid, np.asarray(lag_s), np.asarray(lag_sd))
+    return times, lag_s, fit
+
+
+def _logger_report(logger, v, rate_hz: float) -> dict:
+    return {
+        "file": str(logger.path),
+        "rate_hz": rate_hz,
+        "rows": int(logger.t.size),
+        "tilt_deg": v.tilt_deg,
+        "gravity_m_s2": float(np.linalg.norm(v.gravity)),
+        "start_s": float(logger.t[0]),
+        "end_s": float(logger.t[-1]),
+    }
+
+
+def align(
+    seat,
+    floor,
+    *,
+    rate: float | None = None,
+    rate_xcorr: float = 100.0,
+    min_overlap_s: float = 10.0,
+    segment_s: float | None = None,
+    max_drift_ppm: float = 300.0,
+    half_width: int = 64,
+    min_peak: float = 8.0,
+    nperseg: int = 1024,
+) -> Alignment:
+    """The seat's and the floor's recordings (logger_csv.LoggerRecording) on one grid (module docstring).
+    Raises RecordingError (one line) when they share no motion (not the same drive, or no time in common)
+    or have too little in common."""
+    names = f"{seat.path} and {floor.path}"
+    verticals = _verticals(seat, floor)
+    rates = {"seat": seat.rate_hz, "floor": floor.rate_hz}
+    rate_out = float(rate) if rate is not None else float(round(min(rates.values())))
+    if not rate_out > 0:
+        raise RecordingError(f"{names}: rate = {rate} is not a positive rate [Hz]")
+    rc = min(float(rate_xcorr), rate_out)
+    hw_c = XCORR_HALF_WIDTH / rc
+    ts0, s_u = _uniform(seat.t, verticals["seat"].values, rc, hw_c)
+    tf0, f_u = _uniform(floor.t, verticals["floor"].values, rc, hw_c)
+    for logger, u in ((seat, s_u), (floor, f_u)):
+        if u.size < min_overlap_s * rc:
+            raise RecordingError(
+                f"{logger.path}: {logger.t[-1] - logger.t[0]:.4g} s of recording, shorter than min_overlap_s = "
+                f"{min_overlap_s:g} (the drive is shorter than the time the two loggers must share)"
+            )
+    shift, peak = _coarse_shift(s_u, f_u, rc, min_overlap_s, min_peak, names)  # f_u[i + shift] pairs with s_u[i]
+    i0, i1 = max(0, -shift), min(s_u.size, f_u.size - shift)
+    tau, tau_sd = _phase_slope(s_u[i0:i1], f_u[i0 + shift : i1 + shift], rc, BAND_HZ, nperseg)
+    lag_mid = tf0 - ts0 + shift / rc + tau  # t_floor - t_seat over the overlap, ~ at its middle
+    seat_lo, seat_hi = max(seat.t[0], floor.t[0] - lag_mid), min(seat.t[-1], floor.t[-1] - lag_mid)
+    overlap = seat_hi - seat_lo
+    if overlap < min_overlap_s:
+        raise RecordingError(f"{names}: {overlap:.3g} s in common, less than min_overlap_s = {min_overlap_s:g}")
+    t_mid = ts0 + 0.5 * (i0 + i1 - 1) / rc
+    # drift: the same delay in segments along the overlap, a weighted line through them
+    seg = float(segment_s) if segment_s else max(min_overlap_s, min(60.0, overlap / 6))
+    starts = [seat_lo + j * seg for j in range(int(overlap // seg))]
+    starts.sort(key=lambda a: abs(a + 0.5 * seg - t_mid))
+    times, lag_s, fit = _segment_lags(s_u, f_u, ts0, tf0, rc, starts, seg, t_mid, lag_mid, nperseg)
     drift, drift_sd = fit[1], fit[2]
     if len(times) < 2:
         drift = math.nan
@@ -365,28 +322,19 @@ def align(
         "segment_s": seg,
         "lag_fit_rms_ms": residual_ms,
         "offset_sd_ms": 1000 * tau_sd,
-        "phase_correlation_peak": float(c[k] / spread),
+        "phase_correlation_peak": peak,
         "rate_hz": rate_out,
         "overlap_s": float((n_out - 1) / rate_out),
         "t0_s": t0,
     }
     for role, logger in (("seat", seat), ("floor", floor)):
-        v = verticals[role]
-        report[role] = {
-            "file": str(logger.path),
-            "rate_hz": rates[role],
-            "rows": int(logger.t.size),
-            "tilt_deg": v.tilt_deg,
-            "gravity_m_s2": float(np.linalg.norm(v.gravity)),
-            "start_s": float(logger.t[0]),
-            "end_s": float(logger.t[-1]),
-        }
+        report[role] = _logger_report(logger, verticals[role], rates[role])
     return Alignment(a3=a3, a2=a2, t0=t0, h=1.0 / rate_out, report=report)
 
 
 @dataclass
 class AlignedLayout:
-    """What importer.write_windows needs of two aligned loggers cut into windows."""
+    """What import_writer.write_windows needs of two aligned loggers cut into windows."""
 
     h: float
     n_steps: int
@@ -483,9 +431,6 @@ def import_two_loggers(
 __all__ = [
     "Vertical",
     "vertical",
-    "lowpass_resample",
-    "band_limited_at",
-    "resample",
     "Alignment",
     "align",
     "AlignedLayout",

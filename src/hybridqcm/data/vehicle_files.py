@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridqcm.data.hdf5 import DatasetError, column_names, dataset_info, read_split
+from hybridqcm.data.hdf5 import column_names, dataset_info, read_split
+from hybridqcm.errors import DatasetError
 from hybridqcm.physics.vehicle_geometry import VEHICLES, VehicleLayout, physical_problems, seat_base
 
 QUARTER_CAR = "quarter_car"

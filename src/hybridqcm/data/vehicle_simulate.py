@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybridqcm.data.hdf5 import DatasetWriter
-from hybridqcm.data.simulate import SplitSummary, _class_list, _user, _warmups, check_warmup
+from hybridqcm.data.dataset_writer import DatasetWriter
+from hybridqcm.data.simulate import SplitSummary, _class_list, _samples_progress, _user, _warmups, check_warmup
 from hybridqcm.physics.continuous import time_basis
 from hybridqcm.physics.two_track_road import TwoTrackRoad
 from hybridqcm.physics.vehicle_geometry import VehicleLayout, columns
@@ -94,6 +94,78 @@ def simulate_vehicle_samples(
     return out
 
 
+def _stored_arrays(layout: VehicleLayout, model: VehicleModel, n_steps: int) -> tuple[dict, dict]:
+    """The split's extra keys {key: (dtype, trailing shape)} and the names of each one's last axis."""
+    n, n_w, P = layout.n_dof, len(layout.wheels), len(layout.param_names)
+    # accel as the quarter car's (float32: a logger's resolution); vel, disp and the road in float64: the
+    # tyre's deflection z1 - u is a small difference of large numbers (long road waves lift wheel and road
+    # by decimetres), and float32 would leave ~1e-5 of the wheel's acceleration in its equation of motion
+    extra = {
+        "accel": (np.dtype("float32"), (n_steps, n)),
+        "vel": (np.dtype("float64"), (n_steps, n)),
+        "disp": (np.dtype("float64"), (n_steps, n)),
+        "road": (np.dtype("float64"), (n_steps, n_w)),
+        "physical": (np.dtype("float64"), (P,)),
+        "state0": (np.dtype("float64"), (2 * n,)),
+    }
+    if layout.tyre_damping:
+        extra["road_vel"] = (np.dtype("float64"), (n_steps, n_w))
+    column_names = {
+        **{key: list(layout.dofs) for key in ("accel", "vel", "disp")},
+        "road": list(layout.wheels),
+        "road_vel": list(layout.wheels),
+        "physical": list(layout.param_names),
+        "state0": list(model.state_names),
+    }
+    return extra, column_names
+
+
+def _write_vehicle_split(writer, split: str, split_index: int, classes: list[int], run: Mapping, advance):
+    """Simulate one split chunk by chunk into ``writer``; ``run``: write_vehicle_dataset's settings."""
+    layout, extra, samples_per_profile = run["prior"].layout, run["extra"], run["samples_per_profile"]
+    generator = torch.Generator().manual_seed(int(run["seed"]) * 1000 + split_index)
+    writer.create_split(split, len(classes) * samples_per_profile, run["n_steps"], ("road_class", "profile_id"), extra)
+    for key in extra:
+        writer.set_dataset_attr(
+            split, key, "dofs" if key in ("accel", "vel", "disp") else _attr_name(key), run["column_names"][key]
+        )
+    summary = SplitSummary(peak_accel=np.zeros(layout.n_dof))
+    start_time = time.perf_counter()
+    order = torch.randperm(len(classes), generator=generator)
+    classes_tensor = torch.tensor(classes, dtype=torch.long)[order]
+    for first in range(0, len(classes), run["profiles_per_chunk"]):
+        batch = simulate_vehicle_samples(
+            run["prior"],
+            run["road"],
+            classes_tensor[first : first + run["profiles_per_chunk"]],
+            run["n_steps"],
+            run["h"],
+            run["speed_mps"],
+            generator,
+            samples_per_profile,
+            run["warmup_s"],
+            run["basis"],
+        )
+        if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp", "road")):
+            raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
+        arrays = {key: batch[key].numpy().astype(extra[key][0]) for key in ("accel", "vel", "disp", "road")}
+        if layout.tyre_damping:
+            arrays["road_vel"] = batch["road_vel"].numpy()
+        writer.write(
+            split,
+            first * samples_per_profile,
+            physical=batch["physical"].numpy(),
+            state0=batch["state0"].numpy(),
+            road_class=batch["road_class"].numpy().astype(np.int8),
+            profile_id=(batch["profile"] + first).numpy().astype(np.int32),
+            **arrays,
+        )
+        summary.update({**batch, "params": batch["physical"]})
+        advance(batch["physical"].shape[0])
+    summary.seconds = time.perf_counter() - start_time
+    return summary
+
+
 def write_vehicle_dataset(
     output: str | Path,
     splits: Mapping[str, Mapping],
@@ -145,85 +217,31 @@ def write_vehicle_dataset(
         "created_by": f"hybridqcm {__version__} qcm-simulate ({_user()}@{platform.node()})",
         **dict(attrs or {}),
     }
-    n, n_w, P = layout.n_dof, len(layout.wheels), len(layout.param_names)
-    model = VehicleModel(layout)
-    # accel as the quarter car's (float32: a logger's resolution); vel, disp and the road in float64: the
-    # tyre's deflection z1 - u is a small difference of large numbers (long road waves lift wheel and road
-    # by decimetres), and float32 would leave ~1e-5 of the wheel's acceleration in its equation of motion
-    extra = {
-        "accel": (np.dtype("float32"), (n_steps, n)),
-        "vel": (np.dtype("float64"), (n_steps, n)),
-        "disp": (np.dtype("float64"), (n_steps, n)),
-        "road": (np.dtype("float64"), (n_steps, n_w)),
-        "physical": (np.dtype("float64"), (P,)),
-        "state0": (np.dtype("float64"), (2 * n,)),
-    }
-    if layout.tyre_damping:
-        extra["road_vel"] = (np.dtype("float64"), (n_steps, n_w))
-    column_names = {
-        **{key: list(layout.dofs) for key in ("accel", "vel", "disp")},
-        "road": list(layout.wheels),
-        "road_vel": list(layout.wheels),
-        "physical": list(layout.param_names),
-        "state0": list(model.state_names),
-    }
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    basis = time_basis(road.omega * speed_mps, n_steps, h)
+    extra, column_names = _stored_arrays(layout, VehicleModel(layout), n_steps)
+    run = dict(
+        prior=prior,
+        road=road,
+        n_steps=n_steps,
+        h=h,
+        speed_mps=speed_mps,
+        samples_per_profile=samples_per_profile,
+        seed=seed,
+        profiles_per_chunk=profiles_per_chunk,
+        warmup_s=warmup_s,
+        basis=time_basis(road.omega * speed_mps, n_steps, h),
+        extra=extra,
+        column_names=column_names,
+    )
     summaries: dict[str, SplitSummary] = {}
     with (
         DatasetWriter(output, attrs=file_attrs, overwrite=overwrite, compression=compression) as writer,
-        Progress(
-            TextColumn("[bold]{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("samples"),
-            TimeRemainingColumn(),
-            disable=not progress,
-        ) as bar,
+        _samples_progress(progress) as bar,
     ):
         task = bar.add_task(f"simulating {Path(output).name} ({layout.kind})", total=total)
         for split_index, (split, classes) in enumerate(plan.items()):
-            generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
-            writer.create_split(split, len(classes) * samples_per_profile, n_steps, ("road_class", "profile_id"), extra)
-            for key in extra:
-                writer.set_dataset_attr(
-                    split, key, "dofs" if key in ("accel", "vel", "disp") else _attr_name(key), column_names[key]
-                )
-            summary = summaries.setdefault(split, SplitSummary(peak_accel=np.zeros(n)))
-            start_time = time.perf_counter()
-            order = torch.randperm(len(classes), generator=generator)
-            classes_tensor = torch.tensor(classes, dtype=torch.long)[order]
-            for first in range(0, len(classes), profiles_per_chunk):
-                batch = simulate_vehicle_samples(
-                    prior,
-                    road,
-                    classes_tensor[first : first + profiles_per_chunk],
-                    n_steps,
-                    h,
-                    speed_mps,
-                    generator,
-                    samples_per_profile,
-                    warmup_s,
-                    basis,
-                )
-                if not all(torch.isfinite(batch[k]).all() for k in ("accel", "vel", "disp", "road")):
-                    raise FloatingPointError(f"split {split}: non-finite simulation output in profiles {first}..")
-                arrays = {key: batch[key].numpy().astype(extra[key][0]) for key in ("accel", "vel", "disp", "road")}
-                if layout.tyre_damping:
-                    arrays["road_vel"] = batch["road_vel"].numpy()
-                writer.write(
-                    split,
-                    first * samples_per_profile,
-                    physical=batch["physical"].numpy(),
-                    state0=batch["state0"].numpy(),
-                    road_class=batch["road_class"].numpy().astype(np.int8),
-                    profile_id=(batch["profile"] + first).numpy().astype(np.int32),
-                    **arrays,
-                )
-                summary.update({**batch, "params": batch["physical"]})
-                bar.advance(task, batch["physical"].shape[0])
-            summary.seconds = time.perf_counter() - start_time
+            summaries[split] = _write_vehicle_split(
+                writer, split, split_index, classes, run, lambda n: bar.advance(task, n)
+            )
         writer.set_attr("summary", json.dumps({s: v.as_dict() for s, v in summaries.items()}))
     return summaries
 

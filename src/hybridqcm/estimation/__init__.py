@@ -1,11 +1,9 @@
 """Parameter estimation: forward-mode sensitivities, batched Gauss-Newton / LM, hybrid pipeline."""
 
 from hybridqcm.estimation.front import (
-    CheckpointKindError,
     HybridEstimator,
     check_networks,
     equation_error_params,
-    load_network,
 )
 from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.sensitivity import (
@@ -42,11 +40,9 @@ __all__ = [
     "SolverResult",
     "SolverStatus",
     "build_solver",
-    "CheckpointKindError",
     "GaussNewtonRefinement",
     "GaussNewtonStage",
     "HybridEstimator",
     "equation_error_params",
-    "load_network",
     "check_networks",
 ]

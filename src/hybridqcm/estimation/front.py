@@ -11,7 +11,6 @@ callback of :mod:`hybridqcm.estimation.refinement` solves.
 from __future__ import annotations
 
 import contextlib
-import os
 from collections.abc import Iterator, Mapping, Sequence
 
 import torch
@@ -19,58 +18,35 @@ from lightning.pytorch import LightningModule
 from torch import Tensor
 
 from hybridqcm.errors import CheckpointError
-from hybridqcm.models.checkpoint import KINDS, load_checkpoint, read_checkpoint
+from hybridqcm.models.checkpoint import load_checkpoint
+from hybridqcm.physics.parameters import CHANNELS
 
 from .fusion import check_cnn_prior, network_prior
 from .sensitivity import N_PARAMS
 
-CHANNELS = ("a3", "a2", "a1")
 # Road-free (base-excitation) models: the measured channel that drives the model, the channels it
 # predicts, and how many of p1.. it holds (SPEC §9; physics.linear_models).
 BASE_EXCITATION = {"seat": ("a2", ("a3",), 2), "sprung": ("a1", ("a3", "a2"), 6)}
-KIND_CLASSES = KINDS  # kind ("cnn" | "unet" | "cae") -> our LightningModule classes (models.checkpoint)
-
-
-class CheckpointKindError(CheckpointError):
-    """A checkpoint path that is missing, unreadable, refused or holds the wrong kind of network."""
-
-
-def checkpoint_class(path: str | os.PathLike, kind: str, config_key: str | None = None) -> str:
-    """Name of the model class stored in ``path``; raises CheckpointKindError unless it fits ``kind``."""
-    try:
-        return read_checkpoint(path, kind, config_key).class_name
-    except CheckpointError as error:
-        raise CheckpointKindError(str(error)) from None
-
-
-def load_network(path: str | os.PathLike, kind: str, config_key: str | None = None) -> LightningModule:
-    """Load a CNN / U-Net / CAE checkpoint for inference (eval mode, CPU) via models.checkpoint.load_checkpoint."""
-    try:
-        return load_checkpoint(path, kind, config_key)
-    except CheckpointError as error:
-        raise CheckpointKindError(str(error)) from None
 
 
 def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> None:
-    """What each network predicts must be what the estimator uses it for; CheckpointKindError otherwise.
+    """What each network predicts must be what the estimator uses it for; CheckpointError otherwise.
 
     CNN: inputs (a3, a2) -> targets (p1, p2); U-Net: (a3, pu_u) -> (a2, a1); CAE: (a3, a2).
     All: trained at the data's step h (when given) under Euler physics the GN model shares."""
     if cae is not None and list(cae.hparams.channels) != ["a3", "a2"]:
-        raise CheckpointKindError(f"cae_ckpt: denoiser channels {list(cae.hparams.channels)}, expected ['a3', 'a2']")
+        raise CheckpointError(f"cae_ckpt: denoiser channels {list(cae.hparams.channels)}, expected ['a3', 'a2']")
     if unet is not None and (
         list(unet.hparams.input_channels) != ["a3", "pu_u"] or list(unet.hparams.target_channels) != ["a2", "a1"]
     ):
-        raise CheckpointKindError(
+        raise CheckpointError(
             "unet_ckpt: completion U-Net must map (a3, pu_u) -> (a2, a1), got "
             f"{list(unet.hparams.input_channels)} -> {list(unet.hparams.target_channels)}"
         )
     if cnn is not None and list(cnn.hparams.input_channels) != ["a3", "a2"]:
-        raise CheckpointKindError(
-            f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']"
-        )
+        raise CheckpointError(f"cnn_ckpt: estimator inputs {list(cnn.hparams.input_channels)}, expected ['a3', 'a2']")
     if cnn is not None and list(cnn.hparams.target_channels) != ["p1", "p2"]:
-        raise CheckpointKindError(
+        raise CheckpointError(
             f"cnn_ckpt: estimator targets {list(cnn.hparams.target_channels)}, but the initialiser needs ['p1', 'p2']"
         )
     for key, net in (("cnn_ckpt", cnn), ("unet_ckpt", unet), ("cae_ckpt", cae)):
@@ -78,13 +54,9 @@ def check_networks(cnn=None, unet=None, cae=None, h: float | None = None) -> Non
             continue
         physics = net.hparams.get("physics", "euler")
         if physics != "euler":
-            raise CheckpointKindError(
-                f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)"
-            )
+            raise CheckpointError(f"{key}: trained under physics = {physics!r}, but GN fits the Euler model (euler)")
         if h is not None and abs(float(net.hparams.get("h", 0.01)) - float(h)) > 1e-9 * float(h):
-            raise CheckpointKindError(
-                f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s"
-            )
+            raise CheckpointError(f"{key}: trained at h = {net.hparams.get('h', 0.01)} s, but the data have h = {h} s")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -197,9 +169,9 @@ class HybridEstimator(LightningModule):
         if unknown or not self.observed:
             raise ValueError(f"observed channels must be a non-empty subset of {CHANNELS}, got {list(observed)}")
         self.n_steps, self.h = int(n_steps), float(h)
-        self.cnn = load_network(cnn_ckpt, "cnn", "cnn_ckpt") if cnn_ckpt else None
-        self.unet = load_network(unet_ckpt, "unet", "unet_ckpt") if unet_ckpt else None
-        self.cae = load_network(cae_ckpt, "cae", "cae_ckpt") if cae_ckpt else None
+        self.cnn = load_checkpoint(cnn_ckpt, "cnn", "cnn_ckpt") if cnn_ckpt else None
+        self.unet = load_checkpoint(unet_ckpt, "unet", "unet_ckpt") if unet_ckpt else None
+        self.cae = load_checkpoint(cae_ckpt, "cae", "cae_ckpt") if cae_ckpt else None
         self.cnn_init = bool(cnn_init) and self.cnn is not None
         self.equation_error_init = bool(equation_error_init)
         self.pu_known = bool(pu_known)

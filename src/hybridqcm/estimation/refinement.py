@@ -20,8 +20,9 @@ from lightning.pytorch import Callback
 from torch import Tensor
 
 from hybridqcm.data.sensor import keyed_normals
+from hybridqcm.physics.parameters import CHANNELS
 
-from .front import CHANNELS, HybridEstimator
+from .front import HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise, estimate_variances, frequency_response, input_noise_log_std, spectral_leverage
 from .response import EulerResponse, PreparedInputs, ResponseModel

@@ -26,14 +26,12 @@ import torch
 from torch import Tensor
 
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
-from hybridqcm.physics.parameters import PARAM_NAMES
+from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
 
-from .exact import exact_outputs, exact_sensitivities, held_input
+from .exact import HOLDS, exact_outputs, exact_sensitivities, held_input
 from .sensitivity import euler_accelerations, euler_sensitivities
 
-CHANNELS = ("a3", "a2", "a1")
 INITIAL_STATES = ("unknown", "rest")
-HOLDS = ("spline", "foh", "zoh")
 
 
 class ResponseModel:

@@ -50,9 +50,8 @@ from torch import Tensor, nn
 
 from hybridqcm.errors import CheckpointError, ConfigError
 from hybridqcm.models.networks import ParameterCNN
+from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES, REFERENCE_VEHICLE
 
-PARAM_NAMES = tuple(f"p{i}" for i in range(1, 11))
-CHANNELS = ("a3", "a2", "a1")
 EXTRA = "sbi"
 CLASS_NAME = "SBIPeer"
 # sbi's builders by our name: zuko flows (autoregressive, sbi's current default family) and nflows ones.
@@ -479,7 +478,9 @@ def central_interval(samples: Tensor, level: float = 0.95) -> tuple[Tensor, Tens
     return q[0], q[1]
 
 
-def posterior_summary(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = 98935.0, chunk: int = 256) -> dict:
+def posterior_summary(
+    peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3, chunk: int = 256
+) -> dict:
     """Per recording x [B, C, window]: posterior medians, means and central 95 % intervals of the
     peer's parameters ([B, P] each) and of m3 = K3/p2 ([B]) when p2 is among them. Medians are the
     point estimates (m3 = K3/p2 is monotone, so m3's median is K3 / p2's median)."""
@@ -504,7 +505,9 @@ def posterior_summary(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float
     return {k: torch.cat(v) for k, v in out.items() if v}
 
 
-def evaluation_row(summary: Mapping[str, Tensor], true: Tensor, names: Sequence[str], K3: float = 98935.0) -> dict:
+def evaluation_row(
+    summary: Mapping[str, Tensor], true: Tensor, names: Sequence[str], K3: float = REFERENCE_VEHICLE.K3
+) -> dict:
     """Metrics of one posterior summary against the true params [B, 10]; column names as qcm-estimate's summary.
 
     m3_* errors use the posterior median; coverage: fraction of truths inside the central 95 % interval;
@@ -553,7 +556,7 @@ def rank_statistics(peer: SBIPeer, x: Tensor, z_true: Tensor, n_samples: int = 5
     }
 
 
-def seconds_per_1000(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = 98935.0) -> float:
+def seconds_per_1000(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3) -> float:
     """Wall time of `posterior_summary` (embedding, n_samples draws, intervals) per 1 000 recordings."""
     t0 = time.perf_counter()
     posterior_summary(peer, x, n_samples=n_samples, K3=K3)

@@ -17,7 +17,6 @@ and returns the epoch's results (kept as `test_results` after a test run, for th
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -33,7 +32,7 @@ from hybridqcm.errors import CheckpointError
 from hybridqcm.models.networks import NETWORKS
 from hybridqcm.models.physics_losses import rms
 from hybridqcm.models.schedule import one_cycle_lr, run_progress
-from hybridqcm.models.untrusted import check_config_tree, read_stored_class
+from hybridqcm.models.untrusted import check_config_tree
 
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-3}
 
@@ -45,22 +44,6 @@ def _plain(value: Any) -> Any:
     if isinstance(value, tuple):
         return list(value)
     return value
-
-
-class CheckpointMismatch(CheckpointError):
-    """A checkpoint of another model class, or one that does not fit the requested use (a CheckpointError)."""
-
-
-def stored_model_class(path: str) -> str | None:
-    """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint); read as data.
-
-    Raises FileNotFoundError for a missing file and CheckpointMismatch for an unreadable or refused one."""
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: checkpoint file does not exist")
-    try:
-        return read_stored_class(path)
-    except CheckpointError as error:
-        raise CheckpointMismatch(str(error)) from None
 
 
 def build_network(net_cfg: Mapping, overrides: Mapping | None = None) -> torch.nn.Module:
@@ -272,8 +255,6 @@ class QCMModule(LightningModule):
 
 __all__ = [
     "DEFAULT_OPTIMIZER",
-    "CheckpointMismatch",
     "QCMModule",
     "build_network",
-    "stored_model_class",
 ]

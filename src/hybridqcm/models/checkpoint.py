@@ -14,7 +14,11 @@ never executed:
 4. The state_dict is loaded strictly: a missing, unexpected or mis-shaped key is refused.
 
     load_checkpoint(path, kind, config_key=None) -> module in eval mode on the CPU
+    load_module(path, cls)                        -> the same, refused unless the file holds a `cls`
     read_checkpoint(path, kind, config_key=None) -> CheckpointInfo (class, hparams; no module built)
+    stored_class(path, config_key=None)          -> the class name a file stores (None: not ours)
+
+Every failure is a CheckpointError (hybridqcm.errors) with one line naming the file (and setting).
 """
 
 from __future__ import annotations
@@ -29,9 +33,10 @@ import torch
 from lightning import LightningModule
 
 from hybridqcm.errors import CheckpointError
-from hybridqcm.models.estimators import GaussianEstimator, LabelledEstimator, PhysicsResidualEstimator
+from hybridqcm.models.estimators import LabelledEstimator, PhysicsResidualEstimator
+from hybridqcm.models.gaussian_estimator import GaussianEstimator
 from hybridqcm.models.signal_models import CompletionUNet, DenoisingAutoencoder
-from hybridqcm.models.untrusted import NETWORK_TARGETS, check_config_tree, read_raw  # noqa: F401
+from hybridqcm.models.untrusted import check_config_tree, read_raw
 
 # The classes a checkpoint may name, by the class name it stores (``hybridqcm_class``): a file
 # records no module path, so moving a class between modules leaves every checkpoint loadable.
@@ -63,6 +68,17 @@ def _where(path, config_key: str | None) -> str:
     return f"{config_key}={path}" if config_key else str(path)
 
 
+def _class_name(raw: Mapping) -> str | None:
+    stored = raw.get("hybridqcm_class")
+    return stored if isinstance(stored, str) else None
+
+
+def stored_class(path: str | os.PathLike, config_key: str | None = None) -> str | None:
+    """The class name a checkpoint file stores (None for a foreign checkpoint), read as data; the one
+    reader of ``hybridqcm_class``. CheckpointError (one line) for a missing, unreadable or refused file."""
+    return _class_name(read_raw(Path(path), _where(path, config_key)))
+
+
 def read_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key: str | None = None) -> CheckpointInfo:
     """Read and check a checkpoint without building anything; raises CheckpointError (one line).
 
@@ -72,10 +88,10 @@ def read_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key
     path = Path(path)
     where = _where(path, config_key)
     raw = read_raw(path, where)
-    stored = raw.get("hybridqcm_class")
+    stored = _class_name(raw)
     allowed = KINDS[kind] if kind else tuple(KIND_OF_CLASS)
     if stored not in allowed:
-        what = f"a {stored}" if isinstance(stored, str) else "a non-hybridqcm"
+        what = f"a {stored}" if stored else "a non-hybridqcm"
         need = f"{kind} needs one of {list(allowed)}" if kind else f"expected one of {list(allowed)}"
         raise CheckpointError(f"{where}: holds {what} checkpoint, but {need}")
     hparams = raw.get("hyper_parameters", {})
@@ -140,6 +156,15 @@ def load_checkpoint(path: str | os.PathLike, kind: str | None = None, config_key
     return probe
 
 
+def load_module(path: str | os.PathLike, cls: type) -> LightningModule:
+    """A checkpoint of exactly class ``cls`` through load_checkpoint; CheckpointError (one line) for a
+    missing, refused or foreign file, or one holding another class."""
+    stored = stored_class(path)
+    if stored != cls.__name__:
+        raise CheckpointError(f"checkpoint {path} holds a {stored or 'non-hybridqcm'} model, expected {cls.__name__}")
+    return load_checkpoint(path)
+
+
 def kind_of(module: LightningModule) -> str | None:
     """The loader vocabulary's kind of one of our modules ("cnn" | "unet" | "cae"), None for others."""
     return KIND_OF_CLASS.get(type(module).__name__)
@@ -149,13 +174,11 @@ __all__ = [
     "KINDS",
     "MODULES",
     "warm_start",
-    "NETWORK_TARGETS",
     "CheckpointInfo",
-    "CheckpointError",
-    "check_config_tree",
-    "read_raw",
     "read_checkpoint",
+    "stored_class",
     "load_checkpoint",
+    "load_module",
     "kind_of",
 ]
 

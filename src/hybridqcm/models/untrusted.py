@@ -97,11 +97,3 @@ def read_raw(path: Path, where: str) -> dict:
     if not isinstance(raw, dict):
         raise CheckpointError(f"{where}: not a Lightning checkpoint (a {type(raw).__name__}, not a dict)")
     return raw
-
-
-def read_stored_class(path: str) -> str | None:
-    """The hybridqcm model class a checkpoint file holds (None for a foreign checkpoint), read as data.
-
-    Raises CheckpointError (one line) for a missing, unreadable or refused file."""
-    stored = read_raw(Path(path), str(path)).get("hybridqcm_class")
-    return stored if isinstance(stored, str) else None

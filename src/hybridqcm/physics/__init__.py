@@ -2,6 +2,7 @@
 
 from hybridqcm.physics.integrators import METHODS, SemiExplicitEuler, Trajectory, simulate
 from hybridqcm.physics.parameters import (
+    CHANNELS,
     PARAM_MEANINGS,
     PARAM_NAMES,
     REFERENCE_VEHICLE,
@@ -19,6 +20,7 @@ from hybridqcm.physics.prior import PhysicalPrior, PriorDraw, ThesisPrior, build
 from hybridqcm.physics.road import ROAD_CLASSES, RoadProfile, road_class_index, road_class_phi0
 
 __all__ = [
+    "CHANNELS",
     "PARAM_NAMES",
     "PARAM_MEANINGS",
     "REFERENCE_VEHICLE",

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybridqcm.physics.parameters import params_to_matrices, road_gain, system_matrix
+from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES, params_to_matrices, road_gain, system_matrix
 
 
 class LinearModel:
@@ -88,9 +88,9 @@ class QuarterCarRoad(LinearModel):
     """
 
     linear_in_params = True
-    param_names = tuple(f"p{i}" for i in range(1, 11))
+    param_names = PARAM_NAMES
     state_names = ("v3", "v2", "v1", "q3", "q2", "q1")
-    output_names = ("a3", "a2", "a1")
+    output_names = CHANNELS
 
     def __init__(self, scaled_road: bool = False) -> None:
         self.scaled_road = bool(scaled_road)

@@ -12,6 +12,8 @@ import torch
 from torch import Tensor
 
 PARAM_NAMES: tuple[str, ...] = tuple(f"p{i}" for i in range(1, 11))
+# The measured accelerations of occupant, chassis, wheel: the column order of every accel array [..., 3].
+CHANNELS: tuple[str, ...] = ("a3", "a2", "a1")
 PARAM_MEANINGS: dict[str, str] = {
     "p1": "C3/m3  seat damping / occupant mass [1/s]",
     "p2": "K3/m3  seat stiffness / occupant mass [1/s^2]",
