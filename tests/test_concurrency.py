@@ -139,9 +139,9 @@ def test_completion_marker_names_the_inputs(tmp_path):
 
 
 def test_pipeline_stage_without_marker_is_not_done(tmp_path):
-    from hybridqcm import pipeline
+    from hybridqcm.pipelines.catalog import demo_stages
 
-    stage = next(s for s in pipeline.demo_stages(str(tmp_path), str(tmp_path / "d.h5")) if s.app == "qcm-estimate")
+    stage = next(s for s in demo_stages(str(tmp_path), str(tmp_path / "d.h5")) if s.app == "qcm-estimate")
     run_dir = Path(stage.run_dir)
     run_dir.mkdir(parents=True)
     for name in stage.done_when:  # leftovers of a killed or foreign run
