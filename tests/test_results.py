@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from hybridqcm.apps import results as app
-from hybridqcm.reports import results
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+from hybridqcm.reports import results
 
 
 def _run_folder(tmp_path: Path, name: str, error_scale: float, n_params: int = 10, bias: float = 0.0) -> Path:
