@@ -121,7 +121,8 @@ def test_manifest_records_merge_across_runs(tmp_path):
     root = str(tmp_path)
     manifest.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
     manifest.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
-    manifest.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)  # a skip keeps the timing
+    # a skip keeps the timing
+    manifest.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)
     manifest.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
     records = manifest.load_manifest(tmp_path / "manifest.json")["stages"]
     assert {s["name"]: s["seconds"] for s in records} == {"a": 1.0, "b": 3.0}
