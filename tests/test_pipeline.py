@@ -156,3 +156,15 @@ def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, 
         assert f"sensor.sigma={sigma:g}" in cnn
     with pytest.raises(SystemExit):  # --networks belongs to the noise pipeline
         pipeline.main(["demo", "--networks", "x", "--plan"])
+
+
+def test_estimation_stage_rejects_an_unknown_network(tmp_path):
+    """A stage may use the cnn, unet and cae checkpoints only: any other key would be dropped silently."""
+    from hybridqcm.pipelines.stage import estimate_stage
+
+    stage = estimate_stage("e", "exp10_hybrid", "d.h5", "r", 1, networks={"unet": "u", "cnn": "c"})
+    # qcm-estimate gets the checkpoints in a fixed key order, and the stage needs both training stages
+    assert stage.overrides[-2:] == ["cnn_ckpt=r/c/checkpoints/last.ckpt", "unet_ckpt=r/u/checkpoints/last.ckpt"]
+    assert stage.needs == ["c", "u"]
+    with pytest.raises(ValueError, match="stage e: networks \\['gan'\\]"):
+        estimate_stage("e", "exp10_hybrid", "d.h5", "r", 1, networks={"gan": "g"})

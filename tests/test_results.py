@@ -208,3 +208,22 @@ def test_bench_tables_are_included_under_their_own_heading(tmp_path):
     (tmp_path / "results" / "persons.md").write_text("# Seated persons\n\n| a | b |\n|---|---|\n| 1 | 2 |\n")
     parts = _generated_tables(tmp_path)
     assert parts[0] == "## Seated persons" and "| 1 | 2 |" in parts and "bench/persons_table.py" in parts[2]
+
+
+def test_stages_appear_in_their_pipelines_order(tmp_path):
+    """Manifest records are stored as stages finish; qcm-results lists them in the order the pipeline
+    defines (the demo's stage list), the library's render without an order keeps the manifest's."""
+    from hybridqcm.pipelines.catalog import demo_stages
+
+    order = [stage.name for stage in demo_stages()]
+    records = [_stage(name, _run_folder(tmp_path, name, 0.01, n_params=2), None) for name in reversed(order)]
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps({"pipeline": "demo", "dataset": "x.h5", "stages": records}))
+
+    def headings(text):
+        return [line.split(" — ")[0].removeprefix("### ") for line in text.splitlines() if line.startswith("### ")]
+
+    assert app.main(["--manifest", str(path), "--output", str(tmp_path / "R.md"), "--no-plots"]) == 0
+    assert headings((tmp_path / "R.md").read_text()) == order
+    text, _, _ = results.render([path], tmp_path / "R2.md", copy_plots=False)
+    assert headings(text) == order[::-1]

@@ -57,30 +57,16 @@ def demo_stages(
     source study are `reproduce`'s."""
     limit = [f"trainer.max_time={train_time}"]
     simulate = [f"preset={preset}", f"output={dataset}", "physics=continuous"]
-    cnn_setting, unet_setting = (
-        "physics-residual CNN clean (continuous, mid-drive)",
-        "U-Net completion (continuous, mid-drive)",
-    )
+    cnn_setting = "physics-residual CNN clean (continuous, mid-drive)"
+    unet_setting = "U-Net completion (continuous, mid-drive)"
     stages = [
         Stage("simulate", "qcm-simulate", simulate, f"{root}/simulate", [os.path.abspath(dataset)], 0.5),
         train_stage("exp2_physics", "exp2_physics_continuous", dataset, root, 4.5, "5.2", "exp2", cnn_setting, limit),
         train_stage("exp9_unet", "exp9_unet_continuous", dataset, root, 4.5, None, "exp9", unet_setting, limit),
     ]
-    stages += [
-        estimate_stage(
-            name,
-            name,
-            dataset,
-            root,
-            minutes,
-            table,
-            thesis,
-            setting,
-            _networks(networks, _DEMO_TRAINED),
-            extra.split(),
-        )
-        for name, minutes, table, thesis, setting, networks, extra in _DEMO_ESTIMATES
-    ]
+    for name, minutes, table, thesis, setting, networks, extra in _DEMO_ESTIMATES:
+        used = _networks(networks, _DEMO_TRAINED)
+        stages.append(estimate_stage(name, name, dataset, root, minutes, table, thesis, setting, used, extra.split()))
     return stages
 
 
