@@ -140,7 +140,7 @@ def test_completion_marker_names_the_inputs(tmp_path):
 
 
 def test_pipeline_stage_without_marker_is_not_done(tmp_path):
-    from hybridqcm.apps.stages import demo_stages
+    from hybridqcm.pipelines.catalog import demo_stages
 
     stage = next(s for s in demo_stages(str(tmp_path), str(tmp_path / "d.h5")) if s.app == "qcm-estimate")
     run_dir = Path(stage.run_dir)

@@ -110,7 +110,7 @@ def test_comparison_tables_keep_every_column_in_a_log_file(tmp_path):
             }
         )
     )
-    code = f"from hybridqcm.apps.results import print_summary; print_summary({str(manifest)!r})"
+    code = f"from hybridqcm.reports.results import print_summary; print_summary({str(manifest)!r})"
     text = _run_to_file([sys.executable, "-c", code], tmp_path / "summary.log")
     rows = [line for line in text.splitlines() if re.match(r"\| p\d+ ", line)]
     assert len(rows) == 10

@@ -157,7 +157,13 @@ def test_hybridqcm_has_no_import_cycle():
 
 @pytest.mark.parametrize(
     "lower, upper",
-    [("hybridqcm.apps.stages", "hybridqcm.apps.pipeline"), ("hybridqcm.apps.results", "hybridqcm.apps.pipeline")],
+    [
+        ("hybridqcm.pipelines.catalog", "hybridqcm.pipelines.runner"),
+        ("hybridqcm.reports.results", "hybridqcm.pipelines.runner"),
+        ("hybridqcm.reports.manifest", "hybridqcm.reports.results"),
+        ("hybridqcm.pipelines.runner", "hybridqcm.apps.pipeline"),
+        ("hybridqcm.reports.results", "hybridqcm.apps.results"),
+    ],
 )
 def test_pipeline_modules_point_one_way(lower, upper):
     graph = import_graph()

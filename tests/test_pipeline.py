@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from hybridqcm.apps import pipeline, stages
+from hybridqcm.apps import pipeline
+from hybridqcm.pipelines import catalog, runner
+from hybridqcm.reports import manifest
 
 
 def test_demo_plan_lists_every_stage_with_its_command(tmp_path, capsys):
@@ -21,8 +23,8 @@ def test_demo_plan_lists_every_stage_with_its_command(tmp_path, capsys):
 
 
 def test_reproduce_covers_every_source_table():
-    tables = {s.table for s in stages.reproduce_stages() if s.table}
-    from hybridqcm.apps.results import load_thesis_tables
+    tables = {s.table for s in catalog.reproduce_stages() if s.table}
+    from hybridqcm.reports.results import load_thesis_tables
 
     assert tables == {r["table"] for r in load_thesis_tables()}
 
@@ -32,9 +34,9 @@ def test_finished_stages_are_skipped_and_recorded(tmp_path, monkeypatch):
     dataset.write_bytes(b"")  # the simulate stage's output exists -> done
     calls = []
     monkeypatch.setattr(
-        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+        runner.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
     )
-    assert pipeline.run_pipeline("demo", str(root), str(dataset), only=["simulate"]) == 0
+    assert runner.run_pipeline("demo", str(root), str(dataset), only=["simulate"]) == 0
     assert calls == []
     manifest = json.loads((root / "manifest.json").read_text())
     assert [s["name"] for s in manifest["stages"]] == ["simulate"]
@@ -43,21 +45,21 @@ def test_finished_stages_are_skipped_and_recorded(tmp_path, monkeypatch):
 def test_stage_with_unfinished_dependency_is_not_run(tmp_path, monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(
-        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+        runner.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
     )
-    pipeline.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
+    runner.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert calls == []
     assert "needs ['exp2_physics', 'exp9_unet']" in capsys.readouterr().out
 
 
 def test_failed_stage_stops_the_pipeline(tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline.subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 3))
-    assert pipeline.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["simulate"]) == 3
+    monkeypatch.setattr(runner.subprocess, "run", lambda cmd, **kw: subprocess.CompletedProcess(cmd, 3))
+    assert runner.run_pipeline("demo", str(tmp_path / "r"), str(tmp_path / "d.h5"), only=["simulate"]) == 3
 
 
 def test_unknown_stage_is_an_error(tmp_path):
     with pytest.raises(SystemExit, match="unknown stage"):
-        pipeline.run_pipeline("demo", str(tmp_path), only=["nope"], plan=True)
+        runner.run_pipeline("demo", str(tmp_path), only=["nope"], plan=True)
 
 
 @pytest.mark.slow
@@ -102,26 +104,27 @@ def test_dependency_outside_the_selected_stages_is_honoured(tmp_path, monkeypatc
         (root / name / "test_metrics.json").write_text("{}")
     from hybridqcm.runfolder import write_completion_marker
 
-    by_name = {s.name: s for s in stages.demo_stages(str(root), str(tmp_path / "d.h5"))}
+    by_name = {s.name: s for s in catalog.demo_stages(str(root), str(tmp_path / "d.h5"))}
     for name in ("exp2_physics", "exp9_unet"):  # finished runs leave their marker last
         write_completion_marker(root / name, "qcm-train", by_name[name].task_overrides())
     calls = []
     monkeypatch.setattr(
-        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+        runner.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
     )
-    monkeypatch.setattr(pipeline, "print_summary", lambda path: None)
-    pipeline.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
+    monkeypatch.setattr(runner, "print_summary", lambda path: None)
+    runner.run_pipeline("demo", str(root), str(tmp_path / "d.h5"), only=["exp10_hybrid"])
     assert len(calls) == 1 and "experiment=exp10_hybrid" in calls[0]
 
 
 def test_manifest_records_merge_across_runs(tmp_path):
     """Two pipelines recording different stages of one root keep both records; a re-run updates in place."""
     root = str(tmp_path)
-    stages.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
-    stages.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
-    stages.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)  # a skip keeps the timing
-    stages.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
-    records = stages.load_manifest(tmp_path / "manifest.json")["stages"]
+    manifest.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": 1.0})
+    manifest.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 2.0})
+    # a skip keeps the timing
+    manifest.record_stage(root, "demo", "d.h5", {"name": "a", "seconds": None}, replace=False)
+    manifest.record_stage(root, "demo", "d.h5", {"name": "b", "seconds": 3.0})
+    records = manifest.load_manifest(tmp_path / "manifest.json")["stages"]
     assert {s["name"]: s["seconds"] for s in records} == {"a": 1.0, "b": 3.0}
 
 
@@ -131,19 +134,19 @@ def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, 
     root, networks, dataset = tmp_path / "r", tmp_path / "demo", tmp_path / "d.h5"
     calls = []
     monkeypatch.setattr(
-        pipeline.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
+        runner.subprocess, "run", lambda cmd, **kw: calls.append(cmd) or subprocess.CompletedProcess(cmd, 0)
     )
-    monkeypatch.setattr(pipeline, "print_summary", lambda path: None)
+    monkeypatch.setattr(runner, "print_summary", lambda path: None)
     with pytest.raises(SystemExit, match="exp2_physics/checkpoints/last.ckpt.*make demo"):
-        pipeline.run_pipeline("noise", str(root), str(dataset), networks=str(networks))
+        runner.run_pipeline("noise", str(root), str(dataset), networks=str(networks))
     assert calls == [] and not (root / "manifest.json").exists()
     dataset.write_bytes(b"")
     for name in ("exp2_physics", "exp9_unet"):
         (networks / name / "checkpoints").mkdir(parents=True)
         (networks / name / "checkpoints" / "last.ckpt").write_bytes(b"")
-    assert pipeline.run_pipeline("noise", str(root), str(dataset), networks=str(networks)) == 0
-    assert len(calls) == 3 * len(stages.NOISE_LEVELS)
-    for sigma in stages.NOISE_LEVELS:
+    assert runner.run_pipeline("noise", str(root), str(dataset), networks=str(networks)) == 0
+    assert len(calls) == 3 * len(catalog.NOISE_LEVELS)
+    for sigma in catalog.NOISE_LEVELS:
         exp10 = next(c for c in calls if f"hydra.run.dir={root}/exp10_noise{sigma:g}" in c)
         assert f"sensor.sigma={sigma:g}" in exp10 and f"cnn_ckpt={networks}/exp2_physics/checkpoints/last.ckpt" in exp10
         roadfree = next(c for c in calls if f"hydra.run.dir={root}/occupant_noise{sigma:g}" in c)
@@ -153,3 +156,15 @@ def test_noise_pipeline_needs_the_demo_networks_and_plans_every_level(tmp_path, 
         assert f"sensor.sigma={sigma:g}" in cnn
     with pytest.raises(SystemExit):  # --networks belongs to the noise pipeline
         pipeline.main(["demo", "--networks", "x", "--plan"])
+
+
+def test_estimation_stage_rejects_an_unknown_network(tmp_path):
+    """A stage may use the cnn, unet and cae checkpoints only: any other key would be dropped silently."""
+    from hybridqcm.pipelines.stage import estimate_stage
+
+    stage = estimate_stage("e", "exp10_hybrid", "d.h5", "r", 1, networks={"unet": "u", "cnn": "c"})
+    # qcm-estimate gets the checkpoints in a fixed key order, and the stage needs both training stages
+    assert stage.overrides[-2:] == ["cnn_ckpt=r/c/checkpoints/last.ckpt", "unet_ckpt=r/u/checkpoints/last.ckpt"]
+    assert stage.needs == ["c", "u"]
+    with pytest.raises(ValueError, match="stage e: networks \\['gan'\\]"):
+        estimate_stage("e", "exp10_hybrid", "d.h5", "r", 1, networks={"gan": "g"})

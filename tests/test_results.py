@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hybridqcm.apps import results
+from hybridqcm.apps import results as app
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+from hybridqcm.reports import results
 
 
 def _run_folder(tmp_path: Path, name: str, error_scale: float, n_params: int = 10, bias: float = 0.0) -> Path:
@@ -80,7 +81,7 @@ def test_missing_run_folder_fails_loudly(tmp_path):
     manifest = _manifest(tmp_path, [_stage("exp5", tmp_path / "nowhere", "5.11")])
     with pytest.raises(FileNotFoundError, match="nowhere"):
         results.render([manifest], tmp_path / "R.md", copy_plots=False)
-    assert results.main(["--manifest", str(manifest), "--output", str(tmp_path / "R.md")]) == 2
+    assert app.main(["--manifest", str(manifest), "--output", str(tmp_path / "R.md")]) == 2
     assert not (tmp_path / "R.md").exists()
 
 
@@ -94,7 +95,7 @@ def test_malformed_table_and_manifest_fail_loudly(tmp_path):
     bad_manifest.write_text("{not json")
     with pytest.raises(ValueError, match="malformed manifest"):
         results.render([bad_manifest], tmp_path / "R.md", copy_plots=False)
-    assert results.main(["--manifest", str(tmp_path / "absent.json"), "--output", str(tmp_path / "R.md")]) == 2
+    assert app.main(["--manifest", str(tmp_path / "absent.json"), "--output", str(tmp_path / "R.md")]) == 2
 
 
 @pytest.mark.parametrize(
@@ -110,7 +111,7 @@ def test_a_manifest_missing_what_results_read_is_one_line(tmp_path, capsys, mani
     """Before: KeyError tracebacks ('pipeline', 'app') from deep in the rendering."""
     path = tmp_path / "manifest.json"
     path.write_text(json.dumps(manifest))
-    assert results.main(["--manifest", str(path), "--output", str(tmp_path / "R.md"), "--no-plots"]) == 2
+    assert app.main(["--manifest", str(path), "--output", str(tmp_path / "R.md"), "--no-plots"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"error: {path}: malformed manifest: ")
     assert re.search(message, err)
@@ -200,10 +201,29 @@ def test_noise_sweep_table_reads_each_runs_summary(tmp_path):
 
 def test_bench_tables_are_included_under_their_own_heading(tmp_path):
     """A table a bench script generated (docs/results/persons.md) joins the results page as it is."""
-    from hybridqcm.apps.results import _generated_tables
+    from hybridqcm.reports.results import _generated_tables
 
     assert _generated_tables(tmp_path) == []
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "persons.md").write_text("# Seated persons\n\n| a | b |\n|---|---|\n| 1 | 2 |\n")
     parts = _generated_tables(tmp_path)
     assert parts[0] == "## Seated persons" and "| 1 | 2 |" in parts and "bench/persons_table.py" in parts[2]
+
+
+def test_stages_appear_in_their_pipelines_order(tmp_path):
+    """Manifest records are stored as stages finish; qcm-results lists them in the order the pipeline
+    defines (the demo's stage list), the library's render without an order keeps the manifest's."""
+    from hybridqcm.pipelines.catalog import demo_stages
+
+    order = [stage.name for stage in demo_stages()]
+    records = [_stage(name, _run_folder(tmp_path, name, 0.01, n_params=2), None) for name in reversed(order)]
+    path = tmp_path / "manifest.json"
+    path.write_text(json.dumps({"pipeline": "demo", "dataset": "x.h5", "stages": records}))
+
+    def headings(text):
+        return [line.split(" — ")[0].removeprefix("### ") for line in text.splitlines() if line.startswith("### ")]
+
+    assert app.main(["--manifest", str(path), "--output", str(tmp_path / "R.md"), "--no-plots"]) == 0
+    assert headings((tmp_path / "R.md").read_text()) == order
+    text, _, _ = results.render([path], tmp_path / "R2.md", copy_plots=False)
+    assert headings(text) == order[::-1]

@@ -1,0 +1,1 @@
+"""Pipelines: the stages of make demo / noise / reproduce and their manifests."""
