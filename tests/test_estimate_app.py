@@ -11,8 +11,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate import ConfigError, build_inputs, check_experiment_overrides, validate
-from hybridqcm.config import CONFIG_DIR
+from hybridqcm.apps.estimate import ConfigError, build_inputs, validate
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides
 from hybridqcm.data.hdf5 import DatasetError
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints, write_dataset
 
@@ -153,13 +153,14 @@ def test_inference_without_params(files, tmp_path):
 
 # ---------------------------------------------------------------------------------------------- bad inputs
 def test_unknown_and_training_experiments(tmp_path):
-    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*exp5_random_init"):
-        check_experiment_overrides(["experiment=nope"])
-    with pytest.raises(ConfigError, match="'exp2_physics' is not an estimation experiment.*task: train"):
-        check_experiment_overrides(["experiment=exp2_physics"])
-    check_experiment_overrides(["experiment=exp8_occupant_only", "n_samples=3"])  # fine
+    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*qcm-estimate experiments: .*exp5_random_init"):
+        check_experiment_overrides(["experiment=nope"], "estimate")
+    with pytest.raises(ConfigError, match="'exp2_physics' is a qcm-train experiment.*run it with qcm-train"):
+        check_experiment_overrides(["experiment=exp2_physics"], "estimate")
+    check_experiment_overrides(["experiment=exp8_occupant_only", "n_samples=3"], "estimate")  # fine
     proc = _run_app(tmp_path, "experiment=exp1_labelled")
-    assert proc.returncode == 2 and "not an estimation experiment" in proc.stderr
+    assert proc.returncode == 2 and "'exp1_labelled' is a qcm-train experiment" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not (tmp_path / "estimates.csv").exists()
 
 
@@ -271,5 +272,5 @@ def test_cnn_window_longer_than_file(files, checkpoints):
 )
 def test_experiments_compose(name):
     cfg = _cfg([f"experiment={name}"])
-    assert cfg.task == "estimate" and cfg.experiment_name == name.split("_")[0]
+    assert cfg.task_name == name and cfg.experiment_name == name.split("_")[0]
     assert len(cfg.stages) >= 1 and cfg.solver.method == "gauss_newton"

@@ -1,6 +1,11 @@
 """Where the configs live and the checks every app makes of its settings before any work: the run
 folder writable, task_name a plain folder name, Lightning's devices/num_nodes, and an experiment
-that belongs to the app asked to run it. Each failure is one ConfigError naming the key and value."""
+that belongs to the app asked to run it. Each failure is one ConfigError naming the key and value.
+
+Layout: configs/<app>.yaml is app <app>'s primary config; the groups the apps share are folders of
+configs/, and configs/<app>/ (on the app's search path: its `hydra.searchpath`, through the
+${hybridqcm_config_dir:} resolver registered here) holds the groups of that app alone, its
+experiments (configs/train/experiment/, configs/estimate/experiment/)."""
 
 from __future__ import annotations
 
@@ -12,6 +17,18 @@ from hybridqcm.errors import ConfigError
 
 # The configs live at the repository root (configs/); HYBRIDQCM_CONFIG_DIR points elsewhere.
 CONFIG_DIR = Path(os.environ.get("HYBRIDQCM_CONFIG_DIR", Path(__file__).resolve().parents[2] / "configs"))
+
+
+def _register_config_dir_resolver() -> None:
+    """${hybridqcm_config_dir:} (the apps' `hydra.searchpath`): CONFIG_DIR, wherever the configs live;
+    registered before anything composes a config (apps and tests import CONFIG_DIR from here)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("hybridqcm_config_dir"):
+        OmegaConf.register_new_resolver("hybridqcm_config_dir", lambda: str(CONFIG_DIR))
+
+
+_register_config_dir_resolver()
 
 
 def check_writable_dir(path: str | Path, key: str = "hydra.run.dir") -> Path:
@@ -69,45 +86,29 @@ def check_trainer_settings(group, prefix: str = "trainer") -> None:
         raise ConfigError(f"{prefix}.num_nodes={nodes!r}: give a number of nodes >= 1")
 
 
-def experiment_task(path: Path) -> str | None:
-    """The `task:` an experiment config declares (train or estimate), None if unreadable or absent."""
-    import yaml
-
-    try:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-    except yaml.YAMLError:
-        return None
-    return data.get("task") if isinstance(data, dict) else None
+def app_experiments(app: str, config_dir: Path = CONFIG_DIR) -> list[str]:
+    """The experiments of app `app` (train, estimate): configs/<app>/experiment/*.yaml."""
+    return sorted(p.stem for p in (Path(config_dir) / app / "experiment").glob("*.yaml"))
 
 
-def experiments_for(task: str, config_dir: Path = CONFIG_DIR) -> list[str]:
-    return sorted(p.stem for p in (Path(config_dir) / "experiment").glob("*.yaml") if experiment_task(p) == task)
-
-
-def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path = CONFIG_DIR) -> None:
-    """Fail early, before Hydra composes anything, on an unknown experiment or one of the other app's task.
-
-    Experiments of both apps share configs/experiment/; each declares `task: train` or `task: estimate`."""
-    apps = {"train": ("qcm-train", "qcm-estimate"), "estimate": ("qcm-estimate", "qcm-train")}
-    if task not in apps:  # an app without experiments (qcm-calibrate): Hydra refuses the override itself
+def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """Fail early, in one line, on an experiment=NAME that is not one of this app's, naming the app that runs
+    it where another one does (Hydra's own message is a page: the options and the whole search path)."""
+    root = Path(config_dir)
+    if not (root / app / "experiment").is_dir():  # an app without experiments: Hydra refuses the override itself
         return
-    app, other = apps[task]
     for arg in args:
         key, _, value = arg.partition("=")
         if key.lstrip("+~") != "experiment" or not value or value == "null":
             continue
         for name in (n.strip() for n in value.split(",")):
-            path = Path(config_dir) / "experiment" / f"{name}.yaml"
-            if not path.is_file():
-                raise ConfigError(
-                    f"unknown experiment {name!r} (no {path}); {app} experiments: "
-                    f"{', '.join(experiments_for(task, config_dir))}"
-                )
-            declared = experiment_task(path)
-            if declared != task:
-                raise ConfigError(
-                    f"experiment {name!r} is not a{'n' if task == 'estimate' else ''} "
-                    f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
-                    f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
-                    f"the others run with {other}"
-                )
+            if (root / app / "experiment" / f"{name}.yaml").is_file():
+                continue
+            others = sorted(p.parent.parent.name for p in root.glob(f"*/experiment/{name}.yaml"))
+            what = (
+                f"experiment {name!r} is a qcm-{others[0]} experiment (configs/{others[0]}/experiment/{name}.yaml): "
+                f"run it with qcm-{others[0]}"
+                if others
+                else f"unknown experiment {name!r} (no configs/{app}/experiment/{name}.yaml)"
+            )
+            raise ConfigError(f"{what}; qcm-{app} experiments: {', '.join(app_experiments(app, root))}")
