@@ -9,9 +9,12 @@ experiments (configs/train/experiment/, configs/estimate/experiment/)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import typing
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hybridqcm.errors import ConfigError
 
@@ -112,3 +115,130 @@ def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path =
                 else f"unknown experiment {name!r} (no configs/{app}/experiment/{name}.yaml)"
             )
             raise ConfigError(f"{what}; qcm-{app} experiments: {', '.join(app_experiments(app, root))}")
+
+
+# -- settings against a dataclass schema (a structured config: hybridqcm.estimation.settings) -------------
+def _schema_type(schema: type, dotted: str) -> Any:
+    """The annotation of `dotted` (a.b, a.b[0], a.b.key of a dict) in a dataclass schema; None where it is
+    not one of its fields, Any inside an Any field."""
+    node: Any = schema
+    for part in dotted.replace("[", ".[").split("."):
+        origin = typing.get_origin(node)
+        if node is Any:
+            return Any
+        if origin in (list, dict):  # an element of a list, a value of a dict
+            node = typing.get_args(node)[-1]
+            continue
+        if not dataclasses.is_dataclass(node):
+            return None
+        hints = typing.get_type_hints(node)
+        if part not in hints:
+            return None
+        node = hints[part]
+    return node
+
+
+def _kind(annotation: Any) -> str:
+    """What a value of this annotation is, for a one-line message: give true or false / a whole number ..."""
+    args = typing.get_args(annotation)
+    nullable = typing.get_origin(annotation) is typing.Union and type(None) in args
+    if nullable:
+        annotation = next(a for a in args if a is not type(None))
+    words = {bool: "true or false", int: "a whole number", float: "a number", str: "a name"}
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        what = f"a list [...] of {words.get(typing.get_args(annotation)[0], 'values').removeprefix('a ')}s"
+    elif origin is dict:
+        what = "a mapping {key: value}"
+    else:
+        what = words.get(annotation, "a value")
+    return what + (" or null" if nullable else "")
+
+
+def _one_line(error: Exception, schema: type, values, app: str) -> ConfigError:
+    """OmegaConf's error (several lines: message, full_key, object_type) as one ConfigError line."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+
+    key = str(getattr(error, "full_key", "") or "")
+    value = OmegaConf.select(values, key, default=None, throw_on_resolution_failure=False) if key else None
+    if isinstance(error, (ConfigKeyError, ConfigAttributeError)):
+        prefix = key.rpartition(".")[0]
+        parent = _schema_type(schema, prefix) if prefix else schema
+        known = sorted(f.name for f in dataclasses.fields(parent)) if dataclasses.is_dataclass(parent) else []
+        return ConfigError(
+            f"unknown setting {key}={value!r} (qcm-{app} does not use it); known under {prefix or 'the top level'}: {known}"
+        )
+    return ConfigError(f"{key}={value!r}: give {_kind(_schema_type(schema, key))}")
+
+
+def check_settings_against(schema: type, cfg, app: str) -> None:
+    """A composed config of app `app` against its dataclass schema: the first unknown key or wrongly typed
+    value as one ConfigError line naming the key and value (`hydra`, when composed with it, is Hydra's)."""
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    # plain values: a config composed against the schema may carry keys added with `+key=` (Hydra adds them)
+    data = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
+    values = OmegaConf.create({k: v for k, v in data.items() if k != "hydra"})
+    try:
+        OmegaConf.merge(OmegaConf.structured(schema), values)
+    except OmegaConfBaseException as error:
+        raise _one_line(error, schema, values, app) from None
+
+
+def _groups(app: str, config_dir: Path) -> set[str]:
+    """The config groups configs/<app>.yaml's defaults list names (experiment, solver, hydra, ...)."""
+    import yaml
+
+    data = yaml.safe_load((Path(config_dir) / f"{app}.yaml").read_text()) or {}
+    return {
+        str(next(iter(entry))).split("@")[0].removeprefix("override ").removeprefix("optional ").strip()
+        for entry in data.get("defaults") or []
+        if isinstance(entry, dict)
+    }
+
+
+def check_overrides_against(schema: type, args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """The command line's overrides of app `app` (configs/<app>.yaml) against its dataclass schema, before
+    Hydra composes: a key the schema lacks (not added with `+`) or a value of the wrong type, each element
+    of a sweep `a=1,2` too, is one ConfigError line naming the key and value (Hydra's is a page)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import ChoiceSweep
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    groups = _groups(app, config_dir)
+    for arg in args:
+        try:
+            (override,) = OverridesParser.create().parse_overrides([arg])
+        except HydraException:
+            continue  # not an override (a flag such as --cfg): Hydra's to judge
+        key = override.key_or_group
+        top = key.split(".")[0].split("[")[0]
+        if override.is_delete() or override.package is not None or top in groups or top.startswith("hydra"):
+            continue
+        if _schema_type(schema, key) is None and override.is_add():
+            continue  # a new key: `check_settings_against` names it after composing
+        value = override.value()
+        choices = value.list if isinstance(value, ChoiceSweep) else [] if override.is_sweep_override() else [value]
+        for choice in choices:
+            if isinstance(choice, str) and "${" in choice:
+                continue  # an interpolation: typed when resolved
+            values = OmegaConf.create()
+            OmegaConf.update(values, key, choice, force_add=True)
+            check_settings_against(schema, values, app)
+
+
+def check_schema_overrides(args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """`check_overrides_against` with the schema app `app` registered in Hydra's ConfigStore as
+    ``schema/<app>`` (configs/<app>.yaml's defaults list names it); nothing to check without one."""
+    from hydra.core.config_store import ConfigStore
+    from hydra.plugins.config_source import ConfigLoadError
+    from omegaconf import OmegaConf
+
+    try:
+        node = ConfigStore.instance().load(f"schema/{app}.yaml")
+    except ConfigLoadError:  # no schema registered for this app
+        return
+    check_overrides_against(OmegaConf.get_type(node.node), args, app, config_dir)

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from hybridqcm.config import CONFIG_DIR, check_experiment_overrides, check_task_name
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides, check_schema_overrides, check_task_name
 from hybridqcm.errors import ConfigError
 
 
@@ -147,7 +147,8 @@ def quiet_third_party() -> None:
 
 
 def run_hydra_app(config_name: str, task: str, entry) -> None:
-    """Console-script body: reject unknown / other-app experiments in one line, then hand over to Hydra.
+    """Console-script body: reject unknown / other-app experiments and settings its schema refuses (a
+    structured config registered as ``schema/<config_name>``) in one line, then hand over to Hydra.
 
     The Hydra job quiets third-party output (`quiet_third_party`) before it calls ``entry(cfg)``."""
     import hydra
@@ -155,6 +156,7 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     install_signal_handlers()
     try:
         check_experiment_overrides(sys.argv[1:], task)
+        check_schema_overrides(sys.argv[1:], config_name)
         check_task_name_overrides(sys.argv[1:])
     except ConfigError as error:
         fail(error)
