@@ -152,6 +152,25 @@ def test_inference_without_params(files, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- bad inputs
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["n_samples=abc"], "n_samples='abc': give a whole number or null"),
+        (["restarts.mass_factors=[1.0,big]"], "restarts.mass_factors[1]='big': give a number"),
+        (["-m", "n_samples=2,abc"], "n_samples='abc': give a whole number or null"),  # a sweep: before any job
+        (["+data.pathh=x.h5"], "unknown setting data.pathh='x.h5' (qcm-estimate does not use it)"),
+    ],
+)
+def test_the_settings_schema_refuses_on_the_console_in_one_line(tiny_dataset, tmp_path, overrides, message):
+    """Typed by estimation/settings.py's schema (registered as schema/estimate when the plan imports it)."""
+    main = "import hybridqcm.estimation.settings; from hybridqcm.apps.estimate import main; main()"
+    cmd = [sys.executable, "-c", main, "experiment=exp5_random_init", f"data.path={tiny_dataset}", *overrides]
+    proc = subprocess.run([*cmd, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.startswith(f"error: {message}"), proc.stderr[-2000:]
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "estimates.csv").exists()
+
+
 def test_unknown_and_training_experiments(tmp_path):
     with pytest.raises(ConfigError, match="unknown experiment 'nope'.*qcm-estimate experiments: .*exp5_random_init"):
         check_experiment_overrides(["experiment=nope"], "estimate")
