@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from hybridqcm.config import CONFIG_DIR, _schema_type, app_experiments, check_schema_overrides
+from hybridqcm.config import CONFIG_DIR, app_experiments, check_schema_overrides, schema_type
 from hybridqcm.errors import ConfigError
 from hybridqcm.estimation import settings
 from hybridqcm.estimation.settings import EstimateSettings
@@ -28,7 +28,7 @@ def _compose(*overrides):
 def _keys(data: dict, prefix: str = "") -> list[str]:
     out = []
     for key, value in data.items():
-        if isinstance(value, dict) and _schema_type(EstimateSettings, f"{prefix}{key}") not in (None, object):
+        if isinstance(value, dict) and schema_type(EstimateSettings, f"{prefix}{key}") not in (None, object):
             out += [f"{prefix}{key}"] + _keys(value, f"{prefix}{key}.")
         else:
             out.append(f"{prefix}{key}")
@@ -48,7 +48,7 @@ def test_the_schema_types_every_key_of_estimate_yaml_and_its_experiments():
     assert len(files) == 1 + len(app_experiments("estimate")) > 5
     for path in files:
         data = {k: v for k, v in yaml.safe_load(path.read_text()).items() if k not in ("defaults", "hydra")}
-        untyped = [key for key in _keys(data) if _schema_type(EstimateSettings, key) is None]
+        untyped = [key for key in _keys(data) if schema_type(EstimateSettings, key) is None]
         assert not untyped, (path.name, untyped)
     # ... and estimate.yaml gives every field its value (the schema holds types, no defaults of its own)
     data = yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text())

@@ -118,7 +118,7 @@ def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path =
 
 
 # -- settings against a dataclass schema (a structured config: hybridqcm.estimation.settings) -------------
-def _schema_type(schema: type, dotted: str) -> Any:
+def schema_type(schema: type, dotted: str) -> Any:
     """The annotation of `dotted` (a.b, a.b[0], a.b.key of a dict) in a dataclass schema; None where it is
     not one of its fields, Any inside an Any field."""
     node: Any = schema
@@ -164,12 +164,12 @@ def _one_line(error: Exception, schema: type, values, app: str) -> ConfigError:
     value = OmegaConf.select(values, key, default=None, throw_on_resolution_failure=False) if key else None
     if isinstance(error, (ConfigKeyError, ConfigAttributeError)):
         prefix = key.rpartition(".")[0]
-        parent = _schema_type(schema, prefix) if prefix else schema
+        parent = schema_type(schema, prefix) if prefix else schema
         known = sorted(f.name for f in dataclasses.fields(parent)) if dataclasses.is_dataclass(parent) else []
         return ConfigError(
             f"unknown setting {key}={value!r} (qcm-{app} does not use it); known under {prefix or 'the top level'}: {known}"
         )
-    return ConfigError(f"{key}={value!r}: give {_kind(_schema_type(schema, key))}")
+    return ConfigError(f"{key}={value!r}: give {_kind(schema_type(schema, key))}")
 
 
 def check_settings_against(schema: type, cfg, app: str) -> None:
@@ -218,7 +218,7 @@ def check_overrides_against(schema: type, args: Sequence[str], app: str, config_
         top = key.split(".")[0].split("[")[0]
         if override.is_delete() or override.package is not None or top in groups or top.startswith("hydra"):
             continue
-        if _schema_type(schema, key) is None and override.is_add():
+        if schema_type(schema, key) is None and override.is_add():
             continue  # a new key: `check_settings_against` names it after composing
         value = override.value()
         choices = value.list if isinstance(value, ChoiceSweep) else [] if override.is_sweep_override() else [value]
