@@ -1,6 +1,8 @@
 """Where the configs live and the checks every app makes of its settings before any work: the run
-folder writable, task_name a plain folder name, Lightning's devices/num_nodes, and an experiment
-that belongs to the app asked to run it. Each failure is one ConfigError naming the key and value.
+folder writable, task_name a plain folder name, Lightning's devices/num_nodes, an experiment that
+belongs to the app asked to run it, and, for an app whose config is a structured config (a dataclass
+schema registered in Hydra's ConfigStore as ``schema/<app>``: estimation/settings.py), its settings
+against that schema. Each failure is one ConfigError naming the key and value.
 
 Layout: configs/<app>.yaml is app <app>'s primary config; the groups the apps share are folders of
 configs/, and configs/<app>/ (on the app's search path: its `hydra.searchpath`, through the
