@@ -10,6 +10,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hybridqcm.metrics import error_distribution_rows, write_error_distribution
 
@@ -145,11 +146,10 @@ logging.getLogger("lightning.pytorch.accelerators.cuda").info("LOCAL_RANK: 0 - C
 def test_help_lists_only_the_groups_and_experiments_the_app_takes():
     """Before: every app's --help listed every folder of configs/ (qcm-estimate: model, logger, callbacks,
     launcher, ... and the training experiments), which the app then refused."""
-    import yaml
     from hydra import compose, initialize_config_dir
-    from hydra.errors import MissingConfigException
+    from hydra.errors import ConfigCompositionException, MissingConfigException
 
-    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.config import CONFIG_DIR, app_experiments
 
     bin_dir = Path(sys.executable).parent
     from hybridqcm.apps.common import app_groups_help
@@ -163,9 +163,13 @@ def test_help_lists_only_the_groups_and_experiments_the_app_takes():
         assert result.stdout.startswith(f"{app}: key=value overrides")
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
             for group, options in listed.items():
-                if group == "experiment":  # each one is this app's (the config's own `task:`)
-                    tasks = {yaml.safe_load((CONFIG_DIR / group / f"{o}.yaml").read_text())["task"] for o in options}
-                    assert tasks == {config}, (app, tasks)
+                if group == "experiment":  # this app's own folder, configs/<app>/experiment/, and each composes
+                    assert options == app_experiments(config) and options, (app, options)
+                    for option in options:
+                        compose(config, overrides=[f"experiment={option}"])
+                    other = app_experiments("train" if config == "estimate" else "estimate")[0]
+                    with pytest.raises(ConfigCompositionException, match=f"experiment/{other}"):
+                        compose(config, overrides=[f"experiment={other}"])  # not on this app's search path
                     continue
                 try:  # the group is in the app's defaults list: an option of it composes
                     compose(config, overrides=[f"{group}={options[-1]}"])

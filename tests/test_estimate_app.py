@@ -11,8 +11,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate import ConfigError, build_inputs, check_experiment_overrides, validate
-from hybridqcm.config import CONFIG_DIR
+from hybridqcm.apps.estimate import ConfigError, build_inputs, validate
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides
 from hybridqcm.errors import DatasetError
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints, write_dataset
 
@@ -152,14 +152,34 @@ def test_inference_without_params(files, tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------- bad inputs
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["n_samples=abc"], "n_samples='abc': give a whole number or null"),
+        (["restarts.mass_factors=[1.0,big]"], "restarts.mass_factors[1]='big': give a number"),
+        (["-m", "n_samples=2,abc"], "n_samples='abc': give a whole number or null"),  # a sweep: before any job
+        (["+data.pathh=x.h5"], "unknown setting data.pathh='x.h5' (qcm-estimate does not use it)"),
+    ],
+)
+def test_the_settings_schema_refuses_on_the_console_in_one_line(tiny_dataset, tmp_path, overrides, message):
+    """Typed by estimation/settings.py's schema (registered as schema/estimate when the plan imports it)."""
+    main = "import hybridqcm.estimation.settings; from hybridqcm.apps.estimate import main; main()"
+    cmd = [sys.executable, "-c", main, "experiment=exp5_random_init", f"data.path={tiny_dataset}", *overrides]
+    proc = subprocess.run([*cmd, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and proc.stderr.startswith(f"error: {message}"), proc.stderr[-2000:]
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "estimates.csv").exists()
+
+
 def test_unknown_and_training_experiments(tmp_path):
-    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*exp5_random_init"):
-        check_experiment_overrides(["experiment=nope"])
-    with pytest.raises(ConfigError, match="'exp2_physics' is not an estimation experiment.*task: train"):
-        check_experiment_overrides(["experiment=exp2_physics"])
-    check_experiment_overrides(["experiment=exp8_occupant_only", "n_samples=3"])  # fine
+    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*qcm-estimate experiments: .*exp5_random_init"):
+        check_experiment_overrides(["experiment=nope"], "estimate")
+    with pytest.raises(ConfigError, match="'exp2_physics' is a qcm-train experiment.*run it with qcm-train"):
+        check_experiment_overrides(["experiment=exp2_physics"], "estimate")
+    check_experiment_overrides(["experiment=exp8_occupant_only", "n_samples=3"], "estimate")  # fine
     proc = _run_app(tmp_path, "experiment=exp1_labelled")
-    assert proc.returncode == 2 and "not an estimation experiment" in proc.stderr
+    assert proc.returncode == 2 and "'exp1_labelled' is a qcm-train experiment" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not (tmp_path / "estimates.csv").exists()
 
 
@@ -271,5 +291,5 @@ def test_cnn_window_longer_than_file(files, checkpoints):
 )
 def test_experiments_compose(name):
     cfg = _cfg([f"experiment={name}"])
-    assert cfg.task == "estimate" and cfg.experiment_name == name.split("_")[0]
+    assert cfg.task_name == name and cfg.experiment_name == name.split("_")[0]
     assert len(cfg.stages) >= 1 and cfg.solver.method == "gauss_newton"

@@ -119,12 +119,14 @@ def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, override, message)
     from hydra import compose, initialize_config_dir
 
     from hybridqcm.apps.estimate_plan import validate
-    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.config import CONFIG_DIR, check_schema_overrides
     from hybridqcm.errors import ConfigError
 
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("estimate", overrides=["experiment=occupant_roadfree", f"data.path={tiny_dataset}", override])
+    overrides = ["experiment=occupant_roadfree", f"data.path={tiny_dataset}", override]
     with pytest.raises(ConfigError, match=re.escape(message)) as error:
+        check_schema_overrides(overrides, "estimate")  # as qcm-estimate: the schema's refusals first
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            cfg = compose("estimate", overrides=overrides)
         validate(cfg)
     assert "\n" not in str(error.value)
 

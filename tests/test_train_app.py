@@ -11,22 +11,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from hybridqcm.apps.train import ConfigError, build_datamodule, check_experiment_overrides, prepare, train
-from hybridqcm.config import CONFIG_DIR
+from hybridqcm.apps.train import ConfigError, build_datamodule, prepare, train
+from hybridqcm.config import CONFIG_DIR, app_experiments, check_experiment_overrides
 from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.simulate import write_dataset
 from hybridqcm.physics import RoadProfile, build_prior
 
 BIN = Path(sys.executable).parent
-TRAIN_EXPERIMENTS = sorted(
-    p.stem
-    for p in (CONFIG_DIR / "experiment").glob("*.yaml")
-    if (yaml.safe_load(p.read_text()) or {}).get("task") == "train"
-)
+TRAIN_EXPERIMENTS = app_experiments("train")
 # Small nets and data so a run takes seconds.
 SMALL = ["debug=short", "data.samples_per_epoch=64", "data.val_samples=32", "data.batch_size=32", "seed=1"]
 SMALL_NET = {
@@ -102,7 +97,7 @@ def test_training_experiments_are_the_expected_ones():
 @pytest.mark.parametrize("experiment", TRAIN_EXPERIMENTS)
 def test_every_experiment_composes_and_instantiates(experiment, tmp_path):
     cfg = _cfg([f"experiment={experiment}", "data.path=/nonexistent.h5"], tmp_path)
-    assert cfg.task == "train" and cfg.trainer.accelerator == "auto"
+    assert cfg.task_name == experiment and cfg.trainer.accelerator == "auto"
     model = instantiate(cfg.model)
     datamodule = build_datamodule(cfg.data, model.data_requirements(), train=True)
     assert datamodule.window == model.data_requirements()["window"]
@@ -226,13 +221,19 @@ def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
 
 # -- bad input ------------------------------------------------------------------------------------------------
 def test_unknown_and_non_training_experiments(tmp_path):
-    with pytest.raises(ConfigError, match="unknown experiment 'exp99'"):
-        check_experiment_overrides(["experiment=exp99"])
-    (tmp_path / "experiment").mkdir()
-    (tmp_path / "experiment" / "exp5_gn.yaml").write_text("# @package _global_\ntask: estimate\n")
-    with pytest.raises(ConfigError, match="exp5_gn.*estimate"):
-        check_experiment_overrides(["experiment=exp5_gn"], tmp_path)
-    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"])  # multirun lists are fine
+    with pytest.raises(ConfigError, match=r"^unknown experiment 'exp99' \(no configs/train/experiment/exp99.yaml\); "):
+        check_experiment_overrides(["experiment=exp99"], "train")
+    for app, name in (("train", "exp1_mine"), ("estimate", "exp5_gn")):
+        (tmp_path / app / "experiment").mkdir(parents=True)
+        (tmp_path / app / "experiment" / f"{name}.yaml").write_text("# @package _global_\n")
+    with pytest.raises(
+        ConfigError,
+        match=r"^experiment 'exp5_gn' is a qcm-estimate experiment .*: run it with "
+        r"qcm-estimate; qcm-train experiments: exp1_mine$",
+    ):
+        check_experiment_overrides(["experiment=exp5_gn"], "train", tmp_path)
+    check_experiment_overrides(["experiment=exp1_mine"], "train", tmp_path)
+    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"], "train")  # multirun lists are fine
     result = subprocess.run([str(BIN / "qcm-train"), "experiment=nope"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unknown experiment 'nope'" in result.stderr
 

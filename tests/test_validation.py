@@ -25,6 +25,8 @@ SRC = str(Path(__file__).resolve().parents[1] / "src")
 
 
 def _cfg(app, overrides):
+    """As the app composes: the one-line refusals of its schema (estimation/settings.py) first."""
+    config.check_schema_overrides(overrides, app)
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(app, overrides=list(overrides))
 

@@ -18,7 +18,7 @@ from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.estimate_plan import validate
 from hybridqcm.apps.estimate_vehicle import validate_vehicle
-from hybridqcm.config import CONFIG_DIR
+from hybridqcm.config import CONFIG_DIR, check_schema_overrides
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
 from hybridqcm.data.vehicle_files import read_seat_split
 from hybridqcm.errors import ConfigError, DatasetError
@@ -76,6 +76,8 @@ def files(tmp_path_factory) -> dict[str, Path]:
 
 
 def _cfg(*overrides):
+    """As qcm-estimate composes: the schema's one-line refusals of the command line first."""
+    check_schema_overrides(overrides, "estimate")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose("estimate", overrides=list(overrides))
 

@@ -1,17 +1,39 @@
 """Where the configs live and the checks every app makes of its settings before any work: the run
-folder writable, task_name a plain folder name, Lightning's devices/num_nodes, and an experiment
-that belongs to the app asked to run it. Each failure is one ConfigError naming the key and value."""
+folder writable, task_name a plain folder name, Lightning's devices/num_nodes, an experiment that
+belongs to the app asked to run it, and, for an app whose config is a structured config (a dataclass
+schema registered in Hydra's ConfigStore as ``schema/<app>``: estimation/settings.py), its settings
+against that schema. Each failure is one ConfigError naming the key and value.
+
+Layout: configs/<app>.yaml is app <app>'s primary config; the groups the apps share are folders of
+configs/, and configs/<app>/ (on the app's search path: its `hydra.searchpath`, through the
+${hybridqcm_config_dir:} resolver registered here) holds the groups of that app alone, its
+experiments (configs/train/experiment/, configs/estimate/experiment/)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import typing
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hybridqcm.errors import ConfigError
 
 # The configs live at the repository root (configs/); HYBRIDQCM_CONFIG_DIR points elsewhere.
 CONFIG_DIR = Path(os.environ.get("HYBRIDQCM_CONFIG_DIR", Path(__file__).resolve().parents[2] / "configs"))
+
+
+def _register_config_dir_resolver() -> None:
+    """${hybridqcm_config_dir:} (the apps' `hydra.searchpath`): CONFIG_DIR, wherever the configs live;
+    registered before anything composes a config (apps and tests import CONFIG_DIR from here)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("hybridqcm_config_dir"):
+        OmegaConf.register_new_resolver("hybridqcm_config_dir", lambda: str(CONFIG_DIR))
+
+
+_register_config_dir_resolver()
 
 
 def check_writable_dir(path: str | Path, key: str = "hydra.run.dir") -> Path:
@@ -69,45 +91,156 @@ def check_trainer_settings(group, prefix: str = "trainer") -> None:
         raise ConfigError(f"{prefix}.num_nodes={nodes!r}: give a number of nodes >= 1")
 
 
-def experiment_task(path: Path) -> str | None:
-    """The `task:` an experiment config declares (train or estimate), None if unreadable or absent."""
-    import yaml
-
-    try:
-        data = yaml.safe_load(Path(path).read_text()) or {}
-    except yaml.YAMLError:
-        return None
-    return data.get("task") if isinstance(data, dict) else None
+def app_experiments(app: str, config_dir: Path = CONFIG_DIR) -> list[str]:
+    """The experiments of app `app` (train, estimate): configs/<app>/experiment/*.yaml."""
+    return sorted(p.stem for p in (Path(config_dir) / app / "experiment").glob("*.yaml"))
 
 
-def experiments_for(task: str, config_dir: Path = CONFIG_DIR) -> list[str]:
-    return sorted(p.stem for p in (Path(config_dir) / "experiment").glob("*.yaml") if experiment_task(p) == task)
-
-
-def check_experiment_overrides(args: Sequence[str], task: str, config_dir: Path = CONFIG_DIR) -> None:
-    """Fail early, before Hydra composes anything, on an unknown experiment or one of the other app's task.
-
-    Experiments of both apps share configs/experiment/; each declares `task: train` or `task: estimate`."""
-    apps = {"train": ("qcm-train", "qcm-estimate"), "estimate": ("qcm-estimate", "qcm-train")}
-    if task not in apps:  # an app without experiments (qcm-calibrate): Hydra refuses the override itself
+def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """Fail early, in one line, on an experiment=NAME that is not one of this app's, naming the app that runs
+    it where another one does (Hydra's own message is a page: the options and the whole search path)."""
+    root = Path(config_dir)
+    if not (root / app / "experiment").is_dir():  # an app without experiments: Hydra refuses the override itself
         return
-    app, other = apps[task]
     for arg in args:
         key, _, value = arg.partition("=")
         if key.lstrip("+~") != "experiment" or not value or value == "null":
             continue
         for name in (n.strip() for n in value.split(",")):
-            path = Path(config_dir) / "experiment" / f"{name}.yaml"
-            if not path.is_file():
-                raise ConfigError(
-                    f"unknown experiment {name!r} (no {path}); {app} experiments: "
-                    f"{', '.join(experiments_for(task, config_dir))}"
-                )
-            declared = experiment_task(path)
-            if declared != task:
-                raise ConfigError(
-                    f"experiment {name!r} is not a{'n' if task == 'estimate' else ''} "
-                    f"{'estimation' if task == 'estimate' else 'training'} experiment (its config says "
-                    f"task: {declared}); {app} runs {', '.join(experiments_for(task, config_dir))}, "
-                    f"the others run with {other}"
-                )
+            if (root / app / "experiment" / f"{name}.yaml").is_file():
+                continue
+            others = sorted(p.parent.parent.name for p in root.glob(f"*/experiment/{name}.yaml"))
+            what = (
+                f"experiment {name!r} is a qcm-{others[0]} experiment (configs/{others[0]}/experiment/{name}.yaml): "
+                f"run it with qcm-{others[0]}"
+                if others
+                else f"unknown experiment {name!r} (no configs/{app}/experiment/{name}.yaml)"
+            )
+            raise ConfigError(f"{what}; qcm-{app} experiments: {', '.join(app_experiments(app, root))}")
+
+
+# -- settings against a dataclass schema (a structured config: hybridqcm.estimation.settings) -------------
+def schema_type(schema: type, dotted: str) -> Any:
+    """The annotation of `dotted` (a.b, a.b[0], a.b.key of a dict) in a dataclass schema; None where it is
+    not one of its fields, Any inside an Any field."""
+    node: Any = schema
+    for part in dotted.replace("[", ".[").split("."):
+        origin = typing.get_origin(node)
+        if node is Any:
+            return Any
+        if origin in (list, dict):  # an element of a list, a value of a dict
+            node = typing.get_args(node)[-1]
+            continue
+        if not dataclasses.is_dataclass(node):
+            return None
+        hints = typing.get_type_hints(node)
+        if part not in hints:
+            return None
+        node = hints[part]
+    return node
+
+
+def _kind(annotation: Any) -> str:
+    """What a value of this annotation is, for a one-line message: give true or false / a whole number ..."""
+    args = typing.get_args(annotation)
+    nullable = typing.get_origin(annotation) is typing.Union and type(None) in args
+    if nullable:
+        annotation = next(a for a in args if a is not type(None))
+    words = {bool: "true or false", int: "a whole number", float: "a number", str: "a name"}
+    origin = typing.get_origin(annotation)
+    if origin is list:
+        what = f"a list [...] of {words.get(typing.get_args(annotation)[0], 'values').removeprefix('a ')}s"
+    elif origin is dict:
+        what = "a mapping {key: value}"
+    else:
+        what = words.get(annotation, "a value")
+    return what + (" or null" if nullable else "")
+
+
+def _one_line(error: Exception, schema: type, values, app: str) -> ConfigError:
+    """OmegaConf's error (several lines: message, full_key, object_type) as one ConfigError line."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError
+
+    key = str(getattr(error, "full_key", "") or "")
+    value = OmegaConf.select(values, key, default=None, throw_on_resolution_failure=False) if key else None
+    if isinstance(error, (ConfigKeyError, ConfigAttributeError)):
+        prefix = key.rpartition(".")[0]
+        parent = schema_type(schema, prefix) if prefix else schema
+        known = sorted(f.name for f in dataclasses.fields(parent)) if dataclasses.is_dataclass(parent) else []
+        return ConfigError(
+            f"unknown setting {key}={value!r} (qcm-{app} does not use it); known under {prefix or 'the top level'}: {known}"
+        )
+    return ConfigError(f"{key}={value!r}: give {_kind(schema_type(schema, key))}")
+
+
+def check_settings_against(schema: type, cfg, app: str) -> None:
+    """A composed config of app `app` against its dataclass schema: the first unknown key or wrongly typed
+    value as one ConfigError line naming the key and value (`hydra`, when composed with it, is Hydra's)."""
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    # plain values: a config composed against the schema may carry keys added with `+key=` (Hydra adds them)
+    data = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
+    values = OmegaConf.create({k: v for k, v in data.items() if k != "hydra"})
+    try:
+        OmegaConf.merge(OmegaConf.structured(schema), values)
+    except OmegaConfBaseException as error:
+        raise _one_line(error, schema, values, app) from None
+
+
+def _groups(app: str, config_dir: Path) -> set[str]:
+    """The config groups configs/<app>.yaml's defaults list names (experiment, solver, hydra, ...)."""
+    import yaml
+
+    data = yaml.safe_load((Path(config_dir) / f"{app}.yaml").read_text()) or {}
+    return {
+        str(next(iter(entry))).split("@")[0].removeprefix("override ").removeprefix("optional ").strip()
+        for entry in data.get("defaults") or []
+        if isinstance(entry, dict)
+    }
+
+
+def check_overrides_against(schema: type, args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """The command line's overrides of app `app` (configs/<app>.yaml) against its dataclass schema, before
+    Hydra composes: a key the schema lacks (not added with `+`) or a value of the wrong type, each element
+    of a sweep `a=1,2` too, is one ConfigError line naming the key and value (Hydra's is a page)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import ChoiceSweep
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    groups = _groups(app, config_dir)
+    for arg in args:
+        try:
+            (override,) = OverridesParser.create().parse_overrides([arg])
+        except HydraException:
+            continue  # not an override (a flag such as --cfg): Hydra's to judge
+        key = override.key_or_group
+        top = key.split(".")[0].split("[")[0]
+        if override.is_delete() or override.package is not None or top in groups or top.startswith("hydra"):
+            continue
+        if schema_type(schema, key) is None and override.is_add():
+            continue  # a new key: `check_settings_against` names it after composing
+        value = override.value()
+        choices = value.list if isinstance(value, ChoiceSweep) else [] if override.is_sweep_override() else [value]
+        for choice in choices:
+            if isinstance(choice, str) and "${" in choice:
+                continue  # an interpolation: typed when resolved
+            values = OmegaConf.create()
+            OmegaConf.update(values, key, choice, force_add=True)
+            check_settings_against(schema, values, app)
+
+
+def check_schema_overrides(args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
+    """`check_overrides_against` with the schema app `app` registered in Hydra's ConfigStore as
+    ``schema/<app>`` (configs/<app>.yaml's defaults list names it); nothing to check without one."""
+    from hydra.core.config_store import ConfigStore
+    from hydra.plugins.config_source import ConfigLoadError
+    from omegaconf import OmegaConf
+
+    try:
+        node = ConfigStore.instance().load(f"schema/{app}.yaml")
+    except ConfigLoadError:  # no schema registered for this app
+        return
+    check_overrides_against(OmegaConf.get_type(node.node), args, app, config_dir)

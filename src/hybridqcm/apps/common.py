@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from hybridqcm.config import CONFIG_DIR, check_experiment_overrides, check_task_name, experiments_for
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides, check_schema_overrides, check_task_name
 from hybridqcm.errors import ConfigError
 
 
@@ -28,9 +28,9 @@ def _register_resolvers() -> None:
 
 
 def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
-    """One line per config group the app's defaults list names (not Hydra's own), with its options;
-    experiments: only those for this app (`task:`). Hydra's default --help listed every folder of
-    configs/, the groups of the other apps included, which this app then refuses."""
+    """One line per config group the app's defaults list names (not Hydra's own), with its options from
+    the app's search path: configs/ and its own configs/<app>/ (its experiments). Hydra's default --help
+    listed every folder of configs/, the groups of the other apps included, which this app then refuses."""
     import yaml
 
     root = Path(config_dir or CONFIG_DIR)
@@ -40,16 +40,13 @@ def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
         if not isinstance(entry, dict):
             continue
         group = str(next(iter(entry))).split("@")[0].removeprefix("override ").strip()
-        folder = root / group
-        if group == "hydra" or not folder.is_dir():
+        folders = [f for f in (root / group, root / config_name / group) if f.is_dir()]
+        if group == "hydra" or not folders:
             continue
-        if group == "experiment":
-            options = experiments_for(str(data.get("task")), root) if data.get("task") else []
-        else:
-            options = sorted(p.stem for p in folder.glob("*.yaml"))
-        lines.append(f"{group}: {', '.join(options)}")
+        lines.append(f"{group}: {', '.join(sorted({p.stem for f in folders for p in f.glob('*.yaml')}))}")
         lines += [
             f"{group}/{sub.name}: {', '.join(sorted(p.stem for p in sub.glob('*.yaml')))}"
+            for folder in folders
             for sub in sorted(folder.iterdir())
             if sub.is_dir() and any(sub.glob("*.yaml"))
         ]
@@ -150,7 +147,8 @@ def quiet_third_party() -> None:
 
 
 def run_hydra_app(config_name: str, task: str, entry) -> None:
-    """Console-script body: reject unknown / other-app experiments in one line, then hand over to Hydra.
+    """Console-script body: reject unknown / other-app experiments and settings its schema refuses (a
+    structured config registered as ``schema/<config_name>``) in one line, then hand over to Hydra.
 
     The Hydra job quiets third-party output (`quiet_third_party`) before it calls ``entry(cfg)``."""
     import hydra
@@ -158,6 +156,7 @@ def run_hydra_app(config_name: str, task: str, entry) -> None:
     install_signal_handlers()
     try:
         check_experiment_overrides(sys.argv[1:], task)
+        check_schema_overrides(sys.argv[1:], config_name)
         check_task_name_overrides(sys.argv[1:])
     except ConfigError as error:
         fail(error)

@@ -159,10 +159,8 @@ def _known_key_tree() -> dict:
 
     tree: dict = {}
     merge(tree, yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text()))
-    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
-        data = yaml.safe_load(path.read_text()) or {}
-        if isinstance(data, dict) and data.get("task") == "estimate":
-            merge(tree, data)
+    for path in sorted((CONFIG_DIR / "estimate" / "experiment").glob("*.yaml")):
+        merge(tree, yaml.safe_load(path.read_text()) or {})
     for group in ("paths", "hydra", "solver", "experiment", "sensor", "trainer"):
         tree[group] = None  # groups: their own schemas (checked by solver_settings and build_sensor)
     return tree
@@ -231,10 +229,8 @@ def _setting_types() -> dict[str, set[str]]:
                 types.setdefault(f"{prefix}{key}", set()).add(type(value).__name__)
 
     walk(yaml.safe_load((CONFIG_DIR / "estimate.yaml").read_text()))
-    for path in sorted((CONFIG_DIR / "experiment").glob("*.yaml")):
-        data = yaml.safe_load(path.read_text()) or {}
-        if isinstance(data, dict) and data.get("task") == "estimate":
-            walk(data)
+    for path in sorted((CONFIG_DIR / "estimate" / "experiment").glob("*.yaml")):
+        walk(yaml.safe_load(path.read_text()) or {})
     return types
 
 
@@ -275,8 +271,6 @@ def validate(cfg) -> dict:
     config.check_trainer_settings(cfg.get("trainer"))
     window_check_settings(cfg)
     config.check_task_name(cfg.get("task_name", "estimate"))
-    if cfg.get("task") != "estimate":
-        raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
     longest = str(cfg.n_steps) == "max"  # the longest window the file holds, resolved below
     try:
         n_steps = 2 if longest else int(cfg.n_steps)

@@ -99,8 +99,6 @@ def validate_vehicle(cfg) -> dict:
     check_setting_types(cfg, own=("init.equation_error",))  # true, false or seats: checked below
     config.check_trainer_settings(cfg.get("trainer"))
     config.check_task_name(cfg.get("task_name", "estimate"))
-    if cfg.get("task") != "estimate":
-        raise ConfigError(f"task={cfg.get('task')!r}: qcm-estimate runs estimation experiments (task: estimate)")
     kind = str(cfg.vehicle_model)
     if kind not in ("half_car", "full_car"):
         raise ConfigError(f"vehicle_model={kind!r}: choose quarter_car, half_car or full_car")

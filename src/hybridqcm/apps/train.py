@@ -130,10 +130,10 @@ def check_top_level_keys(cfg, config_dir: Path = CONFIG_DIR) -> None:
     known = set(yaml.safe_load((config_dir / "train.yaml").read_text()) or {})
     for entry in (yaml.safe_load((config_dir / "train.yaml").read_text()) or {}).get("defaults", []):
         known |= set(entry) if isinstance(entry, dict) else {str(entry)}
-    for folder in ("experiment", "hparams_search", "debug", "launcher"):
+    for folder in ("train/experiment", "hparams_search", "debug", "launcher"):
         for path in (config_dir / folder).glob("*.yaml"):
             data = yaml.safe_load(path.read_text()) or {}
-            if isinstance(data, dict) and data.get("task", "train") == "train":
+            if isinstance(data, dict):
                 known |= set(data)
     unknown = sorted(str(k) for k in cfg.keys() if k not in known)
     if unknown:
@@ -200,12 +200,6 @@ def prepare(cfg) -> dict:
 def _prepare(cfg) -> dict:
     import torch
 
-    task = cfg.get("task", "train")
-    if task != "train":
-        raise ConfigError(
-            f"task = {task!r}: qcm-train runs training experiments only (task: train); "
-            f"use qcm-estimate for estimation experiments"
-        )
     train, test = bool(cfg.get("train", True)), bool(cfg.get("test", True))
     if not train and not cfg.get("ckpt_path"):
         raise ConfigError("train=false needs ckpt_path=CKPT (the checkpoint to evaluate)")
