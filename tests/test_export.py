@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from hybridqcm.apps.export import ParityError, export, parity_inputs
-from hybridqcm.apps.train import train
 from hybridqcm.models.export import contract, parity_error, reference_output
+from hybridqcm.training import train
 from test_train_app import SMALL, SMALL_NET, _cfg, data, trained  # noqa: F401 - fixtures shared with the train tests
 
 onnxruntime = pytest.importorskip("onnxruntime")

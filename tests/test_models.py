@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from conftest import tiny_datamodule
-from hybridqcm.apps.train import load_module
 from hybridqcm.data.simulate import simulate_samples, write_dataset
 from hybridqcm.models import (
     CheckpointMismatch,
@@ -27,6 +26,7 @@ from hybridqcm.models import (
 from hybridqcm.models.physics_losses import balanced_residual_loss
 from hybridqcm.models.schedule import one_cycle_lr
 from hybridqcm.physics import RoadProfile, build_prior
+from hybridqcm.training import load_module
 
 SMALL_CNN = {
     "_target_": "hybridqcm.models.networks.ParameterCNN",

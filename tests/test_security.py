@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from hybridqcm.apps.train import load_module
 from hybridqcm.errors import CheckpointError, ConfigError, DatasetError, HybridQCMError
 from hybridqcm.models.checkpoint import load_checkpoint, read_checkpoint
+from hybridqcm.training import load_module
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 

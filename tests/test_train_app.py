@@ -15,11 +15,12 @@ import yaml
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from hybridqcm.apps.train import ConfigError, build_datamodule, check_experiment_overrides, prepare, train
-from hybridqcm.config import CONFIG_DIR
+from hybridqcm.config import CONFIG_DIR, check_experiment_overrides
 from hybridqcm.data.hdf5 import DatasetWriter
 from hybridqcm.data.simulate import write_dataset
+from hybridqcm.errors import ConfigError
 from hybridqcm.physics import RoadProfile, build_prior
+from hybridqcm.training import build_datamodule, prepare, train
 
 BIN = Path(sys.executable).parent
 TRAIN_EXPERIMENTS = sorted(
@@ -227,12 +228,12 @@ def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
 # -- bad input ------------------------------------------------------------------------------------------------
 def test_unknown_and_non_training_experiments(tmp_path):
     with pytest.raises(ConfigError, match="unknown experiment 'exp99'"):
-        check_experiment_overrides(["experiment=exp99"])
+        check_experiment_overrides(["experiment=exp99"], "train")
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "exp5_gn.yaml").write_text("# @package _global_\ntask: estimate\n")
     with pytest.raises(ConfigError, match="exp5_gn.*estimate"):
-        check_experiment_overrides(["experiment=exp5_gn"], tmp_path)
-    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"])  # multirun lists are fine
+        check_experiment_overrides(["experiment=exp5_gn"], "train", tmp_path)
+    check_experiment_overrides(["experiment=exp1_labelled,exp2_physics"], "train")  # multirun lists are fine
     result = subprocess.run([str(BIN / "qcm-train"), "experiment=nope"], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and "unknown experiment 'nope'" in result.stderr
 
