@@ -168,7 +168,7 @@ def test_train_logger_none_with_lr_monitor_is_one_line(tmp_path):
 
 
 def test_simulate_checks(tmp_path):
-    from hybridqcm.apps.simulate import check_splits, check_step
+    from hybridqcm.data.simulate_run import check_splits, check_step
 
     check_step(0.01)
     with pytest.raises(ValueError, match=r"h=10.0: the Euler step is unstable"):
