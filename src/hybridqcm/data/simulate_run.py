@@ -94,8 +94,9 @@ def check_splits(splits) -> None:
             )
 
 
-def run_simulation(cfg: DictConfig) -> dict:
-    """Check cfg, simulate and write cfg.output; returns the per-split summary (also RUN/summary.json)."""
+def check_settings(cfg: DictConfig) -> tuple[Path, str, str, tuple[float, float], str]:
+    """The settings every vehicle shares: (output, physics, occupant, warm-up [s], vehicle), checked in this
+    order, each a one-line ValueError (FileExistsError for an existing output without overwrite)."""
     output = Path(cfg.output)
     check_task_name(cfg.get("task_name", "simulate"))
     if output.exists() and not cfg.overwrite:
@@ -113,6 +114,12 @@ def run_simulation(cfg: DictConfig) -> dict:
     vehicle = str(cfg.get("vehicle", "quarter_car"))
     if vehicle not in ("quarter_car", "half_car", "full_car"):
         raise ValueError(f"vehicle={vehicle!r}: choose one of ['quarter_car', 'half_car', 'full_car']")
+    return output, physics, occupant, warmup_s, vehicle
+
+
+def run_simulation(cfg: DictConfig) -> dict:
+    """Check cfg, simulate and write cfg.output; returns the per-split summary (also RUN/summary.json)."""
+    output, physics, occupant, warmup_s, vehicle = check_settings(cfg)
     if vehicle != "quarter_car":  # the half and full car (issue 30)
         from hybridqcm.data.vehicle_simulate_run import run_vehicle_simulation
 
@@ -156,6 +163,12 @@ def run_simulation(cfg: DictConfig) -> dict:
         occupant=occupant,
     )
     summary = {split: s.as_dict() for split, s in summaries.items()}
+    _print_summary(output, summary, occupant)
+    atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
+    return summary
+
+
+def _print_summary(output: Path, summary: dict, occupant: str) -> None:
     rows = []
     for split, s in summary.items():
         rows.append(
@@ -182,5 +195,3 @@ def run_simulation(cfg: DictConfig) -> dict:
     print_table("parameter ranges", ["param", "min", "max"], ranges)
     if occupant != "rigid":
         print(f"occupant: {occupant} (seat pan + body modes; /<split>/occupant_params = (r_i, k_i, c_i) per mode)")
-    atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
-    return summary
