@@ -159,7 +159,7 @@ def test_a_seat_file_not_ours_or_tampered_is_refused_in_one_line(tmp_path, edit,
 
 
 def test_known_loads_are_checked_before_any_fit(tmp_path):
-    from hybridqcm.apps.calibrate import known_loads
+    from hybridqcm.estimation.calibration_run import known_loads
 
     plain = tmp_path / "plain.h5"
     make_foreign(plain, n=2)
@@ -261,13 +261,13 @@ def test_calibrate_on_a_file_without_known_mass_is_one_line(tmp_path):
 def test_calibrate_refuses_an_existing_output_before_any_work(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.calibrate import run
     from hybridqcm.config import CONFIG_DIR
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.calibration_run import run_calibration
 
     (tmp_path / "seat.json").write_text("the user's")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("calibrate", overrides=[f"data.path={tmp_path / 'none.h5'}", f"output={tmp_path / 'seat.json'}"])
     with pytest.raises(ConfigError, match="exists; choose another name or pass overwrite=true"):
-        run(cfg)
+        run_calibration(cfg, fit=lambda *_: pytest.fail("fitted despite the refused output"))
     assert (tmp_path / "seat.json").read_text() == "the user's"

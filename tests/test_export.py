@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from hybridqcm.apps.export import ParityError, export, parity_inputs
-from hybridqcm.apps.train import train
 from hybridqcm.models.export import contract, parity_error, reference_output
+from hybridqcm.models.export_files import ParityError, export, parity_inputs
+from hybridqcm.training import train
 from test_train_app import SMALL, SMALL_NET, _cfg, data, trained  # noqa: F401 - fixtures shared with the train tests
 
 onnxruntime = pytest.importorskip("onnxruntime")
@@ -45,9 +45,9 @@ def test_exports_match_checkpoint_on_held_out_recordings(checkpoints, data, tmp_
 
     # Independently of export(): reload both files and compare with the checkpoint's own API on a
     # different batch size than the one traced (the batch axis is dynamic).
-    from hybridqcm.apps.export import _load
+    from hybridqcm.models.export_files import load_for_export
 
-    model = _load(str(checkpoints[experiment]))
+    model = load_for_export(str(checkpoints[experiment]))
     steps = sidecar["time_steps"]
     x, _ = parity_inputs(model, steps, str(data["tiny"]), "test", 5)
     reference = reference_output(model, x)
@@ -67,10 +67,10 @@ def test_exports_match_checkpoint_on_held_out_recordings(checkpoints, data, tmp_
 
 
 def test_parity_measure_detects_a_deviation(checkpoints, data):
-    from hybridqcm.apps.export import _load
+    from hybridqcm.models.export_files import load_for_export
 
     for name in ("exp2_physics", "exp4_denoiser"):
-        model = _load(str(checkpoints[name]))
+        model = load_for_export(str(checkpoints[name]))
         x, _ = parity_inputs(model, int(model.hparams.window), str(data["tiny"]), "test", 4)
         reference = reference_output(model, x)
         assert parity_error(model, reference, reference) == 0.0
@@ -84,9 +84,9 @@ def test_parity_failure_is_an_error(checkpoints, tmp_path):
 
 
 def test_contract_names_units_and_window(checkpoints):
-    from hybridqcm.apps.export import _load
+    from hybridqcm.models.export_files import load_for_export
 
-    unet = contract(_load(str(checkpoints["exp9_unet"])), 256, 0.01)
+    unet = contract(load_for_export(str(checkpoints["exp9_unet"])), 256, 0.01)
     assert unet["input"]["channels"] == ["a3", "pu_u"] and unet["output"]["channels"] == ["a2", "a1"]
     assert unet["input"]["shape"] == ["batch", 2, 256] and unet["window"] == 512 and unet["output"]["units"] == "m/s^2"
 
@@ -129,7 +129,8 @@ def test_cli_synthetic_signals_and_time_steps(checkpoints, tmp_path):
 
 
 def test_overwrite_replaces_an_export_and_only_then(checkpoints, tmp_path):
-    from hybridqcm.apps.export import ConfigError, export
+    from hybridqcm.errors import ConfigError
+    from hybridqcm.models.export_files import export
 
     ckpt = checkpoints["exp4_denoiser"]
     export(ckpt, tmp_path, "cae", ["torchscript"], 300, n_check=4)

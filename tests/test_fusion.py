@@ -229,7 +229,7 @@ def test_exp13_fast_dev_run_on_cpu(tmp_path):
     levels, NLL training, test-stage calibration) in one batch each, with a tiny network."""
     import json
 
-    from hybridqcm.apps.train import train
+    from hybridqcm.training import train
     from test_train_app import _cfg
 
     overrides = [

@@ -1,6 +1,7 @@
 """qcm-import's known_mass column (issue 31): the known load of a calibration drive, one value per recording or
-window, written as /<split>/known_mass [M] kg and read back by qcm-calibrate's loader (apps/calibrate.known_loads,
-a different code path); a load that changes inside a window, a negative or non-finite one: one line each."""
+window, written as /<split>/known_mass [M] kg and read back by qcm-calibrate's loader
+(estimation/calibration_run.known_loads, a different code path); a load that changes inside a window, a negative
+or non-finite one: one line each."""
 
 from __future__ import annotations
 
@@ -10,11 +11,11 @@ import h5py
 import numpy as np
 import pytest
 
-from hybridqcm.apps.calibrate import known_loads
 from hybridqcm.data import csv_stream
 from hybridqcm.data.csv_checks import RecordingError
 from hybridqcm.data.import_writer import import_recordings
 from hybridqcm.data.importer import read_recordings
+from hybridqcm.estimation.calibration_run import known_loads
 from test_import import qcm_import
 
 

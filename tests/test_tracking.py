@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from hydra.utils import instantiate
 
-from hybridqcm.apps.train import ConfigError, prepare, train
+from hybridqcm.errors import ConfigError
 from hybridqcm.tracking import log_estimation_to_tensorboard
+from hybridqcm.training import prepare, train
 from test_train_app import BIN, SMALL, SMALL_NET, _cfg, data  # noqa: F401 - the tiny-dataset fixture of the train tests
 
 EXP2 = ["experiment=exp2_physics", *SMALL, *SMALL_NET["exp2_physics"]]

@@ -14,11 +14,12 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from hybridqcm.apps.train import ConfigError, build_datamodule, prepare, train
 from hybridqcm.config import CONFIG_DIR, app_experiments, check_experiment_overrides
 from hybridqcm.data.dataset_writer import DatasetWriter
 from hybridqcm.data.simulate import write_dataset
+from hybridqcm.errors import ConfigError
 from hybridqcm.physics import RoadProfile, build_prior
+from hybridqcm.training import build_datamodule, prepare, train
 
 BIN = Path(sys.executable).parent
 TRAIN_EXPERIMENTS = app_experiments("train")

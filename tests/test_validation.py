@@ -150,7 +150,7 @@ def test_train_logger_none_with_lr_monitor_is_one_line(tmp_path):
     by hand without a logger is one line before any work."""
     from omegaconf import OmegaConf
 
-    from hybridqcm.apps.train import check_logger_callbacks
+    from hybridqcm.training import check_logger_callbacks
 
     overrides = [
         "experiment=exp1_labelled",
@@ -170,7 +170,7 @@ def test_train_logger_none_with_lr_monitor_is_one_line(tmp_path):
 
 
 def test_simulate_checks(tmp_path):
-    from hybridqcm.apps.simulate import check_splits, check_step
+    from hybridqcm.data.simulate_run import check_splits, check_step
 
     check_step(0.01)
     with pytest.raises(ValueError, match=r"h=10.0: the Euler step is unstable"):
@@ -224,7 +224,7 @@ def test_summary_reports_the_converged_answers_beside_all(tmp_path):
 
 
 def test_train_refuses_unknown_top_level_keys(tmp_path):
-    from hybridqcm.apps.train import check_top_level_keys
+    from hybridqcm.training import check_top_level_keys
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         bad = compose("train", overrides=["experiment=exp1_labelled", "+ckpt_pth=x.ckpt"])

@@ -51,14 +51,14 @@ def _one_line_error(proc: subprocess.CompletedProcess, message: str) -> None:
 
 def _simulate(folder: Path, *overrides: str) -> dict:
     """qcm-simulate's run() in this process (its config composed as the console composes it)."""
-    from hybridqcm.apps.simulate import run
+    from hybridqcm.data.simulate_run import run_simulation
 
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose(
             "simulate",
             overrides=[*overrides, f"paths.root_dir={folder}", f"paths.output_dir={folder}", "progress=false"],
         )
-    return run(cfg)
+    return run_simulation(cfg)
 
 
 @pytest.fixture(scope="module")

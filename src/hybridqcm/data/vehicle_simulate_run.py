@@ -1,4 +1,4 @@
-"""qcm-simulate vehicle=half_car | full_car: the half car and the full car (issue 30).
+"""qcm-simulate vehicle=half_car | full_car's run: the half car and the full car (issue 30).
 
     qcm-simulate vehicle=half_car output=data/hcm.h5
     qcm-simulate vehicle=full_car seats=[driver,passenger,rear_left] output=data/fcm.h5
@@ -66,7 +66,7 @@ def check_vehicle_step(layout: VehicleLayout, h: float) -> None:
 
 
 def run_vehicle_simulation(cfg, output, warmup_s, splits, speed_mps: float) -> dict:
-    """Simulate and write the half / full car of ``cfg`` (apps/simulate.run checked the common keys)."""
+    """Simulate and write the half / full car of ``cfg`` (data/simulate_run.run_simulation checked the common keys)."""
     kind = str(cfg.vehicle)
     if str(cfg.physics) != "continuous":
         raise ValueError(
