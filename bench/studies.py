@@ -96,7 +96,8 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
 def solver_variants(path: str, n: int, seed: int = 0) -> list[dict]:
     """exp 5 (10 p, random init, one 30-iteration stage, no restarts) under solver variants."""
 
-    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import build_solver
 
     accel, road, true, g, init = _reference_samples(path, n, seed)
     n = true.shape[0]

@@ -18,8 +18,9 @@ from hybridqcm.estimation.fusion import (
     interval_summary,
     prior_from_log_normal,
 )
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import ResponseModel
-from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+from hybridqcm.estimation.solver import build_solver
 from hybridqcm.models import GaussianEstimator, LabelledEstimator
 from hybridqcm.models.uncertainty import calibration_rows, gaussian_nll, interval_calibration
 

@@ -180,7 +180,8 @@ def test_equation_error_start_reads_the_rows(recordings, key):
 
 def test_a_stage_without_its_uncertainty_pass(recordings):
     """SolverConfig.uncertainty=False: the same estimate, no covariance (std inf), residual tests not run."""
-    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import build_solver
 
     layout, model, a, inputs, true = recordings["half"]
     response = ExactResponse(model, 0.01, "spline", 16, "unknown", 7)

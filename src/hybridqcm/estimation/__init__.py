@@ -7,6 +7,7 @@ from hybridqcm.estimation.front import (
     equation_error_params,
     load_network,
 )
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
 from hybridqcm.estimation.sensitivity import (
     EulerSensitivity,
@@ -18,7 +19,6 @@ from hybridqcm.estimation.solver import (
     SOLVERS,
     STATUS_LABELS,
     GaussNewton,
-    LeastSquaresProblem,
     LevenbergMarquardt,
     NonlinearLeastSquares,
     SolverConfig,

@@ -21,11 +21,13 @@ from torch import Tensor
 
 from hybridqcm.data.sensor import keyed_normals
 
+from ._blas import torch_threads
 from .front import CHANNELS, HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise, estimate_variances, frequency_response, input_noise_log_std, spectral_leverage
+from .problems import LeastSquaresProblem
 from .response import EulerResponse, PreparedInputs, ResponseModel
-from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverResult, SolverStatus, torch_threads
+from .solver import NonlinearLeastSquares, SolverResult, SolverStatus
 
 # A noise model is consistent with a fit when the whitened loss is within this factor of its expectation
 # (white noise of 500 samples leaves it within a few per cent; a misfit's variance is off by orders).
