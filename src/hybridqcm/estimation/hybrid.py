@@ -24,7 +24,8 @@ from .front import (
     equation_error_params,
     load_network,
 )
-from .refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementResult
+from .refinement import GaussNewtonRefinement, GaussNewtonStage
+from .refinement_result import RefinementResult
 
 __all__ = [
     "BASE_EXCITATION",

@@ -93,7 +93,7 @@ class SolverConfig:
     # chi² quantile at misfit_alpha) larger than misfit_floor x the channel RMS. 0 lags: no test.
     # Noise-free, right fits leave the exact model's hold error (relative RMS <= 2e-4 on two simulators'
     # recordings) and wrong basins >= 3e-3: the floor sits between, so that a file too small for the
-    # peer test (refinement._flag_outliers) still gets a wrong basin flagged.
+    # peer test (restarts.flag_outliers) still gets a wrong basin flagged.
     misfit_floor: float = 0.001
     misfit_lags: int = 5
     misfit_alpha: float = 1e-4
