@@ -28,7 +28,8 @@ from torch import Tensor
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
 from hybridqcm.physics.parameters import PARAM_NAMES
 
-from .exact import exact_outputs, exact_sensitivities, held_input
+from .exact import exact_outputs, exact_sensitivities
+from .hold import held_input
 from .sensitivity import euler_accelerations, euler_sensitivities
 
 CHANNELS = ("a3", "a2", "a1")
