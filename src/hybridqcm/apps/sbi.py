@@ -65,7 +65,8 @@ def _read(path, split: str, n: int | None = None) -> tuple[torch.Tensor, torch.T
 def train(cfg, run_dir: Path):
     from omegaconf import OmegaConf
 
-    from hybridqcm.estimation.sbi_peer import PeerSettings, SBIPeer, TrainSettings, train_peer
+    from hybridqcm.estimation.sbi_peer import PeerSettings, SBIPeer
+    from hybridqcm.estimation.sbi_training import TrainSettings, train_peer
 
     settings = PeerSettings.from_mapping(OmegaConf.to_container(cfg.peer, resolve=True))
     train_cfg = OmegaConf.to_container(cfg.train, resolve=True)
@@ -98,13 +99,8 @@ def train(cfg, run_dir: Path):
 
 def evaluate(cfg, run_dir: Path, peer) -> list[dict]:
     from hybridqcm.data.sensor import SensorModel, build_sensor
-    from hybridqcm.estimation.sbi_peer import (
-        evaluation_row,
-        log_uniform,
-        noisy,
-        posterior_summary,
-        rank_statistics,
-    )
+    from hybridqcm.estimation.sbi_evaluation import evaluation_row, posterior_summary, rank_statistics
+    from hybridqcm.estimation.sbi_training import log_uniform, noisy
 
     ev = cfg.evaluate
     K3 = float(cfg.K3)
