@@ -311,20 +311,20 @@ def test_parameter_prior_only_in_the_spectral_stage_and_combined_by_precision():
         stages, RefinementSettings(known=known, response=response, param_prior=(mean, std))
     )
     params = torch.zeros(3, response.n_theta, dtype=torch.float64)
-    assert refinement._prior({}, params, last=True, noisy=None) == {}
+    assert refinement.stage_prior({}, params, last=True, noisy=None) == {}
     noisy = torch.ones(3, dtype=torch.bool)
-    prior = refinement._prior({}, params, last=True, noisy=noisy)
+    prior = refinement.stage_prior({}, params, last=True, noisy=noisy)
     expected = torch.tensor([1.0, 0.0, 100.0, 4.0, 0.0, 1 / 49, 0, 0, 0, 0], dtype=torch.float64)
     torch.testing.assert_close(prior["prior_precision"], expected.expand(3, -1))
     torch.testing.assert_close(prior["prior_mean"][0, :4], torch.tensor([10.0, 0.0, 0.3, 2.0], dtype=torch.float64))
     outputs = {"prior_p12": torch.tensor([[12.0, 900.0]] * 3), "prior_p12_std": torch.tensor([[2.0, 30.0]] * 3)}
-    both = refinement._prior(outputs, params, last=True, noisy=noisy)
+    both = refinement.stage_prior(outputs, params, last=True, noisy=noisy)
     # p1: precisions 1 and 1/4 -> 1.25, mean (10 + 12/4) / 1.25; p2: the network's alone
     torch.testing.assert_close(both["prior_precision"][0, :2], torch.tensor([1.25, 1 / 900], dtype=torch.float64))
     torch.testing.assert_close(both["prior_mean"][0, :2], torch.tensor([13.0 / 1.25, 900.0], dtype=torch.float64))
-    only_network = refinement._prior(outputs, params, last=True, noisy=None)
+    only_network = refinement.stage_prior(outputs, params, last=True, noisy=None)
     torch.testing.assert_close(only_network["prior_mean"][0, :2], torch.tensor([12.0, 900.0], dtype=torch.float64))
-    quiet = refinement._prior({}, params, last=True, noisy=torch.tensor([True, False, True]))
+    quiet = refinement.stage_prior({}, params, last=True, noisy=torch.tensor([True, False, True]))
     assert (quiet["prior_precision"][1] == 0).all()
     torch.testing.assert_close(quiet["prior_precision"][0], expected)
     with pytest.raises(ValueError, match="param_prior must be"):

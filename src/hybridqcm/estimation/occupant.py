@@ -20,7 +20,7 @@ is the same for every model, while ½ Σ_k log S_k(θ) — the Gaussian normalis
 spectrum, which grows with |H(θ)| — is not a part of it (with it, every body model's resonance paid
 ~90 nats against a rigid seat's flatter transmissibility). The initial state (a transient that the window's first instants inform, not every
 sample) is charged instead its own Gaussian prior: the state's steady-state covariance under the measured
-input, integrated against its posterior (:func:`_initial_state_prior`). Each candidate's prior probability
+input, integrated against its posterior (:func:`~hybridqcm.estimation.occupant_evidence.initial_state_prior`). Each candidate's prior probability
 ``model_prior`` adds its logarithm: a seat's occupant is a person, and a person is rigid only as the
 limit of no resonating body mass (ballast is the exception), so the rigid model gets a small share — under
 sensor noise some persons' data are as well explained by a rigid mass 30 % heavier, and without it the

@@ -27,7 +27,7 @@ from .noise import SpectralNoise
 from .problems import LeastSquaresProblem
 from .refinement_result import RefinementResult, merge_records
 from .response import EulerResponse, ResponseModel
-from .restarts import Restarts, _Fit, far_from_start, flag_outliers, restart, take_samples
+from .restarts import BatchFit, Restarts, far_from_start, flag_outliers, restart, take_samples
 from .solver import NonlinearLeastSquares, SolverResult, SolverStatus
 from .weighting import NoiseFit, NoiseWeighting, refit_noise
 
@@ -224,7 +224,7 @@ class GaussNewtonRefinement(Callback):
         """One stage's solves: once, or (``spectral``) its noise-model passes and refits. Returns (the last
         problem, its result, θ after the passes [batch, n_theta])."""
         window = _window(stage, outputs)
-        prior = self._prior(outputs, params, last, None)
+        prior = self.stage_prior(outputs, params, last, None)
         passes = self.weighting.passes + 1 if spectral else 1
         # The window's inputs as the model evaluates them, held once for all its solves and noise fits.
         stage_road = self.response.prepare(road, offset, window) if spectral else road
@@ -239,7 +239,7 @@ class GaussNewtonRefinement(Callback):
                 # Judged again at every pass's start: a first pass that began at a poor fit may have
                 # taken the misfit for noise; the next one sees the noise floor (or none) it left.
                 noisy = None if self.param_prior is None else self.noise_fit.noise_floor(residual, targets, observed)
-                prior = self._prior(outputs, params, last, noisy)
+                prior = self.stage_prior(outputs, params, last, noisy)
             problem = LeastSquaresProblem(
                 outputs["targets"][:, :window].double(),
                 stage_road,
@@ -340,7 +340,7 @@ class GaussNewtonRefinement(Callback):
             model=self.response,
             input_offset=offset,
             noise=noise,
-            **self._prior(outputs, params, True, noisy),
+            **self.stage_prior(outputs, params, True, noisy),
         )
 
     @staticmethod
@@ -359,11 +359,11 @@ class GaussNewtonRefinement(Callback):
             score = score + 0.5 * (problem.prior_precision * deviation.square()).sum(1)
         return score
 
-    def _prior(self, outputs, params: Tensor, last: bool, noisy: Tensor | None) -> dict:
+    def stage_prior(self, outputs, params: Tensor, last: bool, noisy: Tensor | None) -> dict:
         """The stage's Gaussian prior on θ as LeastSquaresProblem's prior_mean, prior_precision ({} for
         none): the networks' p1, p2 in the last stage, and ``param_prior`` in a spectral pass (``noisy``
         [batch] given: its loss is in units of the noise, which makes the MAP a posterior) for the
-        recordings with a sensor noise floor (``_noise_floor``); where both cover a parameter they combine
+        recordings with a sensor noise floor (``NoiseFit.noise_floor``); where both cover a parameter they combine
         by precision."""
         mean = torch.zeros_like(params)
         precision = torch.zeros_like(params)
@@ -413,7 +413,7 @@ class GaussNewtonRefinement(Callback):
         init = outputs["init"].double()
         per_stage, result, params, relative, score = self.run_stages(outputs, init, module)
         typical = flag_outliers(result, self.peer_factor, self.peer_min_batch)
-        restarted = restart(self, outputs, module, init, _Fit(result, params, relative, score, typical))
+        restarted = restart(self, outputs, module, init, BatchFit(result, params, relative, score, typical))
         record = {
             "index": outputs["index"].cpu(),
             "init": init.cpu(),

@@ -106,7 +106,7 @@ def flag_outliers(
 
 
 @dataclass
-class _Fit:
+class BatchFit:
     """A batch's current fit per sample: the solver result, θ [batch, n_theta], relative loss and score
     [batch] (lower: the better attempt), and the peer test's median."""
 
@@ -117,7 +117,7 @@ class _Fit:
     typical: Tensor | None
 
 
-def restart(refinement: GaussNewtonRefinement, outputs: Mapping, module: Any, init: Tensor, fit: _Fit) -> Tensor:
+def restart(refinement: GaussNewtonRefinement, outputs: Mapping, module: Any, init: Tensor, fit: BatchFit) -> Tensor:
     """The attempts of ``refinement.restarts`` on the samples the rule retries, in place into ``fit``;
     returns the restarts run per sample [batch]."""
     settings = refinement.restarts
@@ -148,7 +148,9 @@ def restart(refinement: GaussNewtonRefinement, outputs: Mapping, module: Any, in
     return restarted
 
 
-def _attempts(refinement, outputs, module, init: Tensor, fit: _Fit, retry: Tensor, attempt: int, group: int) -> None:
+def _attempts(
+    refinement, outputs, module, init: Tensor, fit: BatchFit, retry: Tensor, attempt: int, group: int
+) -> None:
     """Attempts ``attempt`` .. ``attempt + group - 1`` of the samples ``retry``, in one call of the stages;
     each replaces a sample's current fit where it is better."""
     settings = refinement.restarts

@@ -97,7 +97,7 @@ class SolverConfig:
     misfit_floor: float = 0.001
     misfit_lags: int = 5
     misfit_alpha: float = 1e-4
-    # Standard deviations at the estimate (see NonlinearLeastSquares._finish):
+    # Standard deviations at the estimate (see estimation/uncertainty.py):
     #   "model":    σ̂² (JᵀJ)⁺ times the AR(1) inflation — exact when the whitened residual is white noise;
     #   "sandwich": (JᵀJ)⁺ (Σ_g s_g s_gᵀ) (JᵀJ)⁺ from the score s_g = J_gᵀ e_g of each group g of
     #               ``covariance_band`` adjacent frequencies (spectral noise model) or time steps

@@ -252,7 +252,7 @@ def refit_noise(
             model=refinement.response,
             input_offset=offset,
             noise=fit.noise_model(targets, sub_inputs, start, observed, offset, False, residual),
-            **refinement._prior(sub, start, last, noisy),
+            **refinement.stage_prior(sub, start, last, noisy),
         )
         refit = stage.solver.solve(sub_problem, start)
         # A refit is a new attempt at the same posterior: kept only where it lowers the -log posterior
