@@ -8,7 +8,8 @@ from hybridqcm.estimation.front import (
     load_network,
 )
 from hybridqcm.estimation.problems import LeastSquaresProblem
-from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.sensitivity import (
     EulerSensitivity,
     accelerations_and_jacobian,
@@ -26,6 +27,7 @@ from hybridqcm.estimation.solver import (
     SolverStatus,
     build_solver,
 )
+from hybridqcm.estimation.weighting import NoiseWeighting
 
 __all__ = [
     "EulerSensitivity",
@@ -49,4 +51,7 @@ __all__ = [
     "equation_error_params",
     "load_network",
     "check_networks",
+    "RefinementSettings",
+    "NoiseWeighting",
+    "Restarts",
 ]
