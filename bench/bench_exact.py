@@ -106,7 +106,8 @@ def gauss_newton(args) -> None:
 
     import hybridqcm.estimation.response as response
     from hybridqcm.estimation.exact import exact_sensitivities
-    from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import GaussNewton, SolverConfig
     from hybridqcm.physics import reference_params
     from hybridqcm.physics.linear_models import QuarterCarRoad
     from hybridqcm.testing import synthetic_samples

@@ -18,8 +18,9 @@ import numpy as np
 import torch
 
 from hybridqcm.data.hdf5 import read_split
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import ExactResponse
-from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+from hybridqcm.estimation.solver import GaussNewton, SolverConfig
 from hybridqcm.physics.linear_models import QuarterCarRoad
 
 

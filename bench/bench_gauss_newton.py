@@ -37,7 +37,8 @@ def _data(n: int, steps: int, seed: int = 0):
 
 
 def run_ours(n, steps, threads):
-    from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import GaussNewton, SolverConfig
 
     s, init = _data(n, steps)
     problem = LeastSquaresProblem(s["accel"], s["road"], 0.01)

@@ -36,7 +36,8 @@ def _reference_samples(path, n: int, seed: int):
 
 def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dict]:
 
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+    from hybridqcm.estimation.restarts import Restarts
     from hybridqcm.estimation.solver import build_solver
 
     accel, road, true, g, init = _reference_samples(path, n, seed)
@@ -70,12 +71,8 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
     for name, (stages, restarts) in designs.items():
         callback = GaussNewtonRefinement(
             stages,
-            known=known,
-            pu_known=True,
-            restarts=restarts,
-            observed=["a3"],
-            seed=seed,
-            restart_mass_factors=[1.0, 1.0, 0.6, 1.6, 0.4],
+            RefinementSettings(known=known, pu_known=True, observed=["a3"]),
+            restarts=Restarts(count=restarts, seed=seed, mass_factors=[1.0, 1.0, 0.6, 1.6, 0.4]),
         )
         t0 = time.perf_counter()
         record = callback.refine(outputs)
@@ -96,7 +93,8 @@ def exp10_completion(path: str, n: int, error: float, seed: int = 0) -> list[dic
 def solver_variants(path: str, n: int, seed: int = 0) -> list[dict]:
     """exp 5 (10 p, random init, one 30-iteration stage, no restarts) under solver variants."""
 
-    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import build_solver
 
     accel, road, true, g, init = _reference_samples(path, n, seed)
     n = true.shape[0]

@@ -264,9 +264,9 @@ def test_vehicle_prior_is_the_reference_vehicle_on_the_listed_unknowns(tiny_data
     seat.delay = None
     assert build_refinement(seat, validate(seat)).param_prior is None
     # exp 10's extra attempts for wrong basins: the exact model only (the Euler reproduction keeps its protocol)
-    assert refinement.restarts_failed == 8
+    assert refinement.restarts.failed == 8
     euler = _cfg(["experiment=exp10_hybrid", f"data.path={tiny_dataset}", "init.cnn=false", "dynamics=euler"])
-    assert build_refinement(euler, validate(euler)).restarts_failed == 0
+    assert build_refinement(euler, validate(euler)).restarts.failed == 0
 
 
 def test_cnn_window_longer_than_file(files, checkpoints):

@@ -9,16 +9,9 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from hybridqcm.estimation.exact import (
-    HOLDS,
-    discrete_maps,
-    exact_outputs,
-    exact_sensitivities,
-    expm_taylor,
-    expm_with_tangents,
-    held_input,
-    spline_matrix,
-)
+from hybridqcm.estimation._expm import discrete_maps, expm_taylor, expm_with_tangents
+from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities
+from hybridqcm.estimation.hold import HOLDS, held_input, spline_matrix
 from hybridqcm.estimation.sensitivity import euler_accelerations
 from hybridqcm.physics import params_to_matrices, reference_params, road_gain, system_matrix
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
@@ -547,8 +540,9 @@ def test_modal_evaluation_matches_the_step_recursion(case, hold):
 @pytest.mark.parametrize("delta", [0.0, 1e-7, -1e-7, 1e-4, 1e-2])
 def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
     """Seat damped near critically, p1^2 = 4 p2 (1 + delta)^2: a double eigenvalue at delta = 0."""
+    from hybridqcm.estimation._expm import balance
     from hybridqcm.estimation._modal import modal_sensitivities
-    from hybridqcm.estimation.exact import _balance, held_input
+    from hybridqcm.estimation.hold import held_input
 
     model = SeatBaseExcitation()
     p2 = torch.tensor([400.0, 150.0], dtype=F64)
@@ -561,7 +555,7 @@ def test_modal_hands_nearly_repeated_eigenvalues_to_the_recursion(delta):
     A, B, C, E = model.matrices(p)
     fine = held_input(w, "spline", 4, 8, 100).permute(2, 1, 0)
     _, ok = modal_sensitivities(
-        (A, B, C, E), model.matrix_derivatives(p), _balance(A), x0, fine, w[:, 8:108], H, "spline", True
+        (A, B, C, E), model.matrix_derivatives(p), balance(A), x0, fine, w[:, 8:108], H, "spline", True
     )
     assert bool(ok.all()) == (abs(delta) > 1e-3)
 
@@ -584,8 +578,8 @@ def test_modal_outputs_match_the_step_recursion(case, hold):
 def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta):
     """Seat damped near critically (as above): the outputs alone stay accurate much closer to the
     double eigenvalue than the sensitivities, down to cond(V) = 1e4 (delta ~ 1e-7)."""
+    from hybridqcm.estimation._expm import balance
     from hybridqcm.estimation._modal import modal_outputs
-    from hybridqcm.estimation.exact import _balance
 
     model = SeatBaseExcitation()
     p2 = torch.tensor([400.0, 150.0], dtype=F64)
@@ -597,7 +591,7 @@ def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta)
     assert torch.isfinite(new).all() and _column_error(new, old) <= 1e-10
     A, B, C, E = model.matrices(p)
     fine = held_input(w, "spline", 4, 8, 100).permute(2, 1, 0)
-    _, ok = modal_outputs((A, B, C, E), _balance(A), x0, fine, w[:, 8:108], H, "spline")
+    _, ok = modal_outputs((A, B, C, E), balance(A), x0, fine, w[:, 8:108], H, "spline")
     assert bool(ok.all()) == (abs(delta) > 1e-7)
 
 

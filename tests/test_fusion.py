@@ -18,8 +18,9 @@ from hybridqcm.estimation.fusion import (
     interval_summary,
     prior_from_log_normal,
 )
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import ResponseModel
-from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+from hybridqcm.estimation.solver import build_solver
 from hybridqcm.models import GaussianEstimator, LabelledEstimator
 from hybridqcm.models.uncertainty import calibration_rows, gaussian_nll, interval_calibration
 
@@ -298,7 +299,7 @@ def test_parameter_prior_only_in_the_spectral_stage_and_combined_by_precision():
     (a spectral pass) and for samples with real noise, never on known parameters or x0; where the
     networks' p1, p2 prior covers the same entry, the two combine as Gaussians do (precisions add, means
     weighted by them)."""
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
     from hybridqcm.estimation.response import base_excitation_response
 
     response = base_excitation_response("sprung", 0.01, "unknown", "spline", 4)  # p1..p6 and 4 states
@@ -306,34 +307,36 @@ def test_parameter_prior_only_in_the_spectral_stage_and_combined_by_precision():
     std = torch.tensor([1.0, math.inf, 0.1, 0.5, 5.0, 7.0], dtype=torch.float64)
     known = torch.tensor([False, False, False, False, True, False])
     stages = [GaussNewtonStage("gn", build_solver("gauss_newton"))]
-    refinement = GaussNewtonRefinement(stages, known=known, response=response, param_prior=(mean, std))
+    refinement = GaussNewtonRefinement(
+        stages, RefinementSettings(known=known, response=response, param_prior=(mean, std))
+    )
     params = torch.zeros(3, response.n_theta, dtype=torch.float64)
-    assert refinement._prior({}, params, last=True, noisy=None) == {}
+    assert refinement.stage_prior({}, params, last=True, noisy=None) == {}
     noisy = torch.ones(3, dtype=torch.bool)
-    prior = refinement._prior({}, params, last=True, noisy=noisy)
+    prior = refinement.stage_prior({}, params, last=True, noisy=noisy)
     expected = torch.tensor([1.0, 0.0, 100.0, 4.0, 0.0, 1 / 49, 0, 0, 0, 0], dtype=torch.float64)
     torch.testing.assert_close(prior["prior_precision"], expected.expand(3, -1))
     torch.testing.assert_close(prior["prior_mean"][0, :4], torch.tensor([10.0, 0.0, 0.3, 2.0], dtype=torch.float64))
     outputs = {"prior_p12": torch.tensor([[12.0, 900.0]] * 3), "prior_p12_std": torch.tensor([[2.0, 30.0]] * 3)}
-    both = refinement._prior(outputs, params, last=True, noisy=noisy)
+    both = refinement.stage_prior(outputs, params, last=True, noisy=noisy)
     # p1: precisions 1 and 1/4 -> 1.25, mean (10 + 12/4) / 1.25; p2: the network's alone
     torch.testing.assert_close(both["prior_precision"][0, :2], torch.tensor([1.25, 1 / 900], dtype=torch.float64))
     torch.testing.assert_close(both["prior_mean"][0, :2], torch.tensor([13.0 / 1.25, 900.0], dtype=torch.float64))
-    only_network = refinement._prior(outputs, params, last=True, noisy=None)
+    only_network = refinement.stage_prior(outputs, params, last=True, noisy=None)
     torch.testing.assert_close(only_network["prior_mean"][0, :2], torch.tensor([12.0, 900.0], dtype=torch.float64))
-    quiet = refinement._prior({}, params, last=True, noisy=torch.tensor([True, False, True]))
+    quiet = refinement.stage_prior({}, params, last=True, noisy=torch.tensor([True, False, True]))
     assert (quiet["prior_precision"][1] == 0).all()
     torch.testing.assert_close(quiet["prior_precision"][0], expected)
     with pytest.raises(ValueError, match="param_prior must be"):
-        GaussNewtonRefinement(stages, response=response, param_prior=(mean, -std))
+        GaussNewtonRefinement(stages, RefinementSettings(response=response, param_prior=(mean, -std)))
 
 
 def test_noise_floor_tells_sensor_noise_from_misfit_and_model_error():
-    """_noise_floor on the seat model (a2 drives a3, 100 Hz, 300 samples): noise-free data at the true p
+    """NoiseFit.noise_floor on the seat model (a2 drives a3, 100 Hz, 300 samples): noise-free data at the true p
     (the hold's model error) and at p1, p2 30 % off (a misfit at the seat's resonance) have no floor;
     white noise of 0.5 % of a3's RMS has one. The truth is the exact model's own output, the driving
     signal a sum of sines below 12 Hz."""
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
     from hybridqcm.estimation.response import base_excitation_response
 
     response = base_excitation_response("seat", 0.01, "unknown", "spline", 4)
@@ -346,13 +349,16 @@ def test_noise_floor_tells_sensor_noise_from_misfit_and_model_error():
     a3 = response.outputs(truth, a2, 4, 300)  # [4, 300, 1]
     refinement = GaussNewtonRefinement(
         [GaussNewtonStage("gn", build_solver("gauss_newton"))],
-        response=response,
-        param_prior=(torch.tensor([7.7, 1237.0]), torch.tensor([math.inf, math.inf])),
+        RefinementSettings(
+            response=response, param_prior=(torch.tensor([7.7, 1237.0]), torch.tensor([math.inf, math.inf]))
+        ),
     )
     observed = (True,)
 
     def floor(targets, params):
-        return refinement._noise_floor(refinement._residual(targets, a2, params, observed, 4), targets, observed)
+        return refinement.noise_fit.noise_floor(
+            refinement.noise_fit.residual(targets, a2, params, observed, 4), targets, observed
+        )
 
     assert not floor(a3, truth).any()
     off = truth.clone()
@@ -371,8 +377,9 @@ def test_noise_model_is_refitted_where_the_fit_moved_far_from_its_start():
     value ½ (T - 1). With the refits every sample's loss is within a factor 2 of it, the residual's
     power at the estimate is the true noise variance, and the samples that were re-fitted move closer
     to the truth (the data are the exact model's own output, so p is the truth)."""
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
     from hybridqcm.estimation.response import quarter_car_response
+    from hybridqcm.estimation.weighting import NoiseWeighting
     from hybridqcm.physics import reference_params
     from hybridqcm.testing import synthetic_samples
 
@@ -398,10 +405,7 @@ def test_noise_model_is_refitted_where_the_fit_moved_far_from_its_start():
             GaussNewtonStage("w30", build_solver("gauss_newton", max_iterations=10), "observed", 30),
             GaussNewtonStage("a3", build_solver("gauss_newton", max_iterations=60), "observed"),
         ]
-        refinement = GaussNewtonRefinement(
-            stages, known=known, pu_known=True, response=response, reweight="spectral", noise_refits=refits,
-            peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares",
-        )  # fmt: skip
+        refinement = GaussNewtonRefinement(stages, RefinementSettings(known=known, pu_known=True, response=response, peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares"), noise=NoiseWeighting(mode="spectral", refits=refits))  # fmt: skip
         finals[refits] = refinement.refine(outputs)["final"]
     precision = torch.where(known, 0.0, prior[1].pow(-2))  # the vehicle prior, free parameters only
 
@@ -451,16 +455,14 @@ def _exp10_like(b: int, T: int, sigma: float, seed: int, draw_seed: int, known_a
 
 
 def _exp10_refinement(response, known, prior, refits: int, last_solver=None):
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+    from hybridqcm.estimation.weighting import NoiseWeighting
 
     stages = [
         GaussNewtonStage("w30", build_solver("gauss_newton", max_iterations=10), "observed", 30),
         GaussNewtonStage("a3", last_solver or build_solver("gauss_newton", max_iterations=60), "observed"),
     ]
-    return GaussNewtonRefinement(
-        stages, known=known, pu_known=True, response=response, reweight="spectral", noise_refits=refits,
-        peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares",
-    )  # fmt: skip
+    return GaussNewtonRefinement(stages, RefinementSettings(known=known, pu_known=True, response=response, peer_factor=None, observed=("a3",), param_prior=prior, x0_start="least_squares"), noise=NoiseWeighting(mode="spectral", refits=refits))  # fmt: skip
 
 
 def test_noise_model_is_not_refitted_without_a_noise_floor():

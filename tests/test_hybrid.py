@@ -8,7 +8,8 @@ import torch
 
 from hybridqcm.errors import CheckpointError
 from hybridqcm.estimation.front import HybridEstimator, equation_error_params
-from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
 from hybridqcm.models.checkpoint import load_checkpoint
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints
@@ -89,7 +90,9 @@ def test_hybrid_end_to_end_with_tiny_checkpoints(checkpoints, batch, tmp_path):
         GaussNewtonStage("completed", GaussNewton(SolverConfig(max_iterations=3)), "all"),
         GaussNewtonStage("observed", GaussNewton(SolverConfig(max_iterations=8)), "observed", n_steps=60),
     ]
-    callback = GaussNewtonRefinement(stages, known=known, pu_known=True, h=H, log_dir=tmp_path / "tb", restarts=1)
+    callback = GaussNewtonRefinement(
+        stages, RefinementSettings(known=known, pu_known=True, h=H, log_dir=tmp_path / "tb"), restarts=Restarts(count=1)
+    )
     _trainer(callback).predict(module, dataloaders=_loader(batch), return_predictions=False)
     out = callback.collect()
     r = out.result
@@ -123,7 +126,9 @@ def test_hybrid_completion_then_a3_recovers_truth(checkpoints, batch):
         for n in (15, 30, 60)
     ]
     stages.append(GaussNewtonStage("observed", GaussNewton(SolverConfig(max_iterations=30)), "observed"))
-    callback = GaussNewtonRefinement(stages, known=known, pu_known=True, h=H, restarts=3)
+    callback = GaussNewtonRefinement(
+        stages, RefinementSettings(known=known, pu_known=True, h=H), restarts=Restarts(count=3)
+    )
     # p1, p2 start where a decent CNN would put them (±8 %): the tiny test CNN is not one
     g = torch.Generator().manual_seed(5)
     cnn_like = dict(batch, init=batch["init"].clone())
@@ -143,7 +148,9 @@ def test_callback_runs_in_test_loop_and_cnn_initialises(checkpoints, batch):
     torch.testing.assert_close(prepared["init"][:, :2], expected.double())
     torch.testing.assert_close(prepared["init"][:, 2:], batch["init"][:, 2:])
     assert prepared["targets"].shape == (12, 100, 3)
-    callback = GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton(SolverConfig(max_iterations=4)))], h=H)
+    callback = GaussNewtonRefinement(
+        [GaussNewtonStage("gn", GaussNewton(SolverConfig(max_iterations=4)))], RefinementSettings(h=H)
+    )
     _trainer(callback).test(module, dataloaders=_loader(batch), verbose=False)
     assert callback.collect().result.params.shape == (12, 10)
 
@@ -200,7 +207,7 @@ def test_guarded_stage_never_worsens_the_measured_fit(batch):
         "init": batch["init"],
     }
     stage = GaussNewtonStage("completed", GaussNewton(SolverConfig(max_iterations=5)), "all", guard=True)
-    callback = GaussNewtonRefinement([stage], known=known, pu_known=True, h=H, observed=["a3"])
+    callback = GaussNewtonRefinement([stage], RefinementSettings(known=known, pu_known=True, h=H, observed=["a3"]))
     params = callback.refine(outputs)["params"]
     forcing = batch["pu"][:, None] * batch["road"][:, :100]
 
@@ -224,22 +231,19 @@ def test_restart_attempts_for_few_samples_run_in_one_solver_call():
     for restart_batch in (1, 64):  # 64: all attempts for the few failed samples at once
         callback = GaussNewtonRefinement(
             [GaussNewtonStage("seat", GaussNewton(SolverConfig(max_iterations=30)))],
-            h=H,
-            response=base_excitation_response("seat", H),
-            restarts=6,
-            restart_threshold=math.inf,
-            restart_mass_factors=[0.6, 1.6, 0.4, 2.5, 0.8, 1.25],
-            restart_batch=restart_batch,
-            peer_factor=None,
+            RefinementSettings(h=H, response=base_excitation_response("seat", H), peer_factor=None),
+            restarts=Restarts(
+                count=6, threshold=math.inf, mass_factors=[0.6, 1.6, 0.4, 2.5, 0.8, 1.25], batch=restart_batch
+            ),
         )
         calls[restart_batch] = []
-        run = callback._run_stages
+        run = callback.run_stages
 
         def spy(outputs, init, *args, _calls=calls[restart_batch], _run=run, **kwargs):
             _calls.append(init.shape[0])
             return _run(outputs, init, *args, **kwargs)
 
-        callback._run_stages = spy
+        callback.run_stages = spy
         results[restart_batch] = callback.refine(outputs)
     for out in results.values():
         assert int((out["restarts"] > 0).sum()) >= 2  # the ladder was needed
@@ -264,18 +268,14 @@ def test_fits_far_from_the_networks_start_are_retried_and_keep_the_lowest_loss()
     for far, retried in ((None, []), (0.25, list(range(b // 2)))):
         callback = GaussNewtonRefinement(
             [GaussNewtonStage("seat", GaussNewton(SolverConfig(max_iterations=30)))],
-            h=H,
-            response=base_excitation_response("seat", H),
-            restarts=2,
-            restart_threshold=math.inf,
-            peer_factor=None,
-            restart_far=far,
+            RefinementSettings(h=H, response=base_excitation_response("seat", H), peer_factor=None),
+            restarts=Restarts(count=2, threshold=math.inf, far_from_start=far),
         )
         out = callback.refine(outputs)
         assert (out["restarts"] > 0).nonzero().squeeze(1).tolist() == retried
         assert float(((out["params"][:, :2] - p) / p).abs().max()) < 1e-6
     with pytest.raises(ValueError, match="restart_far must be None or > 0"):
-        GaussNewtonRefinement([GaussNewtonStage("seat", GaussNewton())], restart_far=0.0)
+        GaussNewtonRefinement([GaussNewtonStage("seat", GaussNewton())], restarts=Restarts(far_from_start=0.0))
 
 
 def _converged(params, relative):
@@ -322,9 +322,11 @@ def test_restarts_keep_the_attempt_the_posterior_prefers_not_the_smaller_misfit(
             return {}, result, params.clone(), relative.clone(), score
 
         callback = GaussNewtonRefinement(
-            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=1, restart_threshold=0.0, peer_factor=None
+            [GaussNewtonStage("gn", GaussNewton())],
+            RefinementSettings(h=H, peer_factor=None),
+            restarts=Restarts(count=1, threshold=0.0),
         )
-        callback._run_stages = run_stages
+        callback.run_stages = run_stages
         out = callback.refine({"init": torch.ones(2, 10, dtype=torch.float64), "index": torch.arange(2)})
         for i, keep in enumerate(kept):
             expected = first[0][i] if keep else restart[0][i]
@@ -352,12 +354,8 @@ def test_restarts_around_the_reference_vehicle_draw_the_vehicle_there_and_keep_t
 
     known = torch.zeros(10, dtype=torch.bool)
     known[[2, 4]] = True
-    callback = GaussNewtonRefinement(
-        [GaussNewtonStage("gn", GaussNewton())], h=H, known=known, restarts=4, restart_threshold=0.0,
-        peer_factor=None, restart_batch=1, restart_sigma=0.01, restart_mass_factors=[1.0, 2.0],
-        restart_center=p_ref,
-    )  # fmt: skip
-    callback._run_stages = run_stages
+    callback = GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], RefinementSettings(h=H, known=known, peer_factor=None), restarts=Restarts(count=4, threshold=0.0, batch=1, sigma=0.01, mass_factors=[1.0, 2.0], center=p_ref))  # fmt: skip
+    callback.run_stages = run_stages
     callback.refine({"init": first.expand(8, 10).clone(), "index": torch.arange(8)})
     starts = torch.stack(seen)  # [attempt, recording, 10]
     assert starts.shape == (4, 8, 10)
@@ -368,7 +366,9 @@ def test_restarts_around_the_reference_vehicle_draw_the_vehicle_there_and_keep_t
     ratio = starts[..., :2] / first[:2]
     assert ((ratio[0] - 1).abs() < 0.06).all() and ((ratio[1] - 2).abs() < 0.12).all()  # the mass ladder
     with pytest.raises(ValueError, match="restart_center"):
-        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], h=H, restart_center=p_ref[:3])
+        GaussNewtonRefinement(
+            [GaussNewtonStage("gn", GaussNewton())], RefinementSettings(h=H), restarts=Restarts(center=p_ref[:3])
+        )
 
 
 def test_failed_restarts_retry_only_the_misfit_recordings_and_can_rescue_them():
@@ -392,12 +392,9 @@ def test_failed_restarts_retry_only_the_misfit_recordings_and_can_rescue_them():
                     result.status[row] = int(S.MISFIT)
             return {}, result, init.clone(), relative.clone(), relative.clone()
 
-        callback = GaussNewtonRefinement(
-            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=2, restarts_failed=failed_tier,
-            restart_threshold=math.inf, peer_factor=None, restart_batch=1,
-        )  # fmt: skip
-        callback._run_stages = run_stages
-        callback._far_from_start = lambda params, init: torch.tensor([False, True, False])
+        callback = GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], RefinementSettings(h=H, peer_factor=None), restarts=Restarts(count=2, failed=failed_tier, threshold=math.inf, batch=1))  # fmt: skip
+        callback.run_stages = run_stages
+        callback.far_from_start = lambda params, init: torch.tensor([False, True, False])
         record = callback.refine({"init": torch.ones(3, 10, dtype=torch.float64), "index": torch.arange(3)})
         return record, calls
 
@@ -407,7 +404,9 @@ def test_failed_restarts_retry_only_the_misfit_recordings_and_can_rescue_them():
     record, calls = make(0)
     assert calls == [[1, 2], [1, 2]] and record["final"].status[2] == int(S.MISFIT)
     with pytest.raises(ValueError, match="restarts_failed"):
-        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], h=H, restarts_failed=-1)
+        GaussNewtonRefinement(
+            [GaussNewtonStage("gn", GaussNewton())], RefinementSettings(h=H), restarts=Restarts(failed=-1)
+        )
 
 
 def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batch():
@@ -428,11 +427,8 @@ def test_a_recordings_restarts_do_not_depend_on_the_other_recordings_in_its_batc
             result = _converged(init, relative)
             return {}, result, init.clone(), relative.clone(), relative.clone()
 
-        callback = GaussNewtonRefinement(
-            [GaussNewtonStage("gn", GaussNewton())], h=H, restarts=3, restart_threshold=0.0, peer_factor=None,
-            seed=seed, restart_batch=1,
-        )  # fmt: skip
-        callback._run_stages = run_stages
+        callback = GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], RefinementSettings(h=H, peer_factor=None), restarts=Restarts(count=3, threshold=0.0, seed=seed, batch=1))  # fmt: skip
+        callback.run_stages = run_stages
         init = reference_params().double().expand(len(index), 10).clone()
         callback.refine({"init": init, "index": torch.tensor(index)})
         return seen

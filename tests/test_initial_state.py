@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from hybridqcm.estimation.initial_state import project_initial_state
-from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
 from hybridqcm.estimation.response import ExactResponse
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.solver import GaussNewton
 from hybridqcm.physics.continuous import simulate_continuous
 from hybridqcm.physics.linear_models import QuarterCarRoad
@@ -105,7 +106,7 @@ def test_rank_deficient_window_still_fits(drive):
 
 def test_refinement_validates_x0_start():
     with pytest.raises(ValueError, match="x0_start='zero'"):
-        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], x0_start="zero")
+        GaussNewtonRefinement([GaussNewtonStage("gn", GaussNewton())], RefinementSettings(x0_start="zero"))
 
 
 def test_restarts_alternate_the_x0_start(drive):
@@ -122,11 +123,8 @@ def test_restarts_alternate_the_x0_start(drive):
     response = _response()
     refinement = GaussNewtonRefinement(
         [GaussNewtonStage("gn", Recording(max_iterations=1))],
-        response=response,
-        restarts=2,
-        restart_threshold=0.0,  # every sample is retried
-        x0_start="alternate",
-        peer_factor=None,
+        RefinementSettings(response=response, x0_start="alternate", peer_factor=None),
+        restarts=Restarts(count=2, threshold=0.0),  # every sample is retried
     )
     init = params * 1.05
     outputs = {"targets": accel, "road": road, "pu": params[:, 9] - params[:, 8], "init": init}

@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from hybridqcm.estimation.noise import SpectralNoise
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import ResponseModel
-from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverConfig
+from hybridqcm.estimation.solver import GaussNewton, SolverConfig
 
 T, N_MC = 256, 3000
 

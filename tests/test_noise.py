@@ -16,8 +16,9 @@ from hybridqcm.estimation.noise import (
     parseval_weights,
     spectral_matrix,
 )
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import base_excitation_response
-from hybridqcm.estimation.solver import GaussNewton, LeastSquaresProblem, SolverStatus
+from hybridqcm.estimation.solver import GaussNewton, SolverStatus
 from hybridqcm.physics.linear_models import SeatBaseExcitation, SprungBaseExcitation
 from hybridqcm.testing import seat_recordings
 

@@ -214,11 +214,11 @@ def test_the_interval_joins_close_candidates_and_better_rejected_ones():
     """Recording 0: the chosen candidate (0) and one that fits at weight e^-2 > 0.05 join, one at e^-5 does not.
     Recording 1: a candidate the residual tests reject but with 89 nats more evidence than the chosen one
     joins (another simulator's person: its answer was the truth's); a rejected one with less does not."""
-    from hybridqcm.estimation.occupant import _interval_members
+    from hybridqcm.estimation.occupant_interval import interval_members
 
     logz = torch.tensor([[0.0, -2.0, -5.0], [-89.0, 0.0, -95.0]], dtype=torch.float64)
     fits = torch.tensor([[True, True, True], [True, False, False]])
-    members = _interval_members(logz, fits, torch.tensor([0, 0]), 0.05)
+    members = interval_members(logz, fits, torch.tensor([0, 0]), 0.05)
     assert members.tolist() == [[True, True, False], [True, True, False]]
     logz[1, 1] = -math.inf  # a candidate that did not run
-    assert _interval_members(logz, fits, torch.tensor([0, 0]), 0.05)[1].tolist() == [True, False, False]
+    assert interval_members(logz, fits, torch.tensor([0, 0]), 0.05)[1].tolist() == [True, False, False]

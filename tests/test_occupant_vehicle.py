@@ -234,7 +234,7 @@ def test_the_evidence_reads_the_measured_channels_with_the_wheel_forcing(persons
     leaves the file's a2, a1 out, and its input is the wheel forcing p_u u: the loss at a fit is unchanged
     when a2 and a1 are replaced by garbage, and changes when a3 is."""
     from hybridqcm.apps.estimate import build_inputs, build_module, build_refinement, validate
-    from hybridqcm.estimation.occupant import _evaluation_solver
+    from hybridqcm.estimation.occupant_evidence import evaluation_solver
 
     cfg = _cfg(
         "experiment=exp8_occupant_only", "init.cnn=false", f"data.path={persons_file}", "n_samples=2",
@@ -251,7 +251,7 @@ def test_the_evidence_reads_the_measured_channels_with_the_wheel_forcing(persons
     theta[:, 10:13] = _body(1)
     problem = body.final_problem(outputs, theta)
     assert list(problem.observed_index) == [0]
-    solver = _evaluation_solver(body, 0)
+    solver = evaluation_solver(body, 0)
     loss = solver.objective(problem, theta)
     g = torch.Generator().manual_seed(5)
     for channels, same in (([1, 2], True), ([0], False)):

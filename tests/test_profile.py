@@ -8,9 +8,10 @@ import math
 import torch
 
 from hybridqcm.estimation.noise import estimate_variances, parseval_weights, spectral_leverage
+from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.profile import profile_interval
 from hybridqcm.estimation.response import ExactResponse
-from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+from hybridqcm.estimation.solver import build_solver
 from hybridqcm.physics.linear_models import SeatBaseExcitation
 
 H = 0.01

@@ -11,15 +11,9 @@ import torch
 pytest.importorskip("sbi")
 
 from hybridqcm.errors import CheckpointError, ConfigError  # noqa: E402
-from hybridqcm.estimation.sbi_peer import (  # noqa: E402
-    PeerSettings,
-    SBIPeer,
-    TrainSettings,
-    central_interval,
-    evaluation_row,
-    import_sbi,
-    train_peer,
-)
+from hybridqcm.estimation.sbi_evaluation import central_interval, evaluation_row  # noqa: E402
+from hybridqcm.estimation.sbi_peer import PeerSettings, SBIPeer, import_sbi  # noqa: E402
+from hybridqcm.estimation.sbi_training import TrainSettings, train_peer  # noqa: E402
 
 WINDOW = 32
 SMALL = dict(

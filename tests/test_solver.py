@@ -5,14 +5,8 @@ import math
 import pytest
 import torch
 
-from hybridqcm.estimation.solver import (
-    GaussNewton,
-    LeastSquaresProblem,
-    LevenbergMarquardt,
-    SolverConfig,
-    SolverStatus,
-    build_solver,
-)
+from hybridqcm.estimation.problems import LeastSquaresProblem
+from hybridqcm.estimation.solver import GaussNewton, LevenbergMarquardt, SolverConfig, SolverStatus, build_solver
 from hybridqcm.testing import synthetic_samples
 
 H = 0.01

@@ -115,7 +115,8 @@ def test_only_the_common_scale_is_not_identified(recordings, key):
 
 @pytest.mark.parametrize("key", ["half", "full"])
 def test_gauss_newton_recovers_noise_free_recordings(recordings, key):
-    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+    from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+    from hybridqcm.estimation.restarts import Restarts
     from hybridqcm.estimation.solver import build_solver
 
     layout, model, a, inputs, true = recordings[key]
@@ -130,10 +131,10 @@ def test_gauss_newton_recovers_noise_free_recordings(recordings, key):
             GaussNewtonStage("w30", build_solver("gauss_newton", max_iterations=10), "all", 30),
             GaussNewtonStage("gn", build_solver("gauss_newton", max_iterations=30), "all", None),
         ],
-        known=known,
-        response=ExactResponse(model, 0.01, "spline", 32, "unknown", 7),
-        restart_threshold=math.inf,
-        x0_start="alternate",
+        RefinementSettings(
+            known=known, response=ExactResponse(model, 0.01, "spline", 32, "unknown", 7), x0_start="alternate"
+        ),
+        restarts=Restarts(threshold=math.inf),
     )
     before, n_steps = 4, 100
     record = refinement.refine(
@@ -180,7 +181,8 @@ def test_equation_error_start_reads_the_rows(recordings, key):
 
 def test_a_stage_without_its_uncertainty_pass(recordings):
     """SolverConfig.uncertainty=False: the same estimate, no covariance (std inf), residual tests not run."""
-    from hybridqcm.estimation.solver import LeastSquaresProblem, build_solver
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.solver import build_solver
 
     layout, model, a, inputs, true = recordings["half"]
     response = ExactResponse(model, 0.01, "spline", 16, "unknown", 7)

@@ -77,9 +77,11 @@ from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWri
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation.front import HybridEstimator
-from hybridqcm.estimation.refinement import GaussNewtonStage
+from hybridqcm.estimation.refinement import GaussNewtonStage, RefinementSettings
 from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.solver import build_solver
+from hybridqcm.estimation.weighting import NoiseWeighting
 from hybridqcm.physics.parameters import PhysicalConstants
 
 
@@ -173,27 +175,30 @@ def _refinement(
         reweight = reweight.lower() == "true"
     return BlockRefinement(
         stages,
-        known=known_mask,
-        pu_known=bool(cfg.pu_known),
-        observed=tuple(plan["observed"]),  # what a finished fit is weighed on without the module (occupant models)
-        h=plan["h"],
-        response=response,
-        reweight=reweight,
-        peer_factor=cfg.get("misfit_peer_factor", 10.0),
-        log_dir=None,  # the merged stage losses are logged once, after the merge
-        restarts=int(cfg.restarts.count) if restarts else 0,
-        restart_threshold=threshold,
-        restart_sigma=float(cfg.restarts.sigma),
-        seed=int(cfg.seed),
-        restart_mass_factors=list(cfg.restarts.get("mass_factors") or []),
-        restart_batch=int(cfg.restarts.get("batch", 64)),
-        # the exact model's extra attempts for wrong basins; the Euler reproduction keeps the source's protocol
-        restarts_failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" and restarts else 0,
-        restart_far=cfg.restarts.get("far_from_start"),
-        x0_start=plan["x0_start"],
-        param_prior=param_prior,
-        restart_center=restart_center,
-        noise_leverage=noise_leverage,
+        RefinementSettings(
+            known=known_mask,
+            pu_known=bool(cfg.pu_known),
+            observed=tuple(plan["observed"]),  # what a finished fit is weighed on without the module (occupant models)
+            h=plan["h"],
+            response=response,
+            peer_factor=cfg.get("misfit_peer_factor", 10.0),
+            log_dir=None,  # the merged stage losses are logged once, after the merge
+            x0_start=plan["x0_start"],
+            param_prior=param_prior,
+        ),
+        noise=NoiseWeighting(mode=reweight, leverage=noise_leverage),
+        restarts=Restarts(
+            count=int(cfg.restarts.count) if restarts else 0,
+            threshold=threshold,
+            sigma=float(cfg.restarts.sigma),
+            seed=int(cfg.seed),
+            mass_factors=list(cfg.restarts.get("mass_factors") or []),
+            batch=int(cfg.restarts.get("batch", 64)),
+            # the exact model's extra attempts for wrong basins; the Euler reproduction keeps the source's protocol
+            failed=int(cfg.restarts.get("failed", 0)) if plan["model"] == "exact" and restarts else 0,
+            far_from_start=cfg.restarts.get("far_from_start"),
+            center=restart_center,
+        ),
     )
 
 

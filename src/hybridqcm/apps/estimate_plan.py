@@ -191,7 +191,7 @@ def check_known_keys(cfg) -> None:
 
 def check_spline_degree(cfg) -> int:
     """spline_degree (configs/estimate.yaml): 3, 5 or 7; ConfigError otherwise."""
-    from hybridqcm.estimation.exact import SPLINE_DEGREES
+    from hybridqcm.estimation.hold import SPLINE_DEGREES
 
     degree = cfg.get("spline_degree", 5)
     if isinstance(degree, bool) or not isinstance(degree, int) or degree not in SPLINE_DEGREES:

@@ -56,11 +56,12 @@ from hybridqcm.data.vehicle_files import (
 )
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
-from hybridqcm.estimation.noise import SpectralNoise, estimate_variances
-from hybridqcm.estimation.refinement import GaussNewtonStage
+from hybridqcm.estimation.refinement import GaussNewtonStage, RefinementSettings
 from hybridqcm.estimation.response import ExactResponse
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.solver import build_solver
 from hybridqcm.estimation.vehicle_front import VehicleFront
+from hybridqcm.estimation.weighting import NoiseWeighting
 from hybridqcm.physics.sedan import reference_physical
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
 from hybridqcm.physics.vehicle_model import VehicleModel
@@ -309,15 +310,8 @@ class VehicleBlocks(torch.utils.data.Dataset):
 # -------------------------------------------------------------------------------------------------- refinement
 class VehicleRefinement(BlockRefinement):
     """The GN stages on a road-driven vehicle: its inputs (the road) are known exactly, so the spectral
-    noise model of the last stage is white output noise per channel only (the base-excitation models'
-    errors-in-variables term is for a *measured* driving channel)."""
-
-    def _noise_model(self, targets, road, params, observed, offset=0, frozen=False, residual=None) -> SpectralNoise:
-        channels = [i for i, o in enumerate(observed) if o]
-        if residual is None:
-            residual = self._residual(targets, road, params, observed, offset)
-        v_out, _ = estimate_variances(residual, None, 0, targets[:, :, channels].square().mean(1))
-        return SpectralNoise(v_out)
+    noise model of the last stage is white output noise per channel only (NoiseWeighting.input_noise=False,
+    build_vehicle_refinement)."""
 
 
 def build_vehicle_refinement(cfg, plan: dict) -> VehicleRefinement:
@@ -336,18 +330,22 @@ def build_vehicle_refinement(cfg, plan: dict) -> VehicleRefinement:
     )
     return VehicleRefinement(
         stages,
-        known=known,
-        h=plan["h"],
-        response=response,
-        reweight=reweight,
-        peer_factor=cfg.get("misfit_peer_factor", 10.0),
-        restarts=int(cfg.restarts.count),
-        restart_threshold=math.inf,  # the exact model's loss floor is its hold error: restarts go by status
-        restart_sigma=float(cfg.restarts.sigma),
-        seed=int(cfg.seed),
-        restart_batch=int(cfg.restarts.get("batch", 64)),
-        restarts_failed=int(cfg.restarts.get("failed", 0)),
-        x0_start=str(cfg.get("x0_start", "alternate")),
+        RefinementSettings(
+            known=known,
+            h=plan["h"],
+            response=response,
+            peer_factor=cfg.get("misfit_peer_factor", 10.0),
+            x0_start=str(cfg.get("x0_start", "alternate")),
+        ),
+        noise=NoiseWeighting(mode=reweight, input_noise=False),
+        restarts=Restarts(
+            count=int(cfg.restarts.count),
+            threshold=math.inf,  # the exact model's loss floor is its hold error: restarts go by status
+            sigma=float(cfg.restarts.sigma),
+            seed=int(cfg.seed),
+            batch=int(cfg.restarts.get("batch", 64)),
+            failed=int(cfg.restarts.get("failed", 0)),
+        ),
     )
 
 

@@ -5,7 +5,9 @@ from hybridqcm.estimation.front import (
     check_networks,
     equation_error_params,
 )
-from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage
+from hybridqcm.estimation.problems import LeastSquaresProblem
+from hybridqcm.estimation.refinement import GaussNewtonRefinement, GaussNewtonStage, RefinementSettings
+from hybridqcm.estimation.restarts import Restarts
 from hybridqcm.estimation.sensitivity import (
     EulerSensitivity,
     accelerations_and_jacobian,
@@ -16,7 +18,6 @@ from hybridqcm.estimation.solver import (
     SOLVERS,
     STATUS_LABELS,
     GaussNewton,
-    LeastSquaresProblem,
     LevenbergMarquardt,
     NonlinearLeastSquares,
     SolverConfig,
@@ -24,6 +25,7 @@ from hybridqcm.estimation.solver import (
     SolverStatus,
     build_solver,
 )
+from hybridqcm.estimation.weighting import NoiseWeighting
 
 __all__ = [
     "EulerSensitivity",
@@ -45,4 +47,7 @@ __all__ = [
     "HybridEstimator",
     "equation_error_params",
     "check_networks",
+    "RefinementSettings",
+    "NoiseWeighting",
+    "Restarts",
 ]

@@ -1,7 +1,11 @@
 """Batched small matrix products on the CPU through numpy (OpenBLAS), for the many tiny
-per-sample matrices of the estimation layers, where torch's batched products are 2-4x slower."""
+per-sample matrices of the estimation layers, where torch's batched products are 2-4x slower; and
+torch's thread count for those small per-step operations."""
 
 from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -26,3 +30,17 @@ def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
             return torch.from_numpy(np.matmul(a, b))
         np.matmul(a, b, out=out.numpy())
     return out
+
+
+@contextmanager
+def torch_threads(count: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to ``count`` (None or 0: unchanged) inside the block. The solver's
+    tensors are small ([chunk, time] per step): more threads cost more in wake-ups than they save,
+    and on a loaded machine each parallel region waits for a busy core (docs/notes/real_recordings.md)."""
+    before = torch.get_num_threads()
+    if count:
+        torch.set_num_threads(int(count))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -40,7 +40,7 @@ Conditioning. Rounding errors grow like cond(V) max|lambda| / |lambda_i - lambda
 nearly equal real eigenvalues, whose terms cancel); samples with this ratio above _LIMIT
 (_LIMIT_REAL for a real pair), or with non-finite values, are reported in ``ok`` and left to
 the step recursion.
-The eigenproblem is solved on the balanced D^-1 A D (D from exact._balance, powers of two).
+The eigenproblem is solved on the balanced D^-1 A D (D from _expm.balance, powers of two).
 """
 
 from __future__ import annotations
@@ -194,7 +194,7 @@ def modal_sensitivities(
     matrices A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]; derivatives dA [b, P, n, n],
     dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m] (float64); scale [b, n] the balancing
     D; x0 [b, n] or None; fine [b, m, M + (T - 1) M + 1] (any strides): M zeros, then the held input
-    at the sub-steps (exact._held, permuted), window [b, T, m] the input samples of the window. Rows of samples
+    at the sub-steps (hold.held_window, permuted), window [b, T, m] the input samples of the window. Rows of samples
     with ok False are not valid.
     """
     A, B, C, E = matrices

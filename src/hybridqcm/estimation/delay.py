@@ -30,7 +30,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .exact import exact_outputs, exact_sensitivities, held_input
+from .exact import exact_outputs, exact_sensitivities
+from .hold import held_input
 from .response import ExactResponse, PreparedInputs, ResponseModel, _as_3d
 
 

@@ -29,7 +29,8 @@ import math
 import torch
 from torch import Tensor
 
-from .solver import LeastSquaresProblem, NonlinearLeastSquares, SolverStatus
+from .problems import LeastSquaresProblem
+from .solver import NonlinearLeastSquares, SolverStatus
 
 
 def profile_interval(

@@ -28,7 +28,8 @@ from torch import Tensor
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
 from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
 
-from .exact import HOLDS, exact_outputs, exact_sensitivities, held_input
+from .exact import exact_outputs, exact_sensitivities
+from .hold import HOLDS, held_input
 from .sensitivity import euler_accelerations, euler_sensitivities
 
 INITIAL_STATES = ("unknown", "rest")

@@ -32,6 +32,8 @@ hyper-parameters are plain data of known keys, rebuilds the flow and loads the s
 
 The `sbi` package is an optional extra (`pip install -e '.[sbi]'`); it is imported lazily and
 its absence is a one-line ConfigError naming the extra.
+
+Training: estimation/sbi_training.py; evaluation: estimation/sbi_evaluation.py.
 """
 
 from __future__ import annotations
@@ -39,18 +41,16 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
 from hybridqcm.errors import CheckpointError, ConfigError
 from hybridqcm.models.networks import ParameterCNN
-from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES, REFERENCE_VEHICLE
+from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
 
 EXTRA = "sbi"
 CLASS_NAME = "SBIPeer"
@@ -342,248 +342,4 @@ class SBIPeer(nn.Module):
         return peer.eval()
 
 
-# -- training -----------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class TrainSettings:
-    epochs: int = 60
-    max_seconds: float | None = 540.0  # wall-clock budget; the LR schedule follows max(epoch, time) progress
-    batch_size: int = 128
-    lr: float = 2e-3  # peak
-    warmup: float = 0.05  # fraction of the budget
-    weight_decay: float = 0.0
-    noise_min: float = 0.002  # per-sample additive noise level s ~ log-uniform[noise_min, noise_max] × channel RMS
-    noise_max: float = 0.10
-    val_fraction: float = 0.1
-    shift: bool = True  # random window start within the stored steps (windows are cut mid-drive anyway)
-    flip: bool = True  # x -> −x: the same vehicle on the mirrored road (linear system, symmetric road law)
-    clip_norm: float = 5.0
-    seed: int = 0
-
-    def validate(self) -> TrainSettings:
-        if not (0 < self.noise_min <= self.noise_max):
-            raise ConfigError(f"train.noise_min={self.noise_min}, noise_max={self.noise_max}: need 0 < min <= max")
-        if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
-            raise ConfigError(f"train: epochs, batch_size must be >= 1 and lr > 0 (got {self})")
-        if not (0 < self.val_fraction < 1):
-            raise ConfigError(f"train.val_fraction={self.val_fraction} must be in (0, 1)")
-        return self
-
-
-def _schedule(progress: float, warmup: float) -> float:
-    """LR factor at training progress in [0, 1]: linear from 0.04 to 1 over `warmup`, then cosine to 0."""
-    if progress < warmup:
-        return 0.04 + 0.96 * progress / warmup
-    return 0.5 * (1 + math.cos(math.pi * min((progress - warmup) / max(1 - warmup, 1e-12), 1.0)))
-
-
-def noisy(x: Tensor, level: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """x [B, C, N] plus white noise of std level[b] · RMS of each sample's channel."""
-    rms = x.pow(2).mean(-1, keepdim=True).sqrt()
-    noise = torch.randn(x.shape, generator=generator, dtype=x.dtype)
-    return x + level.to(x.dtype)[:, None, None] * rms * noise
-
-
-def log_uniform(n: int, low: float, high: float, generator: torch.Generator | None = None) -> Tensor:
-    """[n] draws of s with log s ~ U[log low, log high]."""
-    r = torch.rand(n, generator=generator, dtype=torch.float64)
-    return (math.log(low) + r * (math.log(high) - math.log(low))).exp()
-
-
-def _windows(peer: SBIPeer, accel: Tensor, starts: Tensor) -> Tensor:
-    """[B, C, window] windows of accel [B, T, 3] starting at starts [B]."""
-    w = peer.settings.window
-    steps = starts[:, None] + torch.arange(w)[None]
-    picked = torch.gather(accel, 1, steps[:, :, None].expand(-1, -1, 3))
-    return peer.inputs_of(picked)
-
-
-def train_peer(
-    peer: SBIPeer,
-    accel: Tensor,
-    params: Tensor,
-    settings: TrainSettings,
-    log: Callable[[str], None] = print,
-) -> dict:
-    """Train the peer on accel [M, T, 3] (clean, m/s²), params [M, 10]; keeps the best validation state.
-
-    The last `val_fraction` of the samples (a fixed noisy copy) is the validation set. Returns the
-    history {epoch, train_loss, val_loss, seconds} and the best epoch."""
-    settings = settings.validate()
-    generator = torch.Generator().manual_seed(int(settings.seed))
-    torch.manual_seed(int(settings.seed))
-    M, T = accel.shape[0], accel.shape[1]
-    w = peer.settings.window
-    order = torch.randperm(M, generator=generator)
-    n_val = max(1, int(round(settings.val_fraction * M)))
-    train_idx, val_idx = order[n_val:], order[:n_val]
-    accel = accel.float()
-    u_all = peer.to_latent(peer.normalise(params)).float()
-    x_val = noisy(
-        peer.inputs_of(accel[val_idx]),
-        log_uniform(n_val, settings.noise_min, settings.noise_max, generator),
-        generator,
-    )
-    u_val = u_all[val_idx]
-    optimiser = torch.optim.AdamW(peer.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
-    history, best, best_state = [], math.inf, None
-    t0 = time.perf_counter()
-    budget = settings.max_seconds
-    for epoch in range(settings.epochs):
-        peer.train()
-        perm = train_idx[torch.randperm(train_idx.numel(), generator=generator)]
-        total, count = 0.0, 0
-        for start in range(0, perm.numel(), settings.batch_size):
-            progress = max(epoch / settings.epochs, (time.perf_counter() - t0) / budget if budget else 0.0)
-            for (
-                group
-            ) in optimiser.param_groups:  # linear warm-up, then cosine decay over the budget (epochs or seconds)
-                group["lr"] = settings.lr * _schedule(progress, settings.warmup)
-            idx = perm[start : start + settings.batch_size]
-            b = idx.numel()
-            starts = torch.randint(0, T - w + 1, (b,), generator=generator) if settings.shift else torch.zeros(b)
-            x = _windows(peer, accel[idx], starts.long())
-            if settings.flip:
-                x = x * (torch.randint(0, 2, (b,), generator=generator) * 2 - 1).float()[:, None, None]
-            x = noisy(x, log_uniform(b, settings.noise_min, settings.noise_max, generator), generator)
-            loss = peer.loss(u_all[idx], x).mean()
-            optimiser.zero_grad(set_to_none=True)
-            loss.backward()
-            nn.utils.clip_grad_norm_(peer.parameters(), settings.clip_norm)
-            optimiser.step()
-            total, count = total + loss.item() * b, count + b
-        peer.eval()
-        with torch.no_grad():
-            val = float(
-                torch.cat([peer.loss(u_val[i : i + 512], x_val[i : i + 512]) for i in range(0, n_val, 512)]).mean()
-            )
-        seconds = time.perf_counter() - t0
-        history.append({"epoch": epoch, "train_loss": total / count, "val_loss": val, "seconds": seconds})
-        log(f"epoch {epoch}: train {total / count:.4f}  val {val:.4f}  ({seconds:.0f} s)")
-        if val < best:
-            best, best_epoch = val, epoch
-            best_state = {k: v.detach().clone() for k, v in peer.state_dict().items()}
-        if budget and seconds >= budget:
-            break
-    if best_state is not None:
-        peer.load_state_dict(best_state)
-    peer.eval()
-    return {"history": history, "best_epoch": best_epoch, "best_val_loss": best, "seconds": time.perf_counter() - t0}
-
-
-# -- evaluation ---------------------------------------------------------------------------------------
-def central_interval(samples: Tensor, level: float = 0.95) -> tuple[Tensor, Tensor]:
-    """(low, high) [B, ...] of samples [S, B, ...]: the central `level` interval of each marginal."""
-    tail = (1 - level) / 2
-    q = torch.quantile(samples.double(), torch.tensor([tail, 1 - tail], dtype=torch.float64), dim=0)
-    return q[0], q[1]
-
-
-def posterior_summary(
-    peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3, chunk: int = 256
-) -> dict:
-    """Per recording x [B, C, window]: posterior medians, means and central 95 % intervals of the
-    peer's parameters ([B, P] each) and of m3 = K3/p2 ([B]) when p2 is among them. Medians are the
-    point estimates (m3 = K3/p2 is monotone, so m3's median is K3 / p2's median)."""
-    out: dict[str, list] = {
-        k: [] for k in ("median", "mean", "low", "high", "m3_median", "m3_mean", "m3_low", "m3_high")
-    }
-    j2 = peer.settings.params.index("p2") if "p2" in peer.settings.params else None
-    for start in range(0, x.shape[0], chunk):
-        s = peer.sample_params(n_samples, x[start : start + chunk], chunk=chunk)  # [S, b, P]
-        low, high = central_interval(s)
-        out["median"].append(s.median(0).values)
-        out["mean"].append(s.mean(0))
-        out["low"].append(low)
-        out["high"].append(high)
-        if j2 is not None:
-            m3 = K3 / s[..., j2]
-            m3_low, m3_high = central_interval(m3)
-            out["m3_median"].append(m3.median(0).values)
-            out["m3_mean"].append(m3.mean(0))
-            out["m3_low"].append(m3_low)
-            out["m3_high"].append(m3_high)
-    return {k: torch.cat(v) for k, v in out.items() if v}
-
-
-def evaluation_row(
-    summary: Mapping[str, Tensor], true: Tensor, names: Sequence[str], K3: float = REFERENCE_VEHICLE.K3
-) -> dict:
-    """Metrics of one posterior summary against the true params [B, 10]; column names as qcm-estimate's summary.
-
-    m3_* errors use the posterior median; coverage: fraction of truths inside the central 95 % interval;
-    interval width relative to the truth (median over samples)."""
-    row: dict = {"n": int(true.shape[0])}
-    true = true.to(torch.float64)
-    for j, name in enumerate(names):
-        t = true[:, PARAM_NAMES.index(name)]
-        err = (summary["median"][:, j] - t).abs() / t
-        row[f"{name}_mean_rel_err"] = float(err.mean())
-        row[f"{name}_coverage_95"] = float(((summary["low"][:, j] <= t) & (t <= summary["high"][:, j])).double().mean())
-        row[f"{name}_interval_median_rel_width"] = float(((summary["high"][:, j] - summary["low"][:, j]) / t).median())
-    if "m3_median" in summary:
-        t = K3 / true[:, 1]
-        err = (summary["m3_median"] - t).abs() / t
-        row["m3_mean_rel_err"] = float(err.mean())
-        row["m3_p95_rel_err"] = float(err.quantile(0.95))
-        row["m3_within_1pct"] = float((err <= 0.01).double().mean())
-        row["m3_coverage_95"] = float(((summary["m3_low"] <= t) & (t <= summary["m3_high"])).double().mean())
-        row["m3_interval_median_rel_width"] = float(((summary["m3_high"] - summary["m3_low"]) / t).median())
-    return row
-
-
-def rank_statistics(peer: SBIPeer, x: Tensor, z_true: Tensor, n_samples: int = 500) -> dict:
-    """SBC ranks [B, P] (sbi's run_sbc) and TARP (ecp, alpha) (sbi's run_tarp) on held-out (z_true [B, P], x).
-
-    Also the checks: KS p-values of rank uniformity per parameter, C2ST of the data-averaged
-    posterior vs the prior (sbi's check_sbc), and TARP's ATC and KS p-value (check_tarp)."""
-    import_sbi()
-    from sbi.diagnostics import check_sbc, check_tarp, run_sbc, run_tarp
-
-    z_true = z_true.float()
-    ranks, dap = run_sbc(z_true, x, peer, num_posterior_samples=n_samples, show_progress_bar=False)
-    sbc = check_sbc(ranks, z_true, dap, num_posterior_samples=n_samples)
-    ecp, alpha = run_tarp(z_true, x, peer, num_posterior_samples=n_samples, show_progress_bar=False)
-    atc, ks = check_tarp(ecp, alpha)
-    return {
-        "ranks": ranks,
-        "ks_pvals": sbc["ks_pvals"],
-        "c2st_ranks": sbc["c2st_ranks"],
-        "c2st_dap": sbc["c2st_dap"],
-        "ecp": ecp,
-        "alpha": alpha,
-        "tarp_atc": float(atc),
-        "tarp_ks_pval": float(ks),
-    }
-
-
-def seconds_per_1000(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3) -> float:
-    """Wall time of `posterior_summary` (embedding, n_samples draws, intervals) per 1 000 recordings."""
-    t0 = time.perf_counter()
-    posterior_summary(peer, x, n_samples=n_samples, K3=K3)
-    return (time.perf_counter() - t0) * 1000.0 / x.shape[0]
-
-
-def as_numpy_rows(rows: Sequence[Mapping], columns: Sequence[str]) -> list[list]:
-    """Rows for atomic_write_csv: one list per mapping in `columns` order (repr for floats)."""
-    return [
-        [repr(float(r[c])) if isinstance(r.get(c), (float, np.floating)) else r.get(c, "") for c in columns]
-        for r in rows
-    ]
-
-
-__all__ = [
-    "SBIPeer",
-    "PeerSettings",
-    "TrainSettings",
-    "Embedding",
-    "import_sbi",
-    "train_peer",
-    "noisy",
-    "log_uniform",
-    "central_interval",
-    "posterior_summary",
-    "evaluation_row",
-    "rank_statistics",
-    "seconds_per_1000",
-    "FLOWS",
-]
+__all__ = ["SBIPeer", "PeerSettings", "Embedding", "import_sbi", "FLOWS"]

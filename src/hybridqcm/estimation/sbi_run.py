@@ -59,7 +59,8 @@ def train_and_save(cfg, run_dir: Path):
     """Fit the peer per cfg.peer / cfg.train on data.train_split; writes posterior.pt and training.csv."""
     from omegaconf import OmegaConf
 
-    from hybridqcm.estimation.sbi_peer import PeerSettings, SBIPeer, TrainSettings, train_peer
+    from hybridqcm.estimation.sbi_peer import PeerSettings, SBIPeer
+    from hybridqcm.estimation.sbi_training import TrainSettings, train_peer
 
     settings = PeerSettings.from_mapping(OmegaConf.to_container(cfg.peer, resolve=True))
     train_cfg = OmegaConf.to_container(cfg.train, resolve=True)
@@ -94,13 +95,8 @@ def evaluate(cfg, run_dir: Path, peer) -> list[dict]:
     """The peer on data.test_split at each noise level: sbi_metrics.csv (one row per level) and, with
     evaluate.checks, the SBC / TARP checks."""
     from hybridqcm.data.sensor import SensorModel, build_sensor
-    from hybridqcm.estimation.sbi_peer import (
-        evaluation_row,
-        log_uniform,
-        noisy,
-        posterior_summary,
-        rank_statistics,
-    )
+    from hybridqcm.estimation.sbi_evaluation import evaluation_row, posterior_summary, rank_statistics
+    from hybridqcm.estimation.sbi_training import log_uniform, noisy
 
     ev = cfg.evaluate
     K3 = float(cfg.K3)

@@ -1,0 +1,51 @@
+"""Pseudo-inverses and solves of batches of small symmetric positive semi-definite matrices [b, n, n]
+(normal equations, covariances), with a relative eigenvalue cutoff instead of NaN on rank deficiency."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Pseudo-inverse of symmetric PSD matrices [b, n, n] with column scaling and an eigenvalue cutoff
+    rcond² (relative to the largest). Returns (M⁺ [b, n, n], unidentified [b, n] — an entry with
+    weight on a dropped direction, or a zero column —, singular values of the column-scaled factor
+    [b, n] descending, rank_deficient [b])."""
+    scale = matrix.diagonal(dim1=1, dim2=2).clamp_min(0).sqrt()
+    safe = torch.where(scale > 0, scale, torch.ones_like(scale))
+    scaled = matrix / (safe.unsqueeze(2) * safe.unsqueeze(1))
+    eigval, eigvec = torch.linalg.eigh(scaled)  # ascending
+    eigval = eigval.clamp_min(0.0)
+    keep = (eigval > (rcond**2) * eigval[:, -1:].clamp_min(1e-300)) & (eigval > 0)
+    inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+    pinv = (eigvec * inv.unsqueeze(1)) @ eigvec.transpose(1, 2) / (safe.unsqueeze(2) * safe.unsqueeze(1))
+    unidentified = ((eigvec.square() * (~keep).unsqueeze(1).to(eigvec.dtype)).sum(2) > 1e-6) | (scale == 0)
+    rank_deficient = (~keep).any(1) | (scale == 0).any(1)
+    return pinv, unidentified, eigval.sqrt().flip(1), rank_deficient
+
+
+def pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
+    """Solve matrix [b, n, n] x = rhs [b, n] (symmetric PSD); Cholesky where well conditioned,
+    eigen-decomposition with cutoff rcond² on the eigenvalues elsewhere. Returns (x, rank_deficient)."""
+    x = torch.zeros_like(rhs)
+    rank_deficient = torch.zeros(rhs.shape[0], dtype=torch.bool)
+    if rhs.shape[0] == 0:
+        return x, rank_deficient
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    pivots = factor.diagonal(dim1=1, dim2=2)
+    # The smallest Cholesky pivot² bounds the smallest eigenvalue from above: a cheap test for
+    # which samples need the (slower) eigen-decomposition.
+    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
+    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
+    if bool(well.any()):
+        x[well] = torch.cholesky_solve(rhs[well].unsqueeze(2), factor[well]).squeeze(2)
+    if bool((~well).any()):
+        ill = (~well).nonzero().squeeze(1)
+        eigval, eigvec = torch.linalg.eigh(matrix[ill])
+        keep = eigval > (rcond**2) * eigval[:, -1:].clamp_min(1e-300)
+        inv = torch.where(keep, 1.0 / eigval.clamp_min(1e-300), torch.zeros_like(eigval))
+        proj = (eigvec.transpose(1, 2) @ rhs[ill].unsqueeze(2)).squeeze(2)
+        x[ill] = (eigvec @ (inv * proj).unsqueeze(2)).squeeze(2)
+        rank_deficient[ill] = (~keep).any(1)
+    return x, rank_deficient
