@@ -189,7 +189,7 @@ def test_seat_file_is_refused_outside_the_road_free_seat_model(tmp_path, tiny_da
     from hydra import compose, initialize_config_dir
 
     from hybridqcm.apps.estimate import seat_plan
-    from hybridqcm.apps.estimate_plan import validate
+    from hybridqcm.estimation.plan import validate
     from hybridqcm.config import CONFIG_DIR
     from hybridqcm.errors import ConfigError
 

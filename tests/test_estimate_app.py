@@ -93,7 +93,7 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
 
 
 def test_noise_label_names_both_noise_sources():
-    from hybridqcm.apps.estimate_report import noise_label
+    from hybridqcm.reports.estimate import noise_label
     from hybridqcm.data.sensor import build_sensor
 
     assert noise_label(0.0, build_sensor(None)) == "none"

@@ -15,8 +15,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.estimate import run, validate
-from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows, build_inputs
-from hybridqcm.apps.estimate_shards import ShardStore
+from hybridqcm.estimation.blocks import RankBlocks, block_rows, build_inputs
+from hybridqcm.estimation.shards import ShardStore
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream

@@ -118,7 +118,7 @@ def _app(tmp_path, *overrides):
 def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, override, message):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.estimate_plan import validate
+    from hybridqcm.estimation.plan import validate
     from hybridqcm.config import CONFIG_DIR
     from hybridqcm.errors import ConfigError
 

@@ -298,7 +298,7 @@ def _cfg(*overrides):
 
 
 def test_occupant_settings_per_model(tiny_dataset, persons_file):
-    from hybridqcm.apps.estimate_plan import validate
+    from hybridqcm.estimation.plan import validate
     from hybridqcm.errors import ConfigError
 
     body = "occupant.models=[rigid,body1]"

@@ -194,7 +194,7 @@ def test_summary_reports_the_converged_answers_beside_all(tmp_path):
     the converged-only mean and max are those of the converged rows, computed here by hand from m3 = K3/p2."""
     from omegaconf import OmegaConf
 
-    from hybridqcm.apps.estimate_report import write_metrics
+    from hybridqcm.reports.estimate import write_metrics
     from hybridqcm.estimation.solver import SolverStatus
     from hybridqcm.physics import reference_params
 

@@ -16,7 +16,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate_plan import validate
+from hybridqcm.estimation.plan import validate
 from hybridqcm.apps.estimate_vehicle import validate_vehicle
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
@@ -185,7 +185,7 @@ def test_road_free_seat_of_a_full_car(files):
     assert np.isnan(seat["accel"][..., 2]).all() and np.isnan(seat["params"][:, 2:]).all()
     np.testing.assert_allclose(seat["params"][:, 1], P["k3_rear_left"] / P["m3_rear_left"], rtol=1e-12)
     # the quarter car's road-free pipeline reads it: the plan names the seat, the batch is the seat's
-    from hybridqcm.apps.estimate_inputs import build_inputs
+    from hybridqcm.estimation.blocks import build_inputs
 
     cfg = _cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2")
     plan = validate(cfg)
@@ -204,7 +204,7 @@ def test_apparent_mass_plot_of_a_seat(files, tmp_path, monkeypatch):
     import scipy.signal
 
     import hybridqcm.plots
-    from hybridqcm.apps.estimate_occupant import plot_first_recordings
+    from hybridqcm.estimation.plan_occupant import plot_first_recordings
 
     plan = validate(_cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2"))
     raw = read_split(files["fcm"], "test", ("accel", "physical"), index=slice(1, 2))

@@ -8,10 +8,10 @@ Every bad input (unknown or non-estimation experiment, missing/wrong-kind checkp
 channel the pipeline needs but the file lacks, NaN, a window longer than the stored steps) is
 reported in one line naming the file, key and value, before any work is done.
 
-The run: plan (apps/estimate_plan.py) -> the file streamed in blocks of batch_size recordings
-(apps/estimate_inputs.py) -> Lightning predict on the trainer group's accelerator/devices/nodes,
-each rank writing the shards of its blocks (apps/estimate_shards.py) -> one process merges them
-into estimates.csv / status.csv and computes the metrics (apps/estimate_report.py).
+The run: plan (estimation/plan.py) -> the file streamed in blocks of batch_size recordings
+(estimation/blocks.py) -> Lightning predict on the trainer group's accelerator/devices/nodes,
+each rank writing the shards of its blocks (estimation/shards.py) -> one process merges them
+into estimates.csv / status.csv and computes the metrics (reports/estimate.py).
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ from hybridqcm.apps.estimate_drive import (
     drive_skipped_columns,
     model_names,
 )
-from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
-from hybridqcm.apps.estimate_occupant import build_selection, plot_first_recordings
-from hybridqcm.apps.estimate_plan import (
+from hybridqcm.estimation.blocks import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
+from hybridqcm.estimation.plan_occupant import build_selection, plot_first_recordings
+from hybridqcm.estimation.plan import (
     CHANNELS,
     INITIAL_STATES,
     MODELS,
@@ -58,7 +58,7 @@ from hybridqcm.apps.estimate_plan import (
     solver_settings,
     validate,
 )
-from hybridqcm.apps.estimate_report import (
+from hybridqcm.reports.estimate import (
     SEAT_COLUMNS,
     STATUS_HEADER,
     block_stage_stats,
@@ -73,7 +73,7 @@ from hybridqcm.apps.estimate_report import (
     skipped_tables,
     write_metrics,
 )
-from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
+from hybridqcm.estimation.shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation.front import HybridEstimator
@@ -260,7 +260,7 @@ def build_trainer(cfg, callbacks, run_dir: Path) -> lightning.Trainer:
 # --------------------------------------------------------------------------------------------------
 def seat_plan(cfg, plan):
     """The seat file's law (seat_file=, estimation/calibration.py) or None; only the road-free seat model
-    reads one. The key is not ``seat``: that names a seat of a half / full car file (apps/estimate_seat.py)."""
+    reads one. The key is not ``seat``: that names a seat of a half / full car file (estimation/plan_seat.py)."""
     path = cfg.get("seat_file")
     if path is None:
         return None

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hybridqcm.apps.estimate_plan import CHANNELS, window_check_settings
+from hybridqcm.estimation.plan import CHANNELS, window_check_settings
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream

@@ -1,6 +1,6 @@
 """qcm-estimate's tables: per-block rows (estimates.csv, status.csv) and the run's metrics.
 
-A block's rows are written as soon as its GN solve ends (apps/estimate_shards.py); the metrics
+A block's rows are written as soon as its GN solve ends (estimation/shards.py); the metrics
 (error distribution, calibration, occupant mass m3 = K3/p2, status counts) are computed once
 from the merged per-sample columns [M, P] of parameters, std, truth and status, never from the
 recordings: memory holds a few numbers per recording, not the time series.
@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from hybridqcm.apps.estimate_plan import PARAM_NAMES
+from hybridqcm.estimation.plan import PARAM_NAMES
 from hybridqcm.atomic import atomic_write_csv
 from hybridqcm.console import print_table
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus

@@ -263,7 +263,7 @@ def check_setting_types(cfg, own: tuple[str, ...] = ()) -> None:
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
-    from hybridqcm.apps.estimate_occupant import delay_margin, occupant_plan
+    from hybridqcm.estimation.plan_occupant import delay_margin, occupant_plan
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
     from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
     from hybridqcm.estimation.fusion import check_cnn_prior
@@ -417,7 +417,7 @@ def validate(cfg) -> dict:
     split = str(cfg.data.split)
     if split not in info["splits"]:
         raise DatasetError(f"{path}: split {split!r} not found; available splits: {sorted(info['splits'])}")
-    from hybridqcm.apps.estimate_seat import seat_view_plan
+    from hybridqcm.estimation.plan_seat import seat_view_plan
 
     seat_view = seat_view_plan(cfg, path, split, info, base)  # a seat of a half / full car file (issue 30)
     keys = info["splits"][split]["keys"] if seat_view is None else seat_view["keys"]
