@@ -118,9 +118,9 @@ def _app(tmp_path, *overrides):
 def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, override, message):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.estimation.plan import validate
     from hybridqcm.config import CONFIG_DIR
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan import validate
 
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("estimate", overrides=["experiment=occupant_roadfree", f"data.path={tiny_dataset}", override])

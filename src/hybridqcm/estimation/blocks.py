@@ -28,10 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hybridqcm.estimation.plan import CHANNELS, window_check_settings
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.plan import CHANNELS, window_check_settings
 from hybridqcm.estimation.window_check import WindowCheck, window_status
 from hybridqcm.physics.parameters import PhysicalConstants
 

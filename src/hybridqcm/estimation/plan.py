@@ -263,10 +263,10 @@ def check_setting_types(cfg, own: tuple[str, ...] = ()) -> None:
 # --------------------------------------------------------------------------------------------------
 def validate(cfg) -> dict:
     """Check every input before any work; returns the resolved plan. Raises ConfigError/DatasetError."""
-    from hybridqcm.estimation.plan_occupant import delay_margin, occupant_plan
     from hybridqcm.data.hdf5 import DatasetError, dataset_info
     from hybridqcm.estimation.front import CheckpointKindError, check_networks, load_network
     from hybridqcm.estimation.fusion import check_cnn_prior
+    from hybridqcm.estimation.plan_occupant import delay_margin, occupant_plan
 
     check_known_keys(cfg)
     check_setting_types(cfg)

@@ -1,4 +1,5 @@
-"""qcm-estimate's tables: per-block rows (estimates.csv, status.csv) and the run's metrics.
+"""qcm-estimate's report: the run's metrics, summary and console table (the per-block rows of
+estimates.csv and status.csv: estimation/tables.py).
 
 A block's rows are written as soon as its GN solve ends (estimation/shards.py); the metrics
 (error distribution, calibration, occupant mass m3 = K3/p2, status counts) are computed once
@@ -11,226 +12,23 @@ The 95 % interval of m3 is the image of p2's (m3 = K3/p2 is monotone): skewed, u
 
 from __future__ import annotations
 
+import json
 import math
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
 
-from hybridqcm.estimation.plan import PARAM_NAMES
-from hybridqcm.atomic import atomic_write_csv
+from hybridqcm import runfolder
+from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 from hybridqcm.console import print_table
+from hybridqcm.estimation.plan import PARAM_NAMES
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
+from hybridqcm.estimation.tables import ALL_STATUS_LABELS, merge_stage_stats
 from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS, is_skipped
-from hybridqcm.metrics import error_distribution_rows, write_error_distribution
-
-# the status column: the solver's outcome, or why a window was not fitted
-ALL_STATUS_LABELS = {**STATUS_LABELS, **WINDOW_STATUS_LABELS}
-
-STATUS_HEADER = [
-    "index",
-    "status",
-    "iterations",
-    "loss",
-    "relative_loss",
-    "restarts",
-    "condition_number",
-    "relative_residual",
-    "whiteness",
-]
-
-
-def estimates_header(theta_names: Sequence[str], n_params: int, extra: Sequence[str] = ()) -> list[str]:
-    """θ = (p1..pP, x0...): the model's parameters first, then the estimated initial state (if any), then
-    ``extra`` diagnostics (the occupant model chosen, its body modes: estimation/occupant.py)."""
-    params, states = list(theta_names[:n_params]), list(theta_names[n_params:])
-    return [
-        "index",
-        *params,
-        "status",
-        *[f"std_{n}" for n in params],
-        "m3",
-        "m3_std",
-        "m3_low",
-        "m3_high",
-        *states,
-        *[f"std_{n}" for n in states],
-        *extra,
-    ]
-
-
-def m3_interval(params: torch.Tensor, std: torch.Tensor, K3: float) -> tuple[torch.Tensor, ...]:
-    """(m3, m3_std, m3_low, m3_high) [b] from p [b, P] and its std [b, P] (delta method; interval mapped)."""
-    m3 = K3 / params[:, 1]
-    m3_std = K3 / params[:, 1].square() * std[:, 1]
-    p2_low, p2_high = params[:, 1] - 1.96 * std[:, 1], params[:, 1] + 1.96 * std[:, 1]
-    m3_low = K3 / p2_high
-    m3_high = torch.where(p2_low > 0, K3 / p2_low.clamp_min(1e-300), torch.full_like(p2_low, math.inf))
-    return m3, m3_std, m3_low, m3_high
-
-
-# With a seat file (qcm-estimate seat_file=...; estimation/calibration.py): the occupant alone from the seat's law
-SEAT_COLUMNS = ("occupant_mass", "occupant_mass_low", "occupant_mass_high")
-
-
-def block_tables(
-    record: Mapping,
-    n_params: int,
-    K3: float,
-    n_scored: int | None = None,
-    extra: Sequence[str] = (),
-    seat=None,
-) -> tuple[list, list, dict]:
-    """One refined block (GaussNewtonRefinement.refine's record) -> (estimate rows, status rows, columns).
-
-    columns: index [b], params [b, n_scored], std [b, n_scored] (the first n_scored parameters, those
-    the file's truth holds; default all), status [b], iterations [b], restarts [b], m3_low, m3_high [b]
-    (what the run's metrics need), as tensors. A record may carry its own m3 interval (``m3_low``,
-    ``m3_high``: an occupant-model selection's, wider where models disagree) and ``extra`` columns.
-    ``seat`` (a calibration.SeatLaw): SEAT_COLUMNS last, from p2 and its interval (the image of m3's under
-    m3 = K3 / p2) and the seat's covariance."""
-    result = record["final"]
-    theta, theta_std = record["params"], result.std
-    params, std = theta[:, :n_params], theta_std[:, :n_params]
-    x0, x0_std = theta[:, n_params:], theta_std[:, n_params:]
-    status = [STATUS_LABELS[int(s)] for s in result.status]
-    m3, m3_std, m3_low, m3_high = m3_interval(params, std, K3)
-    if "m3_low" in record:
-        m3_low, m3_high = record["m3_low"].double(), record["m3_high"].double()
-    extra_values = [record["extra"][name] for name in extra]
-    if seat is not None:
-        p2 = params[:, 1].double().numpy()
-        p2_low = torch.where(m3_high.isfinite(), K3 / m3_high.double(), torch.zeros_like(m3_high.double())).numpy()
-        p2_high = (K3 / m3_low.double()).numpy()
-        extra_values += [torch.as_tensor(c) for c in seat.occupant_interval(p2, p2_low, p2_high)]
-    index = record["index"]
-    rows, status_rows = [], []
-    condition = result.condition_number
-    for i in range(params.shape[0]):
-        rows.append(
-            [
-                int(index[i]),
-                *[repr(float(x)) for x in params[i]],
-                status[i],
-                *[repr(float(x)) for x in std[i]],
-                repr(float(m3[i])),
-                repr(float(m3_std[i])),
-                repr(float(m3_low[i])),
-                repr(float(m3_high[i])),
-                *[repr(float(x)) for x in x0[i]],
-                *[repr(float(x)) for x in x0_std[i]],
-                *[v[i] if isinstance(v, list) else repr(float(v[i])) for v in extra_values],
-            ]
-        )
-        status_rows.append(
-            [
-                int(index[i]),
-                status[i],
-                int(result.iterations[i]),
-                repr(float(result.loss[i])),
-                repr(float(record["relative_loss"][i])),
-                int(record["restarts"][i]),
-                repr(float(condition[i])),
-                repr(float(result.relative_residual[i])),
-                repr(float(result.whiteness[i])),
-            ]
-        )
-    scored = n_params if n_scored is None else n_scored
-    columns = {
-        "index": index.long(),
-        "params": params[:, :scored].double(),
-        "std": std[:, :scored].double(),
-        "m3_low": m3_low.double(),
-        "m3_high": m3_high.double(),
-        "status": result.status.long(),
-        "iterations": result.iterations.long(),
-        "restarts": record["restarts"].long(),
-    }
-    return rows, status_rows, columns
-
-
-def skipped_tables(
-    index: torch.Tensor, status: torch.Tensor, true: torch.Tensor | None, header: Sequence[str], n_scored: int
-) -> tuple[list, list, dict]:
-    """The rows of windows kept from the fit (estimation/window_check.py) in block_tables' layout:
-    their status, no estimate (nan), no iterations. index, status: [k]; true: [k, 10] or None."""
-    k = int(index.shape[0])
-    labels = [ALL_STATUS_LABELS[int(s)] for s in status]
-    nan = repr(math.nan)
-    rows = [
-        [int(i) if name == "index" else label if name == "status" else nan for name in header]
-        for i, label in zip(index.tolist(), labels)
-    ]
-    status_rows = [[int(i), label, 0, nan, nan, 0, nan, nan, nan] for i, label in zip(index.tolist(), labels)]
-    blank = torch.full((k,), math.nan, dtype=torch.float64)
-    columns = {
-        "index": index.long(),
-        "params": torch.full((k, n_scored), math.nan, dtype=torch.float64),
-        "std": torch.full((k, n_scored), math.nan, dtype=torch.float64),
-        "m3_low": blank,
-        "m3_high": blank.clone(),
-        "status": status.long(),
-        "iterations": torch.zeros(k, dtype=torch.int64),
-        "restarts": torch.zeros(k, dtype=torch.int64),
-        "true": None if true is None else true.double(),
-    }
-    return rows, status_rows, columns
-
-
-def merge_block_tables(first: tuple, second: tuple) -> tuple[list, list, dict]:
-    """Two (rows, status rows, columns) of one block merged in sample-index order."""
-    rows, status_rows = first[0] + second[0], first[1] + second[1]
-    columns = {}
-    for key in first[2]:
-        a, b = first[2][key], second[2].get(key)
-        columns[key] = None if a is None or b is None else torch.cat([a, b])
-    order = torch.argsort(columns["index"])
-    columns = {key: None if v is None else v[order] for key, v in columns.items()}
-    return [rows[i] for i in order.tolist()], [status_rows[i] for i in order.tolist()], columns
-
-
-def block_stage_stats(record: Mapping) -> dict:
-    """Per stage: loss per iteration summed over the block's samples (finished samples carry their
-    last loss), sample count, status counts and iteration sum: mergeable over blocks (JSON)."""
-    out = {}
-    for name, x in record["stages"].items():
-        out[name] = {
-            "loss_total": [float(v) for v in x.loss_history.sum(1)],
-            "count": int(x.loss_history.shape[1]),
-            "status": x.status_counts(),
-            "iterations": int(x.iterations.sum()),
-            "n": int(x.iterations.numel()),
-        }
-    return out
-
-
-def merge_stage_stats(blocks: Sequence[Mapping], stage_names: Sequence[str]) -> tuple[dict, dict]:
-    """(stage_loss, stage_status) of summary.json from the blocks' stats, in block order.
-
-    A block whose history is shorter than the longest is extended with its last total: that is the
-    sum of its samples' last losses, which is what padding each sample with its last loss adds."""
-    stage_loss, stage_status = {}, {}
-    for name in stage_names:
-        parts = [b[name] for b in blocks if name in b]
-        if not parts:  # (an occupant selection's stages are its candidates' "<model>/<stage>")
-            continue
-        length = max((len(p["loss_total"]) for p in parts), default=0)
-        total = torch.zeros(length, dtype=torch.float64)
-        count = 0
-        for p in parts:
-            t = torch.tensor(p["loss_total"], dtype=torch.float64)
-            total += torch.cat([t, t[-1:].expand(length - t.shape[0])]) if t.shape[0] < length else t
-            count += p["count"]
-        stage_loss[name] = (total / max(count, 1)).tolist()
-        counts: dict[str, int] = {}
-        for p in parts:
-            for k, v in p["status"].items():
-                counts[k] = counts.get(k, 0) + int(v)
-        stage_status[name] = counts
-        n = sum(p["n"] for p in parts)
-        stage_status[name + "_iterations_mean"] = float(sum(p["iterations"] for p in parts) / n) if n else math.nan
-    return stage_loss, stage_status
+from hybridqcm.metrics import coverage_95, error_distribution_rows, m3_interval, write_error_distribution
 
 
 def noise_label(noise_sigma: float, sensor) -> str:
@@ -240,13 +38,6 @@ def noise_label(noise_sigma: float, sensor) -> str:
     if sensor is not None and sensor.active:
         parts.append(sensor.describe())
     return "; ".join(parts) or "none"
-
-
-def coverage_95(estimate: torch.Tensor, truth: torch.Tensor, std: torch.Tensor, failed: torch.Tensor) -> float:
-    """Fraction of samples [M] whose truth lies in estimate ± 1.96 std; failed or non-finite ones count as not covered."""
-    ok = ~failed & torch.isfinite(estimate) & torch.isfinite(std)
-    inside = ok & ((estimate - truth).abs() <= 1.96 * std)
-    return float(inside.double().mean())
 
 
 def write_metrics(
@@ -413,16 +204,177 @@ def print_report(cfg, summary: Mapping, table_rows: list | None, run_dir: Path) 
     )
 
 
+def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
+    """plots/apparent_mass_<index>.png for the first ``count`` recordings: measured and fitted a3/a2 and
+    the fitted apparent mass over 0.5-15 Hz (plots.plot_apparent_mass). Returns the PNG paths."""
+    import csv
+
+    import numpy as np
+    import scipy.signal
+
+    from hybridqcm.data.hdf5 import read_split
+    from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
+    from hybridqcm.physics.occupant import normalised_apparent_mass
+    from hybridqcm.plots import close, plot_apparent_mass
+
+    with open(estimates_csv, newline="") as handle:
+        fitted = (r for r in csv.DictReader(handle) if r["status"] not in WINDOW_STATUS_LABELS.values())
+        rows = [row for _, row in zip(range(count), fitted)]
+    if not rows:
+        return []
+    index = np.array([int(r["index"]) for r in rows])
+    if plan.get("seat") is not None:  # a seat of a half / full car, in the quarter car's layout (a3, a2, a1)
+        from hybridqcm.data.vehicle_files import read_seat_split
+
+        accel = read_seat_split(plan["path"], plan["split"], plan["seat"], ("accel",), index=index, check_finite=False)
+        accel = accel["accel"]
+    else:
+        accel = read_split(plan["path"], plan["split"], ("accel",), index=index, check_finite=False)["accel"]
+    h = plan["h"]
+    modes = max((int(k[1:]) for k in rows[0] if k[:1] == "r" and k[1:].isdigit()), default=0)
+    names = ["p1", "p2"] + [f"{k}{i}" for i in range(1, modes + 1) for k in ("r", "k", "c")]
+    paths = []
+    for row, (a3, a2) in zip(rows, accel[:, :, :2].transpose(0, 2, 1)):
+        params = torch.tensor([[float(row[n]) for n in names]], dtype=torch.float64).nan_to_num(0.0)
+        nper = min(256, a2.shape[0])
+        f_measured, s22 = scipy.signal.welch(a2, fs=1 / h, nperseg=nper)
+        _, s23 = scipy.signal.csd(a2, a3, fs=1 / h, nperseg=nper)
+        band = (f_measured >= 0.5) & (f_measured <= 15)
+        freq = np.linspace(0.5, min(15.0, 0.5 / h), 300)
+        omega = torch.tensor(2 * np.pi * freq)
+        am = normalised_apparent_mass(params, omega)[0]
+        s = 1j * omega
+        p1, p2 = params[0, 0], params[0, 1]
+        fitted = (p1 * s + p2) / (s * s * am + p1 * s + p2)
+        tau = float(row.get("tau") or 0.0)
+        fitted = fitted * torch.exp(-s * tau)
+        title = (
+            f"recording {row['index']}: {row.get('occupant_model', 'rigid')}, static mass {float(row['m3']):.1f} kg "
+            f"[{float(row['m3_low']):.1f}, {float(row['m3_high']):.1f}], status {row['status']}"
+        )
+        path = run_dir / "plots" / f"apparent_mass_{int(row['index']):06d}.png"
+        measured = (s23 / s22)[band]
+        close(plot_apparent_mass(f_measured[band], measured, freq, fitted.numpy(), am.numpy(), path, title))
+        paths.append(path)
+    return paths
+
+
+def finish_run(cfg, plan, solved, run_dir: Path, seat, inputs_used, t_start: float, aggregate=None) -> dict:
+    """After the merge (rank 0): the occupant plots, the stage losses, the metrics files, summary.json,
+    the completion marker and the console report; returns the summary. ``solved``: estimation.runner.Solved;
+    ``seat``: the seat file's law or None; ``aggregate(columns) -> dict``: the drives' aggregate (aggregate=drive)."""
+    from hybridqcm.estimation.runner import max_rss_mib
+
+    columns = solved.columns
+    # a person at a glance: fitted apparent mass vs the measured a3/a2
+    if plan.get("occupant") is not None and cfg.plots and {"a3", "a2"} <= set(plan["observed"]):
+        pictures = plot_first_recordings(run_dir, plan, run_dir / "estimates.csv")
+        if cfg.tensorboard and pictures:
+            from hybridqcm.tracking import log_estimation_to_tensorboard
+
+            log_estimation_to_tensorboard(run_dir / "tb", [], pictures, prefix="occupant")
+    summary = run_summary(cfg, plan, solved, run_dir)
+    noise = noise_label(cfg.noise_sigma, plan["sensor"])
+    metrics, table_rows = write_metrics(
+        cfg, columns, columns.get("true"), plan["known"], run_dir, plan["n_steps"], noise=noise
+    )
+    summary.update(metrics)
+    if aggregate is not None:
+        summary["drive_aggregate"] = aggregate(columns)
+    summary["noise"] = noise
+    summary["mass_scale"] = _mass_scale(cfg, seat, run_dir)
+    summary["seconds_total"] = time.perf_counter() - t_start
+    # This process's peak resident memory after the solve and at the end (spawned ranks excluded).
+    summary["max_rss_mib"] = {"solve": solved.rss_solve_mib, "total": max_rss_mib(), "ranks": max_rss_mib(True)}
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+    runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(), inputs_used)
+    print_report(cfg, summary, table_rows, run_dir)
+    return summary
+
+
+def run_summary(cfg, plan, solved, run_dir: Path) -> dict:
+    """summary.json's account of the run before its metrics: data, settings resolved by the plan, the
+    stages' losses and statuses (logged to TensorBoard with tensorboard=true), blocks, processes, seconds."""
+    markers = solved.markers
+    stage_names = [s["name"] for s in plan["stages"]]
+    stage_names += [k for k in dict.fromkeys(k for m in markers for k in m["stages"]) if k not in stage_names]
+    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], stage_names)
+    if cfg.tensorboard:
+        log_stage_losses(run_dir / "tb", stage_loss)
+    return {
+        "experiment": cfg.experiment_name,
+        "data": str(plan["path"]),
+        "split": plan["split"],
+        "n_samples": int(plan["n_samples"]),
+        "n_steps": plan["n_steps"],
+        "noise_sigma": float(cfg.noise_sigma),
+        "seed": int(cfg.seed),
+        "observed": plan["observed"],
+        "known": [PARAM_NAMES[j] for j in plan["known"]],
+        "model": plan["model"],
+        "initial_state": plan["initial_state"],
+        "x0_start": plan["x0_start"],
+        "base_excitation": plan["base_excitation"],
+        "hold": str(cfg.hold) if plan["model"] == "exact" else None,
+        "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
+        "input_margin": list(plan["input_margin"]),
+        "interval_covariance": plan["stages"][-1]["settings"].get("covariance", "model"),  # auto resolved
+        "stages": stage_status,
+        "stage_mean_loss": stage_loss,
+        "seconds_solve": solved.seconds_solve,
+        "processes": solved.processes,
+        "blocks": solved.blocks,
+        "blocks_resumed": solved.resumed,
+        # per process: seconds spent solving blocks (the rest of seconds_solve is start-up and reading)
+        "seconds_blocks_per_process": _per_process_seconds(markers),
+        "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
+        "predict_devices": sorted({m["device"] for m in markers if m.get("device")}),  # the networks' device(s)
+    }
+
+
+def _mass_scale(cfg, seat, run_dir: Path) -> dict:
+    """summary.json's word on the mass scale: uncalibrated (m3 = K3 / p2 with the reference K3) or the seat
+    file's law, and how many occupant masses lie outside the calibration's loads (extrapolated, warned)."""
+    if seat is None:
+        return {"calibrated": False, "K3": float(cfg.K3), "note": "m3 = K3 / p2 with the reference seat's K3"}
+    import csv
+
+    import numpy as np
+
+    with open(run_dir / "estimates.csv", newline="") as handle:
+        occupant = np.array([float(r["occupant_mass"]) for r in csv.DictReader(handle)])
+    fitted = np.isfinite(occupant)
+    outside = int((fitted & ~seat.covers(occupant)).sum())
+    if outside:
+        print(
+            f"warning: {outside} of {int(fitted.sum())} occupant masses lie outside the calibration's loads "
+            f"{min(seat.loads):g}..{max(seat.loads):g} kg (the seat law extrapolated; calibrate with heavier or "
+            f"lighter loads)"
+        )
+    return {
+        "calibrated": True,
+        "seat_file": str(cfg.seat_file),
+        "law": seat.law,
+        "K3_ref": seat.K3_ref,
+        "exponent": seat.exponent,
+        "pan_mass": seat.pan_mass,
+        "loads_kg": seat.loads,
+        "extrapolated": outside,
+    }
+
+
+def _per_process_seconds(markers) -> list[float]:
+    busy: dict = {}
+    for marker in markers:
+        busy[marker.get("pid")] = busy.get(marker.get("pid"), 0.0) + float(marker.get("seconds", math.nan))
+    return sorted(busy.values(), reverse=True)
+
+
 __all__ = [
-    "STATUS_HEADER",
-    "estimates_header",
-    "m3_interval",
-    "block_tables",
-    "skipped_tables",
-    "merge_block_tables",
-    "block_stage_stats",
-    "merge_stage_stats",
-    "coverage_95",
+    "finish_run",
+    "noise_label",
+    "run_summary",
+    "plot_first_recordings",
     "write_metrics",
     "log_stage_losses",
     "print_report",
