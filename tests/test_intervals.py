@@ -159,7 +159,7 @@ def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
     from omegaconf import OmegaConf
 
     from hybridqcm.errors import ConfigError
-    from hybridqcm.estimation.plan import interval_settings
+    from hybridqcm.estimation.plan_settings import interval_settings
 
     cfg = OmegaConf.create({"intervals": {"covariance": "jackknife", "band": 4, "student_t": False}})
     assert interval_settings(cfg) == {"covariance": "jackknife", "covariance_band": 4, "covariance_dof": False}
