@@ -132,7 +132,7 @@ def occupant_linear_model(base: str | None, n_modes: int, scaled_road: bool = Fa
 def _vehicle_settings(cfg, plan, names) -> tuple:
     """(mean [n], std [n]) of the run's vehicle prior over the parameter ``names`` (std inf where it has none)
     and the restarts' centre [n] (None unless restarts go around the reference vehicle), as the rigid run
-    has them (apps/estimate.build_refinement)."""
+    has them (estimation/runner.build_refinement)."""
     from hybridqcm.physics.parameters import PARAM_NAMES, PhysicalConstants
 
     p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
