@@ -204,7 +204,7 @@ def test_apparent_mass_plot_of_a_seat(files, tmp_path, monkeypatch):
     import scipy.signal
 
     import hybridqcm.plots
-    from hybridqcm.estimation.plan_occupant import plot_first_recordings
+    from hybridqcm.reports.estimate import plot_first_recordings
 
     plan = validate(_cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2"))
     raw = read_split(files["fcm"], "test", ("accel", "physical"), index=slice(1, 2))
