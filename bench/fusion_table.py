@@ -63,9 +63,10 @@ def _from_run(run_dir: Path) -> dict[str, torch.Tensor]:
 def _cnn_alone(args, sigma: float) -> dict[str, torch.Tensor]:
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.estimate import build_inputs, validate
     from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.blocks import build_inputs
     from hybridqcm.estimation.front import HybridEstimator
+    from hybridqcm.estimation.plan import validate
 
     overrides = [o for o in _estimate_cmd(args, sigma, "fused", Path("."))[1:] if not o.startswith("hydra.")]
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

@@ -188,10 +188,10 @@ def test_a_seat_file_is_created_exclusively(tmp_path):
 def test_seat_file_is_refused_outside_the_road_free_seat_model(tmp_path, tiny_dataset):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.estimate import seat_plan
-    from hybridqcm.apps.estimate_plan import validate
     from hybridqcm.config import CONFIG_DIR
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.plan_seat import seat_plan
 
     _, seat_file = _document(tmp_path)
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):

@@ -11,9 +11,10 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate import ConfigError, build_inputs, validate
 from hybridqcm.config import CONFIG_DIR, check_experiment_overrides
-from hybridqcm.errors import DatasetError
+from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.blocks import build_inputs
+from hybridqcm.estimation.plan import validate
 from hybridqcm.testing import synthetic_samples, train_tiny_checkpoints, write_dataset
 
 
@@ -93,8 +94,8 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
 
 
 def test_noise_label_names_both_noise_sources():
-    from hybridqcm.apps.estimate_report import noise_label
     from hybridqcm.data.sensor import build_sensor
+    from hybridqcm.reports.estimate import noise_label
 
     assert noise_label(0.0, build_sensor(None)) == "none"
     assert noise_label(0.05, build_sensor(None)) == "source multiplicative σ = 0.05"
@@ -244,7 +245,7 @@ def test_missing_channel_nan_and_window(files, tiny_dataset):
 def test_vehicle_prior_is_the_reference_vehicle_on_the_listed_unknowns(tiny_dataset):
     """Mean p_ref and std rel_std x p_ref on the listed parameters the model has; known ones and p1, p2
     (not listed) carry no prior; the seat model has none of the default list; off with rel_std=null."""
-    from hybridqcm.apps.estimate import build_refinement
+    from hybridqcm.estimation.runner import build_refinement
     from hybridqcm.physics import reference_params
 
     base = ["experiment=exp10_hybrid", f"data.path={tiny_dataset}", "init.cnn=false", "dynamics=exact"]

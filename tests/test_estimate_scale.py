@@ -14,12 +14,13 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate import run, validate
-from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows, build_inputs
-from hybridqcm.apps.estimate_shards import ShardStore
+from hybridqcm.apps.estimate import run
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.blocks import RankBlocks, block_rows, build_inputs
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.plan import validate
+from hybridqcm.estimation.shards import ShardStore
 from hybridqcm.physics.parameters import PhysicalConstants
 
 BIN = Path(sys.executable).parent
@@ -202,7 +203,7 @@ def test_cpu_ranks_are_forked_at_one_thread_and_other_accelerators_keep_their_st
     """trainer=ddp on CPU: the configured spawn becomes a fork (no fresh interpreter per rank) whose
     ranks run torch at one thread (GNU OpenMP is not fork-safe above that); on a GPU the configured
     strategy is kept (CUDA cannot be forked)."""
-    from hybridqcm.apps.estimate import ForkedCPUDDP, build_trainer
+    from hybridqcm.estimation.runner import ForkedCPUDDP, build_trainer
 
     cpu = build_trainer(_cfg(["trainer=ddp", "trainer.devices=2"]), [], tmp_path)
     assert isinstance(cpu.strategy, ForkedCPUDDP) and cpu.strategy._start_method == "fork"
@@ -217,8 +218,8 @@ def test_cpu_ranks_are_forked_at_one_thread_and_other_accelerators_keep_their_st
     finally:
         torch.set_num_threads(threads)
     cfg = _cfg(["trainer=ddp", "trainer.devices=2", "trainer.accelerator=gpu"])
-    from hybridqcm.apps import estimate
+    from hybridqcm.estimation import runner
 
-    strategy = estimate.instantiate(cfg.trainer.strategy)
+    strategy = runner.instantiate(cfg.trainer.strategy)
     assert not isinstance(strategy, ForkedCPUDDP) and strategy._start_method == "spawn"
-    assert not estimate._resolves_to_cpu("gpu") and estimate._resolves_to_cpu("cpu")
+    assert not runner._resolves_to_cpu("gpu") and runner._resolves_to_cpu("cpu")

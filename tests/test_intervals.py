@@ -159,8 +159,8 @@ def test_bad_covariance_settings_are_one_line_errors():
 def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
     from omegaconf import OmegaConf
 
-    from hybridqcm.apps.estimate_plan import interval_settings
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan_settings import interval_settings
 
     cfg = OmegaConf.create({"intervals": {"covariance": "jackknife", "band": 4, "student_t": False}})
     assert interval_settings(cfg) == {"covariance": "jackknife", "covariance_band": 4, "covariance_dof": False}
@@ -190,8 +190,8 @@ def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
 def test_auto_covariance_is_the_model_one_only_where_the_whitened_residual_is_white(tiny_dataset, overrides, expected):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.estimate_plan import validate
     from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.plan import validate
 
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("estimate", overrides=[*overrides, f"data.path={tiny_dataset}", "n_samples=2"])

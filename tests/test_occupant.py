@@ -118,9 +118,9 @@ def _app(tmp_path, *overrides):
 def test_bad_occupant_settings_fail_in_one_line(tiny_dataset, override, message):
     from hydra import compose, initialize_config_dir
 
-    from hybridqcm.apps.estimate_plan import validate
     from hybridqcm.config import CONFIG_DIR, check_schema_overrides
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan import validate
 
     overrides = ["experiment=occupant_roadfree", f"data.path={tiny_dataset}", override]
     with pytest.raises(ConfigError, match=re.escape(message)) as error:

@@ -233,8 +233,10 @@ def test_the_evidence_reads_the_measured_channels_with_the_wheel_forcing(persons
     """exp 8 measures a3 only: the weighed problem (the candidate's last stage, GaussNewtonRefinement.final_problem)
     leaves the file's a2, a1 out, and its input is the wheel forcing p_u u: the loss at a fit is unchanged
     when a2 and a1 are replaced by garbage, and changes when a3 is."""
-    from hybridqcm.apps.estimate import build_inputs, build_module, build_refinement, validate
+    from hybridqcm.estimation.blocks import build_inputs
     from hybridqcm.estimation.occupant_evidence import evaluation_solver
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
 
     cfg = _cfg(
         "experiment=exp8_occupant_only", "init.cnn=false", f"data.path={persons_file}", "n_samples=2",
@@ -298,8 +300,8 @@ def _cfg(*overrides):
 
 
 def test_occupant_settings_per_model(tiny_dataset, persons_file):
-    from hybridqcm.apps.estimate_plan import validate
     from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan import validate
 
     body = "occupant.models=[rigid,body1]"
     sprung = validate(_cfg("experiment=sprung_roadfree", f"data.path={persons_file}", body))
@@ -313,7 +315,9 @@ def test_occupant_settings_per_model(tiny_dataset, persons_file):
 
 
 def _refine(cfg):
-    from hybridqcm.apps.estimate import build_inputs, build_module, build_refinement, validate
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
 
     plan = validate(cfg)
     refinement, module = build_refinement(cfg, plan), build_module(cfg, plan)
@@ -326,7 +330,9 @@ def test_the_rigid_candidate_is_the_rigid_run(persons_file):
     gives that run's estimates but for the noise fit's leverage correction (occupant candidates only: a
     few 1e-4). The selection then polishes each candidate under the common noise model, so m3_rigid moves
     by the difference in weighting (< 2 % on these misfit fits)."""
-    from hybridqcm.apps.estimate import build_inputs, build_module, build_refinement, validate
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
 
     common = ["experiment=sprung_roadfree", f"data.path={persons_file}", "n_samples=2", "restarts.count=1"]
     plain = _refine(_cfg(*common))

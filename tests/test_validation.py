@@ -16,9 +16,10 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hybridqcm import config
-from hybridqcm.apps.estimate import coverage_95, validate
 from hybridqcm.config import CONFIG_DIR, check_task_name
 from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.plan import validate
+from hybridqcm.metrics import coverage_95
 from hybridqcm.testing import synthetic_samples, write_dataset
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
@@ -196,9 +197,9 @@ def test_summary_reports_the_converged_answers_beside_all(tmp_path):
     the converged-only mean and max are those of the converged rows, computed here by hand from m3 = K3/p2."""
     from omegaconf import OmegaConf
 
-    from hybridqcm.apps.estimate_report import write_metrics
     from hybridqcm.estimation.solver import SolverStatus
     from hybridqcm.physics import reference_params
+    from hybridqcm.reports.estimate import write_metrics
 
     true = reference_params().repeat(4, 1).double()
     params = true.clone()

@@ -16,12 +16,12 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate_plan import validate
 from hybridqcm.apps.estimate_vehicle import validate_vehicle
 from hybridqcm.config import CONFIG_DIR, check_schema_overrides
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
 from hybridqcm.data.vehicle_files import read_seat_split
 from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.plan import validate
 
 ENV = {**os.environ, "COLUMNS": "160", "PYTHONWARNINGS": "ignore"}
 SMALL = ["n_steps=160", "samples_per_profile=2", "splits.test.profiles={A: 2, B: 1, C: 0}", "~splits.train"]
@@ -187,7 +187,7 @@ def test_road_free_seat_of_a_full_car(files):
     assert np.isnan(seat["accel"][..., 2]).all() and np.isnan(seat["params"][:, 2:]).all()
     np.testing.assert_allclose(seat["params"][:, 1], P["k3_rear_left"] / P["m3_rear_left"], rtol=1e-12)
     # the quarter car's road-free pipeline reads it: the plan names the seat, the batch is the seat's
-    from hybridqcm.apps.estimate_inputs import build_inputs
+    from hybridqcm.estimation.blocks import build_inputs
 
     cfg = _cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2")
     plan = validate(cfg)
@@ -206,7 +206,7 @@ def test_apparent_mass_plot_of_a_seat(files, tmp_path, monkeypatch):
     import scipy.signal
 
     import hybridqcm.plots
-    from hybridqcm.apps.estimate_occupant import plot_first_recordings
+    from hybridqcm.reports.estimate import plot_first_recordings
 
     plan = validate(_cfg("experiment=occupant_roadfree", f"data.path={files['fcm']}", "seat=rear_left", "n_samples=2"))
     raw = read_split(files["fcm"], "test", ("accel", "physical"), index=slice(1, 2))

@@ -8,6 +8,7 @@ Column names match ../shared/reference/thesis_tables.csv so rows can be set side
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -165,3 +166,20 @@ def read_error_distribution(path: str | Path) -> list[dict]:
                 raise ValueError(f"{path}:{line_no}: row without a parameter name: {raw}")
             rows.append(row)
     return rows
+
+
+def m3_interval(params: torch.Tensor, std: torch.Tensor, K3: float) -> tuple[torch.Tensor, ...]:
+    """(m3, m3_std, m3_low, m3_high) [b] from p [b, P] and its std [b, P] (delta method; interval mapped)."""
+    m3 = K3 / params[:, 1]
+    m3_std = K3 / params[:, 1].square() * std[:, 1]
+    p2_low, p2_high = params[:, 1] - 1.96 * std[:, 1], params[:, 1] + 1.96 * std[:, 1]
+    m3_low = K3 / p2_high
+    m3_high = torch.where(p2_low > 0, K3 / p2_low.clamp_min(1e-300), torch.full_like(p2_low, math.inf))
+    return m3, m3_std, m3_low, m3_high
+
+
+def coverage_95(estimate: torch.Tensor, truth: torch.Tensor, std: torch.Tensor, failed: torch.Tensor) -> float:
+    """Fraction of samples [M] whose truth lies in estimate ± 1.96 std; failed or non-finite ones count as not covered."""
+    ok = ~failed & torch.isfinite(estimate) & torch.isfinite(std)
+    inside = ok & ((estimate - truth).abs() <= 1.96 * std)
+    return float(inside.double().mean())

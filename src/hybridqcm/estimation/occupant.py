@@ -163,7 +163,7 @@ class OccupantSelection:
         return sum(1 for n in refinement.response.theta_names if n.startswith("r") and n[1:].isdigit())
 
     def refine_block(self, outputs: Mapping, module, block: int) -> dict:
-        """The block's record (apps.estimate_shards.BlockRefinement's contract: nothing is kept)."""
+        """The block's record (estimation.shards.BlockRefinement's contract: nothing is kept)."""
         return self.refine(outputs, module)
 
     def refine(self, outputs: Mapping, module=None) -> dict:

@@ -22,7 +22,9 @@ def central_interval(samples: Tensor, level: float = 0.95) -> tuple[Tensor, Tens
     return q[0], q[1]
 
 
-def posterior_summary(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3, chunk: int = 256) -> dict:
+def posterior_summary(
+    peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float = REFERENCE_VEHICLE.K3, chunk: int = 256
+) -> dict:
     """Per recording x [B, C, window]: posterior medians, means and central 95 % intervals of the
     peer's parameters ([B, P] each) and of m3 = K3/p2 ([B]) when p2 is among them. Medians are the
     point estimates (m3 = K3/p2 is monotone, so m3's median is K3 / p2's median)."""
@@ -47,7 +49,9 @@ def posterior_summary(peer: SBIPeer, x: Tensor, n_samples: int = 1000, K3: float
     return {k: torch.cat(v) for k, v in out.items() if v}
 
 
-def evaluation_row(summary: Mapping[str, Tensor], true: Tensor, names: Sequence[str], K3: float = REFERENCE_VEHICLE.K3) -> dict:
+def evaluation_row(
+    summary: Mapping[str, Tensor], true: Tensor, names: Sequence[str], K3: float = REFERENCE_VEHICLE.K3
+) -> dict:
     """Metrics of one posterior summary against the true params [B, 10]; column names as qcm-estimate's summary.
 
     m3_* errors use the posterior median; coverage: fraction of truths inside the central 95 % interval;

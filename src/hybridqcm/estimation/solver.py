@@ -107,7 +107,7 @@ class SolverConfig:
     #               correction), at the Student-t quantile of its effective degrees of freedom;
     #   "robust_sandwich" / "robust_jackknife": per parameter the larger of "model" and that variance
     #               (correlations of "model"). The app chooses per model (intervals.covariance: auto in
-    #               configs/estimate.yaml; apps/estimate_plan.resolve_covariance).
+    #               configs/estimate.yaml; estimation/plan_settings.resolve_covariance).
     covariance: str = "model"
     # False: skip the final Jacobian pass (standard deviations, covariance, misfit test) — for a stage whose
     # result only starts the next one (window continuation); its std is then inf and its residual tests

@@ -132,7 +132,7 @@ def occupant_linear_model(base: str | None, n_modes: int, scaled_road: bool = Fa
 def _vehicle_settings(cfg, plan, names) -> tuple:
     """(mean [n], std [n]) of the run's vehicle prior over the parameter ``names`` (std inf where it has none)
     and the restarts' centre [n] (None unless restarts go around the reference vehicle), as the rigid run
-    has them (apps/estimate.build_refinement)."""
+    has them (estimation/runner.build_refinement)."""
     from hybridqcm.physics.parameters import PARAM_NAMES, PhysicalConstants
 
     p_ref = PhysicalConstants(**{k: float(v) for k, v in cfg.vehicle.items()}).to_params()
@@ -211,58 +211,3 @@ def build_selection(cfg, plan, occupant: dict, make_refinement):
         model_prior=model_prior,
         rescue=rescue,
     )
-
-
-def plot_first_recordings(run_dir, plan, estimates_csv, count: int = 4) -> list:
-    """plots/apparent_mass_<index>.png for the first ``count`` recordings: measured and fitted a3/a2 and
-    the fitted apparent mass over 0.5-15 Hz (plots.plot_apparent_mass). Returns the PNG paths."""
-    import csv
-
-    import numpy as np
-    import scipy.signal
-
-    from hybridqcm.data.hdf5 import read_split
-    from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
-    from hybridqcm.physics.occupant import normalised_apparent_mass
-    from hybridqcm.plots import close, plot_apparent_mass
-
-    with open(estimates_csv, newline="") as handle:
-        fitted = (r for r in csv.DictReader(handle) if r["status"] not in WINDOW_STATUS_LABELS.values())
-        rows = [row for _, row in zip(range(count), fitted)]
-    if not rows:
-        return []
-    index = np.array([int(r["index"]) for r in rows])
-    if plan.get("seat") is not None:  # a seat of a half / full car, in the quarter car's layout (a3, a2, a1)
-        from hybridqcm.data.vehicle_files import read_seat_split
-
-        accel = read_seat_split(plan["path"], plan["split"], plan["seat"], ("accel",), index=index, check_finite=False)
-        accel = accel["accel"]
-    else:
-        accel = read_split(plan["path"], plan["split"], ("accel",), index=index, check_finite=False)["accel"]
-    h = plan["h"]
-    modes = max((int(k[1:]) for k in rows[0] if k[:1] == "r" and k[1:].isdigit()), default=0)
-    names = ["p1", "p2"] + [f"{k}{i}" for i in range(1, modes + 1) for k in ("r", "k", "c")]
-    paths = []
-    for row, (a3, a2) in zip(rows, accel[:, :, :2].transpose(0, 2, 1)):
-        params = torch.tensor([[float(row[n]) for n in names]], dtype=torch.float64).nan_to_num(0.0)
-        nper = min(256, a2.shape[0])
-        f_measured, s22 = scipy.signal.welch(a2, fs=1 / h, nperseg=nper)
-        _, s23 = scipy.signal.csd(a2, a3, fs=1 / h, nperseg=nper)
-        band = (f_measured >= 0.5) & (f_measured <= 15)
-        freq = np.linspace(0.5, min(15.0, 0.5 / h), 300)
-        omega = torch.tensor(2 * np.pi * freq)
-        am = normalised_apparent_mass(params, omega)[0]
-        s = 1j * omega
-        p1, p2 = params[0, 0], params[0, 1]
-        fitted = (p1 * s + p2) / (s * s * am + p1 * s + p2)
-        tau = float(row.get("tau") or 0.0)
-        fitted = fitted * torch.exp(-s * tau)
-        title = (
-            f"recording {row['index']}: {row.get('occupant_model', 'rigid')}, static mass {float(row['m3']):.1f} kg "
-            f"[{float(row['m3_low']):.1f}, {float(row['m3_high']):.1f}], status {row['status']}"
-        )
-        path = run_dir / "plots" / f"apparent_mass_{int(row['index']):06d}.png"
-        measured = (s23 / s22)[band]
-        close(plot_apparent_mass(f_measured[band], measured, freq, fitted.numpy(), am.numpy(), path, title))
-        paths.append(path)
-    return paths

@@ -1,4 +1,5 @@
-"""qcm-estimate's road-free seat estimate on a half-car or full-car file (issue 30).
+"""qcm-estimate's seats: the road-free seat estimate on a half-car or full-car file (issue 30), and the
+seat file's law (seat_file=, estimation/calibration.py) for the occupant's mass.
 
 ``experiment=occupant_roadfree seat=<name> data.path=<a half / full car file>``: the seat's z3 is the
 model's output and the seat base's z2 + x_s α + y_s β its input (data/vehicle_files.read_seat_split
@@ -50,4 +51,21 @@ def seat_view_plan(cfg, path, split: str, info: dict, base: str | None) -> dict 
     return {"seat": chosen, "vehicle": kind, "keys": view["keys"]}
 
 
-__all__ = ["seat_view_plan"]
+def seat_plan(cfg, plan):
+    """The seat file's law (seat_file=, estimation/calibration.py) or None; only the road-free seat model
+    reads one. The key is not ``seat``: that names a seat of a half / full car file (seat_view_plan)."""
+    path = cfg.get("seat_file")
+    if path is None:
+        return None
+    from hybridqcm.estimation.calibration import load_seat
+
+    if plan is None or plan["base_excitation"] != "seat":
+        raise ConfigError(
+            f"seat_file={path}: a seat calibration is used by the road-free seat model "
+            f"(experiment=occupant_roadfree, base_excitation: seat); this run fits "
+            f"{'the ' + str(cfg.get('vehicle_model')) if plan is None else plan['base_excitation'] or 'the road'}"
+        )
+    return load_seat(path)
+
+
+__all__ = ["seat_plan", "seat_view_plan"]

@@ -28,12 +28,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hybridqcm.apps.estimate_plan import CHANNELS, window_check_settings
 from hybridqcm.data.hdf5 import read_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.plan_settings import window_check_settings
 from hybridqcm.estimation.window_check import WindowCheck, window_status
-from hybridqcm.physics.parameters import PhysicalConstants
+from hybridqcm.physics.parameters import CHANNELS, PhysicalConstants
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,18 @@ def build_inputs(cfg, plan: Mapping, rows: slice | None = None, streams: _Stream
         if start == 0:
             raise
         raise DatasetError(f"{error} (in the block of rows {start}..{stop - 1})") from None
+    return batch_from_arrays(settings, plan, arrays, start, streams)
+
+
+def batch_from_arrays(cfg, plan: Mapping, arrays: Mapping, start: int = 0, streams: _Streams | None = None) -> dict:
+    """The batch of rows [start, start + b) from their arrays: "accel" [b, T, 3] (a3, a2, a1) m/s², "road"
+    [b, T] m (road-driven plans), "params" [b, 10] (plans with has_params); the initial guesses drawn,
+    the source's noise and the sensor model applied, as build_inputs does for the file's rows."""
+    settings = cfg if isinstance(cfg, InputSettings) else InputSettings.from_config(cfg)
+    n_total = int(plan["n_samples"])
+    road_free = plan["base_excitation"] is not None
     accel = torch.from_numpy(np.asarray(arrays["accel"], dtype=np.float64))
+    stop = start + int(accel.shape[0])
     for c in plan["observed"]:  # unrecorded channels may be NaN in a file; the ones used may not
         column = accel[:, :, CHANNELS.index(c)]
         if not bool(torch.isfinite(column).all()):
@@ -236,6 +247,7 @@ class RankBlocks(torch.utils.data.Sampler):
 
 
 __all__ = [
+    "batch_from_arrays",
     "InputSettings",
     "build_inputs",
     "block_rows",
