@@ -16,7 +16,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from hybridqcm.apps.estimate_drive import DrivePlan, aggregate_drives, drive_plan
+from hybridqcm.reports.drive import DrivePlan, aggregate_drives, drive_plan
 from hybridqcm.data.importer import read_recordings, write_recordings
 from hybridqcm.errors import DatasetError
 from hybridqcm.estimation.solver import SolverStatus

@@ -17,7 +17,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from hybridqcm.apps.estimate_plan import validate
-from hybridqcm.apps.estimate_vehicle import validate_vehicle
+from hybridqcm.estimation.plan_vehicle import validate_vehicle
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
 from hybridqcm.data.vehicle_files import read_seat_split

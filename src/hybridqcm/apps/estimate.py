@@ -37,7 +37,7 @@ from omegaconf import DictConfig
 from hybridqcm import config, runfolder
 from hybridqcm.apps import common
 from hybridqcm.apps.common import fail
-from hybridqcm.apps.estimate_drive import (
+from hybridqcm.reports.drive import (
     aggregate_drives,
     drive_columns,
     drive_plan,
@@ -278,7 +278,7 @@ def seat_plan(cfg, plan):
 def run(cfg, run_dir: Path | None = None) -> dict:
     """The estimation run into ``run_dir`` (default: the Hydra job's folder, else the working directory)."""
     if str(cfg.get("vehicle_model", "quarter_car")) != "quarter_car":  # the half and full car (issue 30)
-        from hybridqcm.apps.estimate_vehicle import run_vehicle
+        from hybridqcm.estimation.plan_vehicle import run_vehicle
 
         seat_plan(cfg, None)
         return run_vehicle(cfg, build_trainer)

@@ -38,7 +38,7 @@ from hybridqcm.apps.estimate_plan import (
 )
 from hybridqcm.apps.estimate_report import STATUS_HEADER, block_stage_stats, log_stage_losses, merge_stage_stats
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
-from hybridqcm.apps.estimate_vehicle_report import (
+from hybridqcm.reports.vehicle import (
     vehicle_block_tables,
     vehicle_estimates_header,
     vehicle_print_report,
