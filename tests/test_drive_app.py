@@ -16,11 +16,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from hybridqcm.reports.drive import DrivePlan, aggregate_drives, drive_plan
 from hybridqcm.data.importer import read_recordings, write_recordings
 from hybridqcm.errors import DatasetError
+from hybridqcm.estimation.drive_plan import DrivePlan, drive_plan
 from hybridqcm.estimation.solver import SolverStatus
 from hybridqcm.estimation.window_check import WindowStatus
+from hybridqcm.reports.drive import aggregate_drives
 
 REPO = Path(__file__).resolve().parents[1]
 K3 = 98935.0

@@ -37,13 +37,6 @@ from omegaconf import DictConfig
 from hybridqcm import config, runfolder
 from hybridqcm.apps import common
 from hybridqcm.apps.common import fail
-from hybridqcm.reports.drive import (
-    aggregate_drives,
-    drive_columns,
-    drive_plan,
-    drive_skipped_columns,
-    model_names,
-)
 from hybridqcm.apps.estimate_inputs import InputSettings, RankBlocks, RecordingBlocks, block_rows, build_inputs
 from hybridqcm.apps.estimate_occupant import build_selection, plot_first_recordings
 from hybridqcm.apps.estimate_plan import (
@@ -76,11 +69,13 @@ from hybridqcm.apps.estimate_report import (
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
+from hybridqcm.estimation.drive_plan import drive_columns, drive_plan, drive_skipped_columns, model_names
 from hybridqcm.estimation.front import HybridEstimator
 from hybridqcm.estimation.refinement import GaussNewtonStage
 from hybridqcm.estimation.response import base_excitation_response, quarter_car_response
 from hybridqcm.estimation.solver import build_solver
 from hybridqcm.physics.parameters import PhysicalConstants
+from hybridqcm.reports.drive import aggregate_drives
 
 
 def build_module(cfg, plan) -> HybridEstimator:

@@ -38,12 +38,6 @@ from hybridqcm.apps.estimate_plan import (
 )
 from hybridqcm.apps.estimate_report import STATUS_HEADER, block_stage_stats, log_stage_losses, merge_stage_stats
 from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
-from hybridqcm.reports.vehicle import (
-    vehicle_block_tables,
-    vehicle_estimates_header,
-    vehicle_print_report,
-    write_vehicle_metrics,
-)
 from hybridqcm.atomic import atomic_write_text
 from hybridqcm.data.hdf5 import DatasetError, dataset_info, read_split
 from hybridqcm.data.vehicle_files import (
@@ -64,6 +58,12 @@ from hybridqcm.estimation.vehicle_front import VehicleFront
 from hybridqcm.physics.sedan import reference_physical
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
 from hybridqcm.physics.vehicle_model import VehicleModel
+from hybridqcm.reports.vehicle import (
+    vehicle_block_tables,
+    vehicle_estimates_header,
+    vehicle_print_report,
+    write_vehicle_metrics,
+)
 
 INPUT_MARGIN = (4, 8)  # input samples before and after the GN window (the spline hold's edges)
 

@@ -3,7 +3,7 @@
 The windows of one drive share ``/<split>/profile_id`` (qcm-import window=/stride= cuts a recording into
 them) and carry their start time ``/<split>/t_start`` [s]. Each window is estimated as usual (its own
 initial state); its shared parameters and their covariance travel beside the block's columns
-(:func:`drive_columns`), and after the merge every drive is combined (estimation/drive.py):
+(estimation/drive_plan.py), and after the merge every drive is combined (estimation/drive.py):
 
     windows -> usable (status in drive.statuses, finite, positive definite covariance), not overlapping
             -> isolated outliers rejected -> segments (a change of occupant) -> one posterior per segment
@@ -38,18 +38,16 @@ each next one starting at or after the end of the last one used); the others are
 
 from __future__ import annotations
 
-import json
 import math
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from hybridqcm.apps.estimate_report import ALL_STATUS_LABELS
 from hybridqcm.atomic import atomic_write_csv
 from hybridqcm.console import print_table
-from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.drive import (
     Gaussian,
     InformationCombiner,
@@ -61,10 +59,9 @@ from hybridqcm.estimation.drive import (
     time_to_precision,
     usable_windows,
 )
+from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import STATUS_LABELS
 from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
-
-ALL_STATUS_LABELS = {**STATUS_LABELS, **WINDOW_STATUS_LABELS}
 
 DRIVES_HEADER = [
     "drive",
@@ -102,165 +99,7 @@ PROGRESS_HEADER = [
     "m3_high",
     "windows_used",
 ]
-WEIGHTS = ("reported", "model")
-SCALES = ("none", "birge")
 INCONSISTENT_P = 1e-3  # a segment whose windows disagree beyond this p-value is flagged, not hidden
-
-
-@dataclass(frozen=True)
-class DrivePlan:
-    """Validated drive settings and the file's drive layout: profile_id [M], t_start [M], window length [s]."""
-
-    statuses: tuple[str, ...]
-    weights: str
-    scale: str
-    alpha: float
-    min_windows: int
-    outlier_alpha: float
-    neighbours: int
-    plots: int
-    per_window: tuple[str, ...]
-    profile_id: np.ndarray
-    t_start: np.ndarray
-    names: tuple[str, ...]
-    window_s: float
-
-
-def _fraction(settings, key: str) -> float:
-    value = settings.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
-        raise ConfigError(f"drive.{key}={value!r}: give a probability in (0, 1)")
-    return float(value)
-
-
-def _count(settings, key: str, low: int) -> int:
-    value = settings.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ConfigError(f"drive.{key}={value!r}: give an integer >= {low}")
-    return int(value)
-
-
-def _names(settings, key: str) -> tuple[str, ...]:
-    value = settings.get(key, ["tau"])
-    value = [] if value is None else [value] if isinstance(value, str) else list(value)
-    if any(str(v) in ("p1", "p2") for v in value):
-        raise ConfigError(f"drive.{key}={value}: p1 and p2 (the occupant) are what the windows share")
-    return tuple(str(v) for v in value)
-
-
-def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
-    """None without aggregate=drive; else the checked settings and the file's profile_id / t_start (read
-    once: a few numbers per window). Raises ConfigError / DatasetError (one line) before any work."""
-    aggregate = cfg.get("aggregate")
-    if aggregate is None:
-        return None
-    if str(aggregate) != "drive":
-        raise ConfigError(f"aggregate={aggregate!r}: give drive (one estimate per drive) or null (per window only)")
-    settings = cfg.get("drive") or {}
-    statuses = settings.get("statuses", ["converged"])
-    statuses = [statuses] if isinstance(statuses, str) else [str(s) for s in statuses]
-    bad = [s for s in statuses if s not in STATUS_LABELS.values()]
-    if bad or not statuses:
-        raise ConfigError(f"drive.statuses={statuses}: {bad or 'empty'}; choose from {list(STATUS_LABELS.values())}")
-    weights, scale = str(settings.get("weights", "reported")), str(settings.get("scale", "birge"))
-    if weights not in WEIGHTS:
-        raise ConfigError(f"drive.weights={weights!r}: choose one of {list(WEIGHTS)}")
-    if scale not in SCALES:
-        raise ConfigError(f"drive.scale={scale!r}: choose one of {list(SCALES)}")
-    import h5py
-
-    path, split = Path(plan["path"]), str(plan["split"])
-    with h5py.File(path, "r") as handle:
-        group = handle[split]
-        missing = [k for k in ("profile_id", "t_start") if k not in group]
-        if missing:
-            raise DatasetError(
-                f"{path}: /{split} lacks {missing}, which aggregate=drive needs (the drive of each window and its "
-                f"start time [s]; qcm-import window=N writes both)"
-            )
-        n = int(plan["n_samples"])
-        profile_id = np.asarray(group["profile_id"][:n], dtype=np.int64)
-        t_start = np.asarray(group["t_start"][:n], dtype=np.float64)
-        stored = int(group["accel"].shape[1])
-        recordings = handle.attrs.get("recordings")
-    if profile_id.shape != (n,) or t_start.shape != (n,):
-        raise DatasetError(f"{path}: /{split}/profile_id and t_start must hold one value per window ({n})")
-    if not np.isfinite(t_start).all():
-        bad_row = int(np.flatnonzero(~np.isfinite(t_start))[0])
-        raise DatasetError(f"{path}: /{split}/t_start[{bad_row}] is not a finite time")
-    names: list[str] = []
-    if recordings is not None:
-        try:
-            names = [str(x) for x in json.loads(recordings)]
-        except (TypeError, ValueError):
-            names = []
-    if profile_id.size and (profile_id.min() < 0 or (names and profile_id.max() >= len(names))):
-        names = []  # ids that do not index the recordings' names: the ids themselves name the drives
-    return DrivePlan(
-        statuses=tuple(statuses),
-        weights=weights,
-        scale=scale,
-        alpha=_fraction(settings, "alpha"),
-        min_windows=_count(settings, "min_windows", 1),
-        outlier_alpha=_fraction(settings, "outlier_alpha"),
-        neighbours=_count(settings, "neighbours", 1),
-        plots=_count(settings, "plots", 0),
-        per_window=_names(settings, "per_window"),
-        profile_id=profile_id,
-        t_start=t_start,
-        names=tuple(names),
-        window_s=stored * float(plan["h"]),
-    )
-
-
-def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
-    """``tables(record)`` (apps/estimate_report.block_tables) with each window's shared parameters added to
-    the block's columns: drive_theta [b, P], drive_cov [b, P, P] (the reported covariance's parameter block:
-    the initial state marginalised), drive_model_cov (the model-based σ̂²(JᵀJ)⁻¹ block: the robust one is
-    it rescaled per parameter) and drive_model [b] (index into :func:`model_names`)."""
-    names = model_names(refinement)
-
-    def with_drive(record: Mapping) -> tuple[list, list, dict]:
-        rows, status_rows, columns = tables(record)
-        result = record["final"]
-        theta = record["params"][:, :n_params].double()
-        cov = result.covariance[:, :n_params, :n_params].double()
-        std = result.std[:, :n_params].double()
-        model_std = result.model_std[:, :n_params].double() if result.model_std is not None else std
-        ratio = torch.where((std > 0) & torch.isfinite(std), model_std / std, torch.ones_like(std))
-        columns["drive_theta"] = theta
-        columns["drive_cov"] = cov
-        columns["drive_model_cov"] = cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
-        chosen = (record.get("extra") or {}).get("occupant_model")
-        columns["drive_model"] = torch.tensor(
-            [names.index(c) for c in chosen] if chosen is not None else [0] * theta.shape[0], dtype=torch.long
-        )
-        return rows, status_rows, columns
-
-    return with_drive
-
-
-def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
-    """``skipped_tables(index, status, true)`` (apps/estimate_report: windows kept from the fit, no_signal or
-    clipped) with :func:`drive_columns`' columns added, NaN: a block's fitted and skipped windows merge into
-    one table, and such a window is never usable."""
-
-    def with_drive(index, status, true) -> tuple[list, list, dict]:
-        rows, status_rows, columns = skipped_tables(index, status, true)
-        k = int(index.shape[0])
-        nan = torch.full((k, n_params, n_params), math.nan, dtype=torch.float64)
-        columns["drive_theta"] = torch.full((k, n_params), math.nan, dtype=torch.float64)
-        columns["drive_cov"] = nan
-        columns["drive_model_cov"] = nan.clone()
-        columns["drive_model"] = torch.zeros(k, dtype=torch.long)
-        return rows, status_rows, columns
-
-    return with_drive
-
-
-def model_names(refinement) -> list[str]:
-    """The occupant models a window can report: an occupant-model selection's candidates, else one."""
-    return list(getattr(refinement, "names", None) or ["rigid"])
 
 
 def _fmt(x) -> str:
@@ -329,6 +168,141 @@ def _label(models: torch.Tensor, names: Sequence[str]) -> str:
     return "mixed(" + ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) + ")"
 
 
+class _Windows:
+    """Every window's status code [M], whether the status is one drive.statuses combines [M] and whether
+    the window was kept from the fit (no_signal, clipped) [M]."""
+
+    def __init__(self, status: torch.Tensor, drive: DrivePlan):
+        allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
+        self.status = status
+        self.ok_status = torch.tensor([int(s) in allowed for s in status], dtype=torch.bool)
+        self.kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
+
+
+def _window_reasons(rows: np.ndarray, usable: torch.Tensor, windows: _Windows, drive: DrivePlan):
+    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows."""
+    status = windows.status
+    good = rows[usable[rows].numpy()]
+    keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
+    overlapping = set(good[[not k for k in keep]].tolist())
+    good = good[keep]
+    reason = {
+        int(r): ("used" if r in set(good.tolist()) else "overlapping" if r in overlapping else "rejected") for r in rows
+    }
+    for r in rows:
+        if reason[int(r)] == "rejected" and bool(windows.kept_out[r]):  # not fitted: no information in it
+            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
+        elif reason[int(r)] == "rejected" and not bool(windows.ok_status[r]):
+            reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
+    return good, overlapping, reason
+
+
+def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, drive: DrivePlan, with_truth: bool):
+    """(drives.csv row, drive_progress.csv rows) of a drive none of whose windows is usable."""
+    skipped = sum(reason[int(r)].startswith("skipped") for r in rows)
+    drive_row = (
+        [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
+        + [""] * 6
+        + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
+        + ["", "", "", "", "", "no_usable_window"]
+        + ([""] if with_truth else [])
+    )
+    progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
+    return drive_row, progress_rows
+
+
+def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive: DrivePlan):
+    """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
+    ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
+    seg_start = float(drive.t_start[good[seg[0]]])
+    running = progress(combiner, seg)
+    masses = [static_mass(g, index, k3) for g in running]
+    ends = [float(drive.t_start[good[i]]) + drive.window_s - seg_start for i in seg]
+    t5 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.05)
+    t2 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.02)
+    final: Gaussian = running[-1]
+    m3, m3_std, low, high = masses[-1]
+    state = "inconsistent" if final.dof > 0 and final.p_value < INCONSISTENT_P else "ok"
+    counts = [reason[int(r)] for r in in_seg]
+    drive_row = [
+        name,
+        k,
+        _time(seg_start),
+        _time(float(drive.t_start[good[seg[-1]]]) + drive.window_s),
+        _fmt(m3),
+        _fmt(m3_std),
+        _fmt(low),
+        _fmt(high),
+        _time(t5),
+        _time(t2),
+        len(in_seg),
+        len(seg),
+        sum(c.startswith("rejected") for c in counts),
+        sum(c == "outlier" for c in counts),
+        sum(c == "overlapping" for c in counts),
+        sum(c.startswith("skipped") for c in counts),
+        label,
+        _fmt(final.chi2),
+        final.dof,
+        _fmt(final.chi2_per_dof),
+        _fmt(final.p_value),
+        state,
+    ]
+    step = {i: j for j, i in enumerate(seg)}
+    last = None
+    progress_rows = []
+    for r in in_seg:
+        position = int(np.flatnonzero(good == r)[0]) if r in set(good.tolist()) else None
+        if position is not None and position in step:
+            last = step[position]
+        m = masses[last] if last is not None else None
+        progress_rows.append(
+            [
+                name,
+                k,
+                int(r),
+                _time(drive.t_start[r]),
+                _time(float(drive.t_start[r]) + drive.window_s - seg_start),
+                reason[int(r)],
+                _fmt(m[0]) if m else "",
+                _fmt(m[2]) if m else "",
+                _fmt(m[3]) if m else "",
+                0 if last is None else last + 1,
+            ]
+        )
+    return drive_row, progress_rows, (m3, low, high)
+
+
+def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names):
+    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found. Returns
+    (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per segment)."""
+    combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
+    local = list(range(good.size))  # positions in `good`, time order
+    outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
+    for o in outliers:
+        reason[int(good[o])] = "outlier"
+    kept = [i for i in local if i not in set(outliers)]
+    segments = segment(combiner, kept, drive.min_windows, drive.alpha)
+    label = _label(columns["drive_model"][good], names)
+    bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
+    starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
+    true = columns.get("true")
+    drive_rows, progress_rows, masses = [], [], []
+    for k, seg in enumerate(segments):
+        in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
+        row, progress_part, (m3, low, high) = _segment_rows(
+            name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive
+        )
+        true_m3 = None
+        if true is not None:
+            true_m3 = float((K3 / true[good[seg], 1]).mean())
+            row.append(_fmt(true_m3))
+        drive_rows.append(row)
+        progress_rows += progress_part
+        masses.append((m3, low, high, true_m3))
+    return drive_rows, progress_rows, masses
+
+
 def aggregate_drives(
     cfg,
     plan: Mapping,
@@ -342,11 +316,8 @@ def aggregate_drives(
     names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...).
     Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
     K3 = float(cfg.K3)
-    status = columns["status"]
-    allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
-    ok_status = torch.tensor([int(s) in allowed for s in status], dtype=torch.bool)
-    kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
-    usable = _usable(columns["drive_theta"], columns["drive_cov"]) & ok_status
+    windows = _Windows(columns["status"], drive)
+    usable = _usable(columns["drive_theta"], columns["drive_cov"]) & windows.ok_status
     if drive.weights == "model":
         usable &= _usable(columns["drive_theta"], columns["drive_model_cov"])
     true = columns.get("true")
@@ -357,122 +328,25 @@ def aggregate_drives(
         rows = np.flatnonzero(drive.profile_id == pid)
         rows = rows[np.argsort(drive.t_start[rows], kind="stable")]
         name = drive.names[pid] if drive.names else str(int(pid))
-        good = rows[usable[rows].numpy()]
-        keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
-        overlapping = set(good[[not k for k in keep]].tolist())
-        good = good[keep]
-        reason = {
-            int(r): ("used" if r in set(good.tolist()) else "overlapping" if r in overlapping else "rejected")
-            for r in rows
-        }
-        for r in rows:
-            if reason[int(r)] == "rejected" and bool(kept_out[r]):  # not fitted: no information in it
-                reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
-            elif reason[int(r)] == "rejected" and not bool(ok_status[r]):
-                reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
-        skipped = sum(reason[int(r)].startswith("skipped") for r in rows)
+        good, overlapping, reason = _window_reasons(rows, usable, windows, drive)
         if good.size == 0:
             notes.append(
                 f"drive {name}: every one of its {rows.size} window(s) was rejected "
                 f"({', '.join(sorted({reason[int(r)] for r in rows}))}); no estimate"
             )
-            drive_rows.append(
-                [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
-                + [""] * 6
-                + [
-                    rows.size,
-                    0,
-                    rows.size - len(overlapping) - skipped,
-                    0,
-                    len(overlapping),
-                    skipped,
-                    "",
-                    "",
-                    "",
-                    "",
-                    "",
-                    "no_usable_window",
-                ]
-                + ([""] if true is not None else [])
-            )
-            for r in rows:
-                progress_rows.append([name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0])
+            drive_row, progress_part = _no_estimate(name, rows, reason, overlapping, drive, true is not None)
+            drive_rows.append(drive_row)
+            progress_rows += progress_part
             continue
-        combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
-        local = list(range(good.size))  # positions in `good`, time order
-        outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
-        for o in outliers:
-            reason[int(good[o])] = "outlier"
-        kept = [i for i in local if i not in set(outliers)]
-        segments = segment(combiner, kept, drive.min_windows, drive.alpha)
-        label = _label(columns["drive_model"][good], names)
-        bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
-        starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
-        for k, seg in enumerate(segments):
-            in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
-            seg_start = float(drive.t_start[good[seg[0]]])
-            running = progress(combiner, seg)
-            masses = [static_mass(g, index, k3) for g in running]
-            ends = [float(drive.t_start[good[i]]) + drive.window_s - seg_start for i in seg]
-            t5 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.05)
-            t2 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.02)
-            final: Gaussian = running[-1]
-            m3, m3_std, low, high = masses[-1]
-            state = "inconsistent" if final.dof > 0 and final.p_value < INCONSISTENT_P else "ok"
-            counts = [reason[int(r)] for r in in_seg]
-            drive_rows.append(
-                [
-                    name,
-                    k,
-                    _time(seg_start),
-                    _time(float(drive.t_start[good[seg[-1]]]) + drive.window_s),
-                    _fmt(m3),
-                    _fmt(m3_std),
-                    _fmt(low),
-                    _fmt(high),
-                    _time(t5),
-                    _time(t2),
-                    len(in_seg),
-                    len(seg),
-                    sum(c.startswith("rejected") for c in counts),
-                    sum(c == "outlier" for c in counts),
-                    sum(c == "overlapping" for c in counts),
-                    sum(c.startswith("skipped") for c in counts),
-                    label,
-                    _fmt(final.chi2),
-                    final.dof,
-                    _fmt(final.chi2_per_dof),
-                    _fmt(final.p_value),
-                    state,
-                ]
-            )
-            if true is not None:
-                true_m3 = float((K3 / true[good[seg], 1]).mean())
-                drive_rows[-1].append(_fmt(true_m3))
-                if len(segments) == 1:
-                    errors.append(abs(m3 / true_m3 - 1))
-                    covered.append(low <= true_m3 <= high)
-            step = {i: j for j, i in enumerate(seg)}
-            last = None
-            for r in in_seg:
-                position = int(np.flatnonzero(good == r)[0]) if r in set(good.tolist()) else None
-                if position is not None and position in step:
-                    last = step[position]
-                m = masses[last] if last is not None else None
-                progress_rows.append(
-                    [
-                        name,
-                        k,
-                        int(r),
-                        _time(drive.t_start[r]),
-                        _time(float(drive.t_start[r]) + drive.window_s - seg_start),
-                        reason[int(r)],
-                        _fmt(m[0]) if m else "",
-                        _fmt(m[2]) if m else "",
-                        _fmt(m[3]) if m else "",
-                        0 if last is None else last + 1,
-                    ]
-                )
+        rows_of_drive, progress_part, masses = _combine_drive(
+            name, rows, good, reason, columns, drive, K3, names, param_names
+        )
+        drive_rows += rows_of_drive
+        progress_rows += progress_part
+        if len(masses) == 1 and masses[0][3] is not None:  # drive-level error: drives without a change only
+            m3, low, high, true_m3 = masses[0]
+            errors.append(abs(m3 / true_m3 - 1))
+            covered.append(low <= true_m3 <= high)
         if cfg.plots and number < drive.plots:
             pictures.append(_plot_drive(run_dir, name, progress_rows, drive))
     header = DRIVES_HEADER + (["m3_true"] if true is not None else [])
@@ -542,4 +416,4 @@ def _plot_drive(run_dir: Path, name: str, progress_rows: Sequence[Sequence], dri
     return path
 
 
-__all__ = ["DrivePlan", "drive_plan", "drive_columns", "drive_skipped_columns", "model_names", "aggregate_drives"]
+__all__ = ["aggregate_drives", "DRIVES_HEADER", "PROGRESS_HEADER"]
