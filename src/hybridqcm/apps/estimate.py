@@ -273,10 +273,12 @@ def seat_plan(cfg, plan):
 def run(cfg, run_dir: Path | None = None) -> dict:
     """The estimation run into ``run_dir`` (default: the Hydra job's folder, else the working directory)."""
     if str(cfg.get("vehicle_model", "quarter_car")) != "quarter_car":  # the half and full car (issue 30)
-        from hybridqcm.estimation.plan_vehicle import run_vehicle
+        from hybridqcm.estimation.vehicle_runner import run_vehicle
 
         seat_plan(cfg, None)
-        return run_vehicle(cfg, build_trainer)
+        if run_dir is None:
+            run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
+        return run_vehicle(cfg, build_trainer, run_dir)
     t_start = time.perf_counter()
     plan = validate(cfg)
     seat = seat_plan(cfg, plan)
