@@ -16,12 +16,13 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from hybridqcm.apps.estimate_drive import DrivePlan, aggregate_drives, drive_plan
 from hybridqcm.data.import_writer import write_recordings
 from hybridqcm.data.importer import read_recordings
 from hybridqcm.errors import DatasetError
+from hybridqcm.estimation.drive_plan import DrivePlan, drive_plan
 from hybridqcm.estimation.solver import SolverStatus
 from hybridqcm.estimation.window_check import WindowStatus
+from hybridqcm.reports.drive import aggregate_drives
 
 REPO = Path(__file__).resolve().parents[1]
 K3 = 98935.0

@@ -16,12 +16,12 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from hybridqcm.apps.estimate_vehicle import validate_vehicle
 from hybridqcm.config import CONFIG_DIR, check_schema_overrides
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
 from hybridqcm.data.vehicle_files import read_seat_split
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation.plan import validate
+from hybridqcm.estimation.plan_vehicle import validate_vehicle
 
 ENV = {**os.environ, "COLUMNS": "160", "PYTHONWARNINGS": "ignore"}
 SMALL = ["n_steps=160", "samples_per_profile=2", "splits.test.profiles={A: 2, B: 1, C: 0}", "~splits.train"]

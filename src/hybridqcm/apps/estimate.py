@@ -23,33 +23,30 @@ from hydra.core.hydra_config import HydraConfig
 
 from hybridqcm.apps import common
 from hybridqcm.apps.common import fail
-from hybridqcm.apps.estimate_drive import (
-    aggregate_drives,
-    drive_columns,
-    drive_plan,
-    drive_skipped_columns,
-    model_names,
-)
 from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation import runner
+from hybridqcm.estimation.drive_plan import drive_columns, drive_plan, drive_skipped_columns, model_names
 from hybridqcm.estimation.plan import validate
 from hybridqcm.estimation.plan_seat import seat_plan
+from hybridqcm.reports.drive import aggregate_drives
 from hybridqcm.reports.estimate import finish_run
 
 
 def run(cfg, run_dir: Path | None = None) -> dict:
     """The estimation run into ``run_dir`` (default: the Hydra job's folder, else the working directory)."""
+    if run_dir is None:
+        run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     if str(cfg.get("vehicle_model", "quarter_car")) != "quarter_car":  # the half and full car (issue 30)
-        from hybridqcm.apps.estimate_vehicle import run_vehicle
+        from hybridqcm.estimation.vehicle_runner import solve_vehicle
+        from hybridqcm.reports.vehicle import finish_vehicle_run
 
         seat_plan(cfg, None)
-        return run_vehicle(cfg, runner.build_trainer)
+        solved = solve_vehicle(cfg, runner.build_trainer, run_dir)
+        return {} if solved is None else finish_vehicle_run(cfg, solved, run_dir)
     t_start = time.perf_counter()
     plan = validate(cfg)
     seat = seat_plan(cfg, plan)
     drive = drive_plan(cfg, plan)  # aggregate=drive: the file's drives checked now (None: per window only)
-    if run_dir is None:
-        run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
     inputs_used = [plan["path"], cfg.cnn_ckpt, cfg.unet_ckpt, cfg.cae_ckpt, cfg.get("seat_file")]
     store = runner.prepare_run(cfg, plan, run_dir, inputs_used)
     refinement = runner.build_refinement(cfg, plan)

@@ -1,11 +1,7 @@
-"""qcm-estimate for the half car and the full car (experiment=hcm_full_observation | fcm_full_observation).
-
-The quarter car's run (apps/estimate.py) with the vehicle's model: plan (every input checked first,
-one line per bad input) -> the file streamed in blocks (:class:`VehicleBlocks`) -> Lightning predict
-(:class:`~hybridqcm.estimation.vehicle_front.VehicleFront` cuts the GN problem) -> the GN stages and
-restarts of estimation/refinement.py on each block, written as shards by the rank that solved it
-(apps/estimate_shards.py: resumable, merged once) -> estimates.csv, status.csv, error tables,
-calibration, summary.json (apps/estimate_vehicle_report.py).
+"""qcm-estimate's plan for the half car and the full car (experiment=hcm_full_observation | fcm_full_observation):
+every setting and input checked before any work (:func:`validate_vehicle`, one line per bad input), the
+file's blocks (:class:`VehicleBlocks`) and the GN stages on them (:func:`build_vehicle_refinement`). The
+run itself is estimation/vehicle_runner.py.
 
 The model is physics/vehicle_model.VehicleModel of the file's own layout (its seats, tyre damping),
 every acceleration observed and every wheel's road known; θ = (the physical parameters, x0).
@@ -15,36 +11,14 @@ sedan); a base name (k3) holds it for every seat.
 
 from __future__ import annotations
 
-import json
 import math
-import time
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from hydra.core.hydra_config import HydraConfig
-from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-from hybridqcm import config, runfolder
-from hybridqcm.apps.estimate_inputs import RankBlocks, block_rows
-from hybridqcm.apps.estimate_plan import (
-    check_known_keys,
-    check_setting_types,
-    check_spline_degree,
-    interval_settings,
-    solver_settings,
-)
-from hybridqcm.apps.estimate_report import STATUS_HEADER, block_stage_stats, log_stage_losses, merge_stage_stats
-from hybridqcm.apps.estimate_shards import BlockRefinement, ShardStore, ShardWriter, run_fingerprint
-from hybridqcm.apps.estimate_vehicle_report import (
-    vehicle_block_tables,
-    vehicle_estimates_header,
-    vehicle_print_report,
-    write_vehicle_metrics,
-)
-from hybridqcm.atomic import atomic_write_text
+from hybridqcm import config
 from hybridqcm.data.hdf5 import dataset_info, read_split
 from hybridqcm.data.vehicle_files import (
     apply_sensor,
@@ -55,12 +29,14 @@ from hybridqcm.data.vehicle_files import (
     vehicle_of,
 )
 from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation import settings as estimate_settings
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.plan_settings import check_spline_degree, interval_settings, solver_settings
 from hybridqcm.estimation.refinement import GaussNewtonStage, RefinementSettings
 from hybridqcm.estimation.response import ExactResponse
 from hybridqcm.estimation.restarts import Restarts
+from hybridqcm.estimation.shards import BlockRefinement
 from hybridqcm.estimation.solver import build_solver
-from hybridqcm.estimation.vehicle_front import VehicleFront
 from hybridqcm.estimation.weighting import NoiseWeighting
 from hybridqcm.physics.sedan import reference_physical
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
@@ -94,10 +70,9 @@ def _known_names(cfg, layout: VehicleLayout, model: VehicleModel) -> list[str]:
     return out
 
 
-def validate_vehicle(cfg) -> dict:
-    """Every setting and input checked before any work; returns the plan. ConfigError/DatasetError otherwise."""
-    check_known_keys(cfg)
-    check_setting_types(cfg, own=("init.equation_error",))  # true, false or seats: checked below
+def _check_settings(cfg) -> tuple[str, str, int, str]:
+    """The settings alone, before the file is opened: (vehicle kind, experiment name, spline degree, initial_state)."""
+    estimate_settings.check(cfg)  # init.equation_error: true, false or seats, checked below
     config.check_trainer_settings(cfg.get("trainer"))
     config.check_task_name(cfg.get("task_name", "estimate"))
     kind = str(cfg.vehicle_model)
@@ -132,7 +107,12 @@ def validate_vehicle(cfg) -> dict:
     initial = str(cfg.initial_state)
     if initial not in ("auto", "unknown", "rest"):
         raise ConfigError(f"initial_state={initial!r}: choose auto, unknown or rest")
+    return kind, name, degree, initial
 
+
+def _check_file(cfg, kind: str, name: str) -> dict:
+    """The file against the settings: its vehicle, layout, arrays and size; the known parameters. Returns
+    the plan's entries path, split, info, layout, model, has_truth, known, n_samples and the stored steps."""
     path = Path(str(cfg.data.path))
     info = dataset_info(path)
     split = str(cfg.data.split)
@@ -170,7 +150,21 @@ def validate_vehicle(cfg) -> dict:
             f"{path}: /{split} has no 'physical', so the known {known} cannot come from the file; "
             f"set known_source=reference to take them from the reference sedan"
         )
-    reference = model.model_params(reference_physical(layout)[None])[0]  # the start's centre (and known_source)
+    return {
+        "path": path,
+        "split": split,
+        "info": info,
+        "layout": layout,
+        "model": model,
+        "has_truth": has_truth,
+        "known": known,
+        "n_samples": n_samples,
+        "stored": stored,
+    }
+
+
+def _window(cfg, path: Path, split: str, stored: int) -> tuple[int, tuple[int, int]]:
+    """(GN window length n_steps, the input samples read before and after it) within the ``stored`` steps."""
     before, after = INPUT_MARGIN
     if str(cfg.n_steps) == "max":
         n_steps = stored - before - after
@@ -185,7 +179,11 @@ def validate_vehicle(cfg) -> dict:
         raise DatasetError(
             f"{path}: n_steps = {n_steps} (+ {before} input samples before) but /{split} stores {stored}"
         )
-    margin = (before, max(0, min(after, stored - n_steps - before)))
+    return n_steps, (before, max(0, min(after, stored - n_steps - before)))
+
+
+def _stages(cfg, initial: str) -> list[dict]:
+    """The GN stages {name, method, settings, n_steps}; the last one carries the interval settings."""
     stages = []
     for i, stage in enumerate(cfg.stages):
         stage = dict(stage)
@@ -210,6 +208,11 @@ def validate_vehicle(cfg) -> dict:
         )
     if not stages:
         raise ConfigError("stages is empty: give at least one GN stage")
+    return stages
+
+
+def _sensor(cfg, kind: str, layout: VehicleLayout):
+    """The simulated sensor (sensor=), one law for every channel of the vehicle."""
     from hybridqcm.data.sensor import build_sensor
 
     try:
@@ -219,19 +222,31 @@ def validate_vehicle(cfg) -> dict:
     reason = uniform_sensor(sensor)
     if reason is not None:
         raise ConfigError(f"{reason}: the {kind}'s {layout.n_dof} channels are not the quarter car's a3, a2, a1")
+    return sensor
+
+
+def validate_vehicle(cfg) -> dict:
+    """Every setting and input checked before any work; returns the plan. ConfigError/DatasetError otherwise."""
+    kind, name, degree, initial = _check_settings(cfg)
+    found = _check_file(cfg, kind, name)
+    layout, model, stored = found["layout"], found["model"], found["stored"]
+    reference = model.model_params(reference_physical(layout)[None])[0]  # the start's centre (and known_source)
+    n_steps, margin = _window(cfg, found["path"], found["split"], stored)
+    stages = _stages(cfg, initial)
+    sensor = _sensor(cfg, kind, layout)
     return {
-        "path": path,
-        "split": split,
+        "path": found["path"],
+        "split": found["split"],
         "layout": layout,
         "model": model,
-        "has_truth": has_truth,
-        "known": known,
+        "has_truth": found["has_truth"],
+        "known": found["known"],
         "reference": reference,
-        "n_samples": n_samples,
+        "n_samples": found["n_samples"],
         "n_steps": n_steps,
         "n_read_steps": min(stored, margin[0] + n_steps + margin[1]),
         "input_margin": margin,
-        "h": float(info["attrs"].get("h", 0.01)),
+        "h": float(found["info"]["attrs"].get("h", 0.01)),
         "stages": stages,
         "sensor": sensor,
         "initial_state": "rest" if initial == "rest" else "unknown",
@@ -349,108 +364,11 @@ def build_vehicle_refinement(cfg, plan: dict) -> VehicleRefinement:
     )
 
 
-# -------------------------------------------------------------------------------------------------- run
-def run_vehicle(cfg, build_trainer) -> dict:
-    """qcm-estimate for vehicle_model=half_car|full_car; ``build_trainer`` is apps/estimate.py's."""
-    t_start = time.perf_counter()
-    plan = validate_vehicle(cfg)
-    run_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path(".")
-    config.check_writable_dir(run_dir)
-    store = ShardStore(run_dir, run_fingerprint(cfg, [plan["path"]]))
-    if rank_zero_only.rank == 0:
-        runfolder.prepare_run_dir(
-            run_dir,
-            runfolder.ESTIMATE_ARTEFACTS,
-            bool(cfg.get("overwrite", False)),
-            scratch=runfolder.ESTIMATE_SCRATCH,
-        )
-        if cfg.get("overwrite", False):
-            store.remove()
-    n_samples = plan["n_samples"]
-    blocks = block_rows(n_samples, int(cfg.batch_size))
-    pending = store.pending(blocks)
-    refinement = build_vehicle_refinement(cfg, plan)
-    model: VehicleModel = plan["model"]
-    layout: VehicleLayout = plan["layout"]
-    theta_names = list(refinement.response.theta_names)
-    header = vehicle_estimates_header(theta_names, len(model.param_names), layout)
-    writer = ShardWriter(
-        store,
-        refinement,
-        header,
-        STATUS_HEADER,
-        lambda record: vehicle_block_tables(record, len(model.param_names), model.param_names, layout),
-        block_stage_stats,
-    )
-    trainer = build_trainer(cfg, [writer], run_dir)
-    if trainer.world_size > 1:  # as apps/estimate.py: tensors to spawned ranks through the file system
-        torch.multiprocessing.set_sharing_strategy("file_system")
-    t_solve = time.perf_counter()
-    if pending:
-        if len(pending) < len(blocks):
-            print(f"resuming: {len(blocks) - len(pending)} of {len(blocks)} blocks already estimated in {store.root}")
-        settings = VehicleInputSettings(
-            int(cfg.seed), float(cfg.init.relative_sigma), str(cfg.known_source), bool(cfg.noise_weighting)
-        )
-        loader = torch.utils.data.DataLoader(
-            VehicleBlocks(settings, plan, pending), batch_size=None, sampler=RankBlocks(len(pending))
-        )
-        start = None
-        mode = cfg.init.get("equation_error", False)  # the rows of the equations of motion by least squares
-        if mode:
-            known = torch.tensor([n in plan["known"] for n in model.param_names])
-            start = (layout, tuple(model.param_names), known, plan["h"], str(mode) == "seats")
-        module = VehicleFront(plan["n_steps"], plan["input_margin"], start)
-        module.allow_zero_length_dataloader_with_multiple_devices = True
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Couldn't infer the batch indices")
-            warnings.filterwarnings("ignore", message=".*within local rank has zero length")
-            trainer.predict(module, dataloaders=loader, return_predictions=False)
-    solve_seconds = time.perf_counter() - t_solve
-    trainer.strategy.barrier("qcm-estimate merge")
-    if not trainer.is_global_zero:
-        return {}
-    columns, markers = store.merge(blocks, n_samples)
-    stage_loss, stage_status = merge_stage_stats([m["stages"] for m in markers], [s["name"] for s in plan["stages"]])
-    if cfg.tensorboard:
-        log_stage_losses(run_dir / "tb", stage_loss)
-    summary = {
-        "experiment": cfg.experiment_name,
-        "vehicle": layout.kind,
-        "seats": list(layout.seat_names),
-        "tyre_damping": layout.tyre_damping,
-        "data": str(plan["path"]),
-        "split": plan["split"],
-        "n_samples": int(n_samples),
-        "n_steps": plan["n_steps"],
-        "seed": int(cfg.seed),
-        "known": plan["known"],
-        "model": "exact",
-        "initial_state": plan["initial_state"],
-        "hold": str(cfg.hold),
-        "substeps": int(cfg.substeps),
-        "spline_degree": plan["spline_degree"],
-        "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
-        "input_margin": list(plan["input_margin"]),
-        "stages": stage_status,
-        "stage_mean_loss": stage_loss,
-        "seconds_solve": solve_seconds,
-        "processes": int(trainer.world_size),
-        "blocks": len(blocks),
-        "blocks_resumed": len(blocks) - len(pending),
-        "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
-    }
-    noise = plan["sensor"].describe()
-    metrics, table_rows = write_vehicle_metrics(cfg, columns, plan, run_dir, noise)
-    summary.update(metrics)
-    summary["noise"] = noise
-    summary["seconds_total"] = time.perf_counter() - t_start
-    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
-    runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(), [plan["path"]])
-    if not cfg.get("keep_shards", False):
-        store.remove()
-    vehicle_print_report(cfg, summary, table_rows, run_dir)
-    return summary
-
-
-__all__ = ["validate_vehicle", "VehicleBlocks", "VehicleRefinement", "build_vehicle_refinement", "run_vehicle"]
+__all__ = [
+    "INPUT_MARGIN",
+    "validate_vehicle",
+    "VehicleInputSettings",
+    "VehicleBlocks",
+    "VehicleRefinement",
+    "build_vehicle_refinement",
+]

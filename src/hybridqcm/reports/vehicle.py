@@ -10,82 +10,21 @@ seat the occupant mass's errors and coverage in summary.json (m3[_<seat>]_...).
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 
-from hybridqcm.apps.estimate_report import coverage_95
-from hybridqcm.atomic import atomic_write_csv
+from hybridqcm import runfolder
+from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 from hybridqcm.console import print_table
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
-from hybridqcm.metrics import error_distribution_rows, write_error_distribution
+from hybridqcm.metrics import coverage_95, error_distribution_rows, write_error_distribution
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
-
-
-def vehicle_estimates_header(theta_names: Sequence[str], n_params: int, layout: VehicleLayout) -> list[str]:
-    params, states = list(theta_names[:n_params]), list(theta_names[n_params:])
-    intervals = [f"{m}_{end}" for m in layout.seat_mass_names() for end in ("low", "high")]
-    return [
-        "index",
-        *params,
-        "status",
-        *[f"std_{n}" for n in params],
-        *intervals,
-        *states,
-        *[f"std_{n}" for n in states],
-    ]
-
-
-def vehicle_block_tables(record: Mapping, n_params: int, names: Sequence[str], layout: VehicleLayout):
-    """One refined block -> (estimate rows, status rows, columns for the metrics)."""
-    result = record["final"]
-    theta, theta_std = record["params"], result.std
-    params, std = theta[:, :n_params], theta_std[:, :n_params]
-    x0, x0_std = theta[:, n_params:], theta_std[:, n_params:]
-    status = [STATUS_LABELS[int(s)] for s in result.status]
-    masses = [list(names).index(m) for m in layout.seat_mass_names()]
-    low = params[:, masses] - 1.96 * std[:, masses]
-    high = params[:, masses] + 1.96 * std[:, masses]
-    index = record["index"]
-    rows, status_rows = [], []
-    condition = result.condition_number
-    for i in range(params.shape[0]):
-        bounds = [repr(float(v)) for pair in zip(low[i], high[i]) for v in pair]
-        rows.append(
-            [
-                int(index[i]),
-                *[repr(float(x)) for x in params[i]],
-                status[i],
-                *[repr(float(x)) for x in std[i]],
-                *bounds,
-                *[repr(float(x)) for x in x0[i]],
-                *[repr(float(x)) for x in x0_std[i]],
-            ]
-        )
-        status_rows.append(
-            [
-                int(index[i]),
-                status[i],
-                int(result.iterations[i]),
-                repr(float(result.loss[i])),
-                repr(float(record["relative_loss"][i])),
-                int(record["restarts"][i]),
-                repr(float(condition[i])),
-                repr(float(result.relative_residual[i])),
-                repr(float(result.whiteness[i])),
-            ]
-        )
-    columns = {
-        "index": index.long(),
-        "params": params.double(),
-        "std": std.double(),
-        "status": result.status.long(),
-        "iterations": result.iterations.long(),
-        "restarts": record["restarts"].long(),
-    }
-    return rows, status_rows, columns
+from hybridqcm.reports.estimate import log_stage_losses
 
 
 def write_vehicle_metrics(cfg, columns: Mapping[str, torch.Tensor], plan: Mapping, run_dir: Path, noise: str):
@@ -209,4 +148,55 @@ def vehicle_print_report(cfg, summary: Mapping, table_rows: list | None, run_dir
     )
 
 
-__all__ = ["vehicle_estimates_header", "vehicle_block_tables", "write_vehicle_metrics", "vehicle_print_report"]
+def _summary(cfg, plan: dict, stage_status, stage_loss, markers: list, counts: dict) -> dict:
+    """summary.json's entries of the run itself (the metrics are added by write_vehicle_metrics)."""
+    layout: VehicleLayout = plan["layout"]
+    return {
+        "experiment": cfg.experiment_name,
+        "vehicle": layout.kind,
+        "seats": list(layout.seat_names),
+        "tyre_damping": layout.tyre_damping,
+        "data": str(plan["path"]),
+        "split": plan["split"],
+        "n_samples": int(plan["n_samples"]),
+        "n_steps": plan["n_steps"],
+        "seed": int(cfg.seed),
+        "known": plan["known"],
+        "model": "exact",
+        "initial_state": plan["initial_state"],
+        "hold": str(cfg.hold),
+        "substeps": int(cfg.substeps),
+        "spline_degree": plan["spline_degree"],
+        "sensor": {k: v for k, v in vars(plan["sensor"]).items() if not k.startswith("_")},
+        "input_margin": list(plan["input_margin"]),
+        "stages": stage_status,
+        "stage_mean_loss": stage_loss,
+        "seconds_solve": counts["seconds_solve"],
+        "processes": counts["processes"],
+        "blocks": counts["blocks"],
+        "blocks_resumed": counts["blocks_resumed"],
+        "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
+    }
+
+
+def finish_vehicle_run(cfg, solved, run_dir: Path) -> dict:
+    """The half / full car's reports from a solved run (estimation/vehicle_runner.solve_vehicle): stage losses
+    in TensorBoard, the metrics files, summary.json, the completion marker and the console report."""
+    plan = solved.plan
+    if cfg.tensorboard:
+        log_stage_losses(run_dir / "tb", solved.stage_loss)
+    summary = _summary(cfg, plan, solved.stage_status, solved.stage_loss, solved.markers, solved.counts)
+    noise = plan["sensor"].describe()
+    metrics, table_rows = write_vehicle_metrics(cfg, solved.columns, plan, run_dir, noise)
+    summary.update(metrics)
+    summary["noise"] = noise
+    summary["seconds_total"] = time.perf_counter() - solved.t_start
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2))
+    runfolder.write_completion_marker(run_dir, "qcm-estimate", runfolder.task_overrides(), [plan["path"]])
+    if not cfg.get("keep_shards", False):
+        solved.store.remove()
+    vehicle_print_report(cfg, summary, table_rows, run_dir)
+    return summary
+
+
+__all__ = ["write_vehicle_metrics", "vehicle_print_report", "finish_vehicle_run"]

@@ -1,0 +1,184 @@
+"""aggregate=drive's plan: the drive settings checked and the file's drives read before any work, and the
+per-window columns the combination needs (issue 32).
+
+The windows of one drive share ``/<split>/profile_id`` (qcm-import window=/stride= cuts a recording into
+them) and carry their start time ``/<split>/t_start`` [s]. Each window is estimated as usual (its own
+initial state); its shared parameters and their covariance travel beside the block's columns
+(:func:`drive_columns`), and after the merge every drive is combined (reports/drive.py, estimation/drive.py).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.solver import STATUS_LABELS
+
+WEIGHTS = ("reported", "model")
+SCALES = ("none", "birge")
+
+
+@dataclass(frozen=True)
+class DrivePlan:
+    """Validated drive settings and the file's drive layout: profile_id [M], t_start [M], window length [s]."""
+
+    statuses: tuple[str, ...]
+    weights: str
+    scale: str
+    alpha: float
+    min_windows: int
+    outlier_alpha: float
+    neighbours: int
+    plots: int
+    per_window: tuple[str, ...]
+    profile_id: np.ndarray
+    t_start: np.ndarray
+    names: tuple[str, ...]
+    window_s: float
+
+
+def _fraction(settings, key: str) -> float:
+    value = settings.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < 1:
+        raise ConfigError(f"drive.{key}={value!r}: give a probability in (0, 1)")
+    return float(value)
+
+
+def _count(settings, key: str, low: int) -> int:
+    value = settings.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ConfigError(f"drive.{key}={value!r}: give an integer >= {low}")
+    return int(value)
+
+
+def _names(settings, key: str) -> tuple[str, ...]:
+    value = settings.get(key, ["tau"])
+    value = [] if value is None else [value] if isinstance(value, str) else list(value)
+    if any(str(v) in ("p1", "p2") for v in value):
+        raise ConfigError(f"drive.{key}={value}: p1 and p2 (the occupant) are what the windows share")
+    return tuple(str(v) for v in value)
+
+
+def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
+    """None without aggregate=drive; else the checked settings and the file's profile_id / t_start (read
+    once: a few numbers per window). Raises ConfigError / DatasetError (one line) before any work."""
+    aggregate = cfg.get("aggregate")
+    if aggregate is None:
+        return None
+    if str(aggregate) != "drive":
+        raise ConfigError(f"aggregate={aggregate!r}: give drive (one estimate per drive) or null (per window only)")
+    settings = cfg.get("drive") or {}
+    statuses = settings.get("statuses", ["converged"])
+    statuses = [statuses] if isinstance(statuses, str) else [str(s) for s in statuses]
+    bad = [s for s in statuses if s not in STATUS_LABELS.values()]
+    if bad or not statuses:
+        raise ConfigError(f"drive.statuses={statuses}: {bad or 'empty'}; choose from {list(STATUS_LABELS.values())}")
+    weights, scale = str(settings.get("weights", "reported")), str(settings.get("scale", "birge"))
+    if weights not in WEIGHTS:
+        raise ConfigError(f"drive.weights={weights!r}: choose one of {list(WEIGHTS)}")
+    if scale not in SCALES:
+        raise ConfigError(f"drive.scale={scale!r}: choose one of {list(SCALES)}")
+    import h5py
+
+    path, split = Path(plan["path"]), str(plan["split"])
+    with h5py.File(path, "r") as handle:
+        group = handle[split]
+        missing = [k for k in ("profile_id", "t_start") if k not in group]
+        if missing:
+            raise DatasetError(
+                f"{path}: /{split} lacks {missing}, which aggregate=drive needs (the drive of each window and its "
+                f"start time [s]; qcm-import window=N writes both)"
+            )
+        n = int(plan["n_samples"])
+        profile_id = np.asarray(group["profile_id"][:n], dtype=np.int64)
+        t_start = np.asarray(group["t_start"][:n], dtype=np.float64)
+        stored = int(group["accel"].shape[1])
+        recordings = handle.attrs.get("recordings")
+    if profile_id.shape != (n,) or t_start.shape != (n,):
+        raise DatasetError(f"{path}: /{split}/profile_id and t_start must hold one value per window ({n})")
+    if not np.isfinite(t_start).all():
+        bad_row = int(np.flatnonzero(~np.isfinite(t_start))[0])
+        raise DatasetError(f"{path}: /{split}/t_start[{bad_row}] is not a finite time")
+    names: list[str] = []
+    if recordings is not None:
+        try:
+            names = [str(x) for x in json.loads(recordings)]
+        except (TypeError, ValueError):
+            names = []
+    if profile_id.size and (profile_id.min() < 0 or (names and profile_id.max() >= len(names))):
+        names = []  # ids that do not index the recordings' names: the ids themselves name the drives
+    return DrivePlan(
+        statuses=tuple(statuses),
+        weights=weights,
+        scale=scale,
+        alpha=_fraction(settings, "alpha"),
+        min_windows=_count(settings, "min_windows", 1),
+        outlier_alpha=_fraction(settings, "outlier_alpha"),
+        neighbours=_count(settings, "neighbours", 1),
+        plots=_count(settings, "plots", 0),
+        per_window=_names(settings, "per_window"),
+        profile_id=profile_id,
+        t_start=t_start,
+        names=tuple(names),
+        window_s=stored * float(plan["h"]),
+    )
+
+
+def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
+    """``tables(record)`` (apps/estimate_report.block_tables) with each window's shared parameters added to
+    the block's columns: drive_theta [b, P], drive_cov [b, P, P] (the reported covariance's parameter block:
+    the initial state marginalised), drive_model_cov (the model-based σ̂²(JᵀJ)⁻¹ block: the robust one is
+    it rescaled per parameter) and drive_model [b] (index into :func:`model_names`)."""
+    names = model_names(refinement)
+
+    def with_drive(record: Mapping) -> tuple[list, list, dict]:
+        rows, status_rows, columns = tables(record)
+        result = record["final"]
+        theta = record["params"][:, :n_params].double()
+        cov = result.covariance[:, :n_params, :n_params].double()
+        std = result.std[:, :n_params].double()
+        model_std = result.model_std[:, :n_params].double() if result.model_std is not None else std
+        ratio = torch.where((std > 0) & torch.isfinite(std), model_std / std, torch.ones_like(std))
+        columns["drive_theta"] = theta
+        columns["drive_cov"] = cov
+        columns["drive_model_cov"] = cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
+        chosen = (record.get("extra") or {}).get("occupant_model")
+        columns["drive_model"] = torch.tensor(
+            [names.index(c) for c in chosen] if chosen is not None else [0] * theta.shape[0], dtype=torch.long
+        )
+        return rows, status_rows, columns
+
+    return with_drive
+
+
+def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
+    """``skipped_tables(index, status, true)`` (apps/estimate_report: windows kept from the fit, no_signal or
+    clipped) with :func:`drive_columns`' columns added, NaN: a block's fitted and skipped windows merge into
+    one table, and such a window is never usable."""
+
+    def with_drive(index, status, true) -> tuple[list, list, dict]:
+        rows, status_rows, columns = skipped_tables(index, status, true)
+        k = int(index.shape[0])
+        nan = torch.full((k, n_params, n_params), math.nan, dtype=torch.float64)
+        columns["drive_theta"] = torch.full((k, n_params), math.nan, dtype=torch.float64)
+        columns["drive_cov"] = nan
+        columns["drive_model_cov"] = nan.clone()
+        columns["drive_model"] = torch.zeros(k, dtype=torch.long)
+        return rows, status_rows, columns
+
+    return with_drive
+
+
+def model_names(refinement) -> list[str]:
+    """The occupant models a window can report: an occupant-model selection's candidates, else one."""
+    return list(getattr(refinement, "names", None) or ["rigid"])
+
+
+__all__ = ["DrivePlan", "drive_plan", "drive_columns", "drive_skipped_columns", "model_names", "WEIGHTS", "SCALES"]

@@ -1,0 +1,419 @@
+"""qcm-estimate aggregate=drive: one occupant estimate per drive segment from its windows (issue 32).
+
+The windows of one drive share ``/<split>/profile_id`` (qcm-import window=/stride= cuts a recording into
+them) and carry their start time ``/<split>/t_start`` [s]. Each window is estimated as usual (its own
+initial state); its shared parameters and their covariance travel beside the block's columns
+(estimation/drive_plan.py), and after the merge every drive is combined (estimation/drive.py):
+
+    windows -> usable (status in drive.statuses, finite, positive definite covariance), not overlapping
+            -> isolated outliers rejected -> segments (a change of occupant) -> one posterior per segment
+
+Outputs in the run folder:
+
+    drives.csv          one row per drive segment: drive, segment, start_s, end_s, m3, m3_std, m3_low,
+                        m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
+                        windows_outliers, windows_overlapping, windows_skipped, model, chi2, dof,
+                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
+                        [, m3_true when the file has params]
+                        windows_skipped: windows kept from the fit for want of information (no_signal: the
+                        car standing still; clipped; estimation/window_check.py), never combined;
+                        windows_rejected: windows fitted but not usable (a status not in drive.statuses,
+                        no positive definite covariance)
+    drive_progress.csv  every window of every drive in time order: its segment, whether it was used (or
+                        why not), and the segment's running estimate after it (m3, m3_low, m3_high) at the
+                        driving time t_s since the segment's start
+    plots/drive_*.png   mass and 95 % band against driving time (also in TensorBoard, tb/, tag drive/...)
+
+What is combined: θ = the chosen occupant model's parameters (p1, p2, body modes where fitted) when every
+used window of the drive chose the same model, less those each window keeps for itself (drive.per_window,
+default the channel delay τ: with two loggers it drifts with their clocks, so it is marginalised like the
+initial state); m3 = K3/p2 with its interval mapped from p2's.
+Where the windows chose different models (a person fitted with body1 here and body2 there) their
+parameters mean different things, and the static mass m3 alone is combined: per window m3 with the
+standard deviation of its reported 95 % interval, (m3_high − m3_low)/3.92 (an occupant-model selection's
+interval holds every candidate the data cannot tell apart). Overlapping windows (stride < window) share
+samples, so their errors are correlated: only a non-overlapping subset is used (the first window, then
+each next one starting at or after the end of the last one used); the others are counted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hybridqcm.atomic import atomic_write_csv
+from hybridqcm.console import print_table
+from hybridqcm.estimation.drive import (
+    Gaussian,
+    InformationCombiner,
+    isolated_outliers,
+    non_overlapping,
+    progress,
+    segment,
+    static_mass,
+    time_to_precision,
+    usable_windows,
+)
+from hybridqcm.estimation.drive_plan import DrivePlan
+from hybridqcm.estimation.solver import STATUS_LABELS
+from hybridqcm.estimation.tables import ALL_STATUS_LABELS
+from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
+
+DRIVES_HEADER = [
+    "drive",
+    "segment",
+    "start_s",
+    "end_s",
+    "m3",
+    "m3_std",
+    "m3_low",
+    "m3_high",
+    "t_to_5pct_s",
+    "t_to_2pct_s",
+    "windows",
+    "windows_used",
+    "windows_rejected",
+    "windows_outliers",
+    "windows_overlapping",
+    "windows_skipped",
+    "model",
+    "chi2",
+    "dof",
+    "chi2_per_dof",
+    "p_value",
+    "status",
+]
+PROGRESS_HEADER = [
+    "drive",
+    "segment",
+    "index",
+    "window_start_s",
+    "t_s",
+    "used",
+    "m3",
+    "m3_low",
+    "m3_high",
+    "windows_used",
+]
+INCONSISTENT_P = 1e-3  # a segment whose windows disagree beyond this p-value is flagged, not hidden
+
+
+def _fmt(x) -> str:
+    if x is None:
+        return ""
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    if isinstance(x, str):
+        return x
+    return repr(float(x)) if math.isfinite(float(x)) else ("inf" if float(x) > 0 else "")
+
+
+def _time(x: float) -> str:
+    """A time [s] to the microsecond (sums of window lengths carry float noise: 4.999999999999999)."""
+    return _fmt(round(float(x), 6))
+
+
+def _present(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """[W, P] bool: the parameters a window estimated (finite, variance > 0): not the ones its occupant model
+    lacks (NaN in a model selection's common layout) nor the known ones (variance 0)."""
+    var = cov.diagonal(dim1=1, dim2=2)
+    return torch.isfinite(theta) & torch.isfinite(var) & (var > 0)
+
+
+def _usable(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """[W] bool: p2 estimated and the estimated parameters' covariance positive definite."""
+    present = _present(theta, cov)
+    mask = present.unsqueeze(2) & present.unsqueeze(1)
+    eye = torch.eye(theta.shape[1], dtype=cov.dtype).expand_as(cov)
+    patched = torch.where(mask, cov, torch.where(eye.bool(), eye, torch.zeros_like(cov)))
+    return present[:, 1] & usable_windows(torch.where(present, theta, torch.zeros_like(theta)), patched)
+
+
+def _mass_form(columns: Mapping, rows: np.ndarray, K3: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per window the static mass and its variance from the reported 95 % interval (module docstring)."""
+    p2 = columns["drive_theta"][rows, 1]
+    m3 = K3 / p2
+    low, high = columns["m3_low"][rows], columns["m3_high"][rows]
+    sd = (high - low) / 3.919927969080108
+    return m3[:, None], (sd**2)[:, None, None]
+
+
+def _drive_gaussians(columns: Mapping, rows: np.ndarray, drive: DrivePlan, K3: float, names: Sequence[str]):
+    """(combiner, index of p2 or of the mass, K3 or None) for the usable windows ``rows`` of one drive:
+    the parameters every window estimated and none keeps for itself (drive.per_window), or the mass."""
+    models = columns["drive_model"][rows]
+    theta, cov = columns["drive_theta"][rows], columns["drive_cov"][rows]
+    weight_cov = columns["drive_model_cov"][rows] if drive.weights == "model" else None
+    shared = torch.tensor([n not in drive.per_window for n in names[: theta.shape[1]]], dtype=torch.bool)
+    finite = _present(theta, cov).all(0) & shared
+    same = bool((models == models[0]).all()) and bool(finite[1])
+    if same:
+        keep = finite.nonzero().squeeze(1)
+        index = int((keep == 1).nonzero()[0])  # p2 within the shared parameters
+        sub_w = None if weight_cov is None else weight_cov[:, keep][:, :, keep]
+        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], sub_w, drive.scale)
+        return combiner, index, K3
+    m3, var = _mass_form(columns, rows, K3)
+    return InformationCombiner(m3, var, None, drive.scale), 0, None
+
+
+def _label(models: torch.Tensor, names: Sequence[str]) -> str:
+    counts = {names[int(k)]: int(c) for k, c in zip(*torch.unique(models, return_counts=True))}
+    if len(counts) == 1:
+        return next(iter(counts))
+    return "mixed(" + ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) + ")"
+
+
+class _Windows:
+    """Every window's status code [M], whether the status is one drive.statuses combines [M] and whether
+    the window was kept from the fit (no_signal, clipped) [M]."""
+
+    def __init__(self, status: torch.Tensor, drive: DrivePlan):
+        allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
+        self.status = status
+        self.ok_status = torch.tensor([int(s) in allowed for s in status], dtype=torch.bool)
+        self.kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
+
+
+def _window_reasons(rows: np.ndarray, usable: torch.Tensor, windows: _Windows, drive: DrivePlan):
+    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows."""
+    status = windows.status
+    good = rows[usable[rows].numpy()]
+    keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
+    overlapping = set(good[[not k for k in keep]].tolist())
+    good = good[keep]
+    reason = {
+        int(r): ("used" if r in set(good.tolist()) else "overlapping" if r in overlapping else "rejected") for r in rows
+    }
+    for r in rows:
+        if reason[int(r)] == "rejected" and bool(windows.kept_out[r]):  # not fitted: no information in it
+            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
+        elif reason[int(r)] == "rejected" and not bool(windows.ok_status[r]):
+            reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
+    return good, overlapping, reason
+
+
+def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, drive: DrivePlan, with_truth: bool):
+    """(drives.csv row, drive_progress.csv rows) of a drive none of whose windows is usable."""
+    skipped = sum(reason[int(r)].startswith("skipped") for r in rows)
+    drive_row = (
+        [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
+        + [""] * 6
+        + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
+        + ["", "", "", "", "", "no_usable_window"]
+        + ([""] if with_truth else [])
+    )
+    progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
+    return drive_row, progress_rows
+
+
+def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive: DrivePlan):
+    """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
+    ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
+    seg_start = float(drive.t_start[good[seg[0]]])
+    running = progress(combiner, seg)
+    masses = [static_mass(g, index, k3) for g in running]
+    ends = [float(drive.t_start[good[i]]) + drive.window_s - seg_start for i in seg]
+    t5 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.05)
+    t2 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.02)
+    final: Gaussian = running[-1]
+    m3, m3_std, low, high = masses[-1]
+    state = "inconsistent" if final.dof > 0 and final.p_value < INCONSISTENT_P else "ok"
+    counts = [reason[int(r)] for r in in_seg]
+    drive_row = [
+        name,
+        k,
+        _time(seg_start),
+        _time(float(drive.t_start[good[seg[-1]]]) + drive.window_s),
+        _fmt(m3),
+        _fmt(m3_std),
+        _fmt(low),
+        _fmt(high),
+        _time(t5),
+        _time(t2),
+        len(in_seg),
+        len(seg),
+        sum(c.startswith("rejected") for c in counts),
+        sum(c == "outlier" for c in counts),
+        sum(c == "overlapping" for c in counts),
+        sum(c.startswith("skipped") for c in counts),
+        label,
+        _fmt(final.chi2),
+        final.dof,
+        _fmt(final.chi2_per_dof),
+        _fmt(final.p_value),
+        state,
+    ]
+    step = {i: j for j, i in enumerate(seg)}
+    last = None
+    progress_rows = []
+    for r in in_seg:
+        position = int(np.flatnonzero(good == r)[0]) if r in set(good.tolist()) else None
+        if position is not None and position in step:
+            last = step[position]
+        m = masses[last] if last is not None else None
+        progress_rows.append(
+            [
+                name,
+                k,
+                int(r),
+                _time(drive.t_start[r]),
+                _time(float(drive.t_start[r]) + drive.window_s - seg_start),
+                reason[int(r)],
+                _fmt(m[0]) if m else "",
+                _fmt(m[2]) if m else "",
+                _fmt(m[3]) if m else "",
+                0 if last is None else last + 1,
+            ]
+        )
+    return drive_row, progress_rows, (m3, low, high)
+
+
+def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names):
+    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found. Returns
+    (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per segment)."""
+    combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
+    local = list(range(good.size))  # positions in `good`, time order
+    outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
+    for o in outliers:
+        reason[int(good[o])] = "outlier"
+    kept = [i for i in local if i not in set(outliers)]
+    segments = segment(combiner, kept, drive.min_windows, drive.alpha)
+    label = _label(columns["drive_model"][good], names)
+    bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
+    starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
+    true = columns.get("true")
+    drive_rows, progress_rows, masses = [], [], []
+    for k, seg in enumerate(segments):
+        in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
+        row, progress_part, (m3, low, high) = _segment_rows(
+            name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive
+        )
+        true_m3 = None
+        if true is not None:
+            true_m3 = float((K3 / true[good[seg], 1]).mean())
+            row.append(_fmt(true_m3))
+        drive_rows.append(row)
+        progress_rows += progress_part
+        masses.append((m3, low, high, true_m3))
+    return drive_rows, progress_rows, masses
+
+
+def aggregate_drives(
+    cfg,
+    plan: Mapping,
+    drive: DrivePlan,
+    columns: Mapping,
+    run_dir: Path,
+    names: Sequence[str],
+    param_names: Sequence[str] = ("p1", "p2"),
+) -> dict:
+    """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
+    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...).
+    Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
+    K3 = float(cfg.K3)
+    windows = _Windows(columns["status"], drive)
+    usable = _usable(columns["drive_theta"], columns["drive_cov"]) & windows.ok_status
+    if drive.weights == "model":
+        usable &= _usable(columns["drive_theta"], columns["drive_model_cov"])
+    true = columns.get("true")
+    drive_rows, progress_rows, pictures, notes = [], [], [], []
+    errors, covered = [], []
+    order = np.unique(drive.profile_id)  # in id order: drive names follow the file's recordings
+    for number, pid in enumerate(order):
+        rows = np.flatnonzero(drive.profile_id == pid)
+        rows = rows[np.argsort(drive.t_start[rows], kind="stable")]
+        name = drive.names[pid] if drive.names else str(int(pid))
+        good, overlapping, reason = _window_reasons(rows, usable, windows, drive)
+        if good.size == 0:
+            notes.append(
+                f"drive {name}: every one of its {rows.size} window(s) was rejected "
+                f"({', '.join(sorted({reason[int(r)] for r in rows}))}); no estimate"
+            )
+            drive_row, progress_part = _no_estimate(name, rows, reason, overlapping, drive, true is not None)
+            drive_rows.append(drive_row)
+            progress_rows += progress_part
+            continue
+        rows_of_drive, progress_part, masses = _combine_drive(
+            name, rows, good, reason, columns, drive, K3, names, param_names
+        )
+        drive_rows += rows_of_drive
+        progress_rows += progress_part
+        if len(masses) == 1 and masses[0][3] is not None:  # drive-level error: drives without a change only
+            m3, low, high, true_m3 = masses[0]
+            errors.append(abs(m3 / true_m3 - 1))
+            covered.append(low <= true_m3 <= high)
+        if cfg.plots and number < drive.plots:
+            pictures.append(_plot_drive(run_dir, name, progress_rows, drive))
+    header = DRIVES_HEADER + (["m3_true"] if true is not None else [])
+    atomic_write_csv(run_dir / "drives.csv", header, drive_rows)
+    atomic_write_csv(run_dir / "drive_progress.csv", PROGRESS_HEADER, progress_rows)
+    if cfg.tensorboard and pictures:
+        from hybridqcm.tracking import log_estimation_to_tensorboard
+
+        log_estimation_to_tensorboard(run_dir / "tb", [], pictures, prefix="drive")
+    for line in notes:
+        print(line)
+    summary = {
+        "drives": int(order.size),
+        "segments": len(drive_rows),
+        "drives_split": int(sum(1 for d in {r[0] for r in drive_rows} if sum(r[0] == d for r in drive_rows) > 1)),
+        "drives_without_estimate": len(notes),
+    }
+    if errors:
+        summary["m3_mean_rel_err"] = float(np.mean(errors))
+        summary["m3_max_rel_err"] = float(np.max(errors))
+        summary["m3_coverage_95"] = float(np.mean(covered))
+    _print_drives(header, drive_rows, run_dir)
+    return summary
+
+
+def _print_drives(header: Sequence[str], rows: Sequence[Sequence], run_dir: Path, limit: int = 12) -> None:
+    wanted = [
+        "drive",
+        "segment",
+        "start_s",
+        "end_s",
+        "m3",
+        "m3_low",
+        "m3_high",
+        "t_to_2pct_s",
+        "windows_used",
+        "status",
+    ]
+    cols = [header.index(k) for k in wanted]
+
+    def short(x):
+        try:
+            return f"{float(x):.4g}"
+        except ValueError:
+            return x
+
+    table = [[short(r[c]) if c > 1 else r[c] for c in cols] for r in rows[:limit]]
+    more = f" (first {limit} of {len(rows)})" if len(rows) > limit else ""
+    print_table(f"drives{more} -> {run_dir / 'drives.csv'}", wanted, table)
+
+
+def _plot_drive(run_dir: Path, name: str, progress_rows: Sequence[Sequence], drive: DrivePlan) -> Path:
+    """Mass and 95 % band of each segment's running estimate against the drive's time (window ends)."""
+    from hybridqcm.plots import close, plot_running_estimate
+
+    rows = [r for r in progress_rows if r[0] == name]
+    segments = []
+    for k in sorted({r[1] for r in rows}):
+        seg = [r for r in rows if r[1] == k and r[6] != ""]
+        if seg:
+            t = np.array([float(r[3]) + drive.window_s for r in seg])
+            segments.append((t, *(np.array([float(r[c]) for r in seg]) for c in (6, 7, 8))))
+    skipped = np.array([float(r[3]) + drive.window_s for r in rows if r[5] != "used"])
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+    path = run_dir / "plots" / f"drive_{safe}.png"
+    close(plot_running_estimate(segments, skipped, path, title=f"drive {name}"))
+    return path
+
+
+__all__ = ["aggregate_drives", "DRIVES_HEADER", "PROGRESS_HEADER"]
