@@ -17,6 +17,7 @@ from typing import Any, TypedDict
 from hybridqcm import config
 from hybridqcm.errors import ConfigError
 from hybridqcm.estimation import settings as estimate_settings
+from hybridqcm.estimation.hold import HOLDS
 from hybridqcm.estimation.plan_networks import network_plan, network_windows
 from hybridqcm.estimation.plan_settings import (
     check_positive_params,
@@ -402,7 +403,7 @@ def _check_model_settings(cfg, occupant: dict | None) -> str:
     x0_start = str(cfg.get("x0_start", "rest"))
     if x0_start not in X0_STARTS:
         raise ConfigError(f"x0_start={x0_start!r}: choose one of {list(X0_STARTS)}")
-    if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
+    if str(cfg.hold) not in HOLDS or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     if check_spline_degree(cfg) != 5 and occupant is not None:  # plan_occupant builds its own (quintic) models
         raise ConfigError(

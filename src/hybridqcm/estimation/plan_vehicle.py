@@ -31,6 +31,7 @@ from hybridqcm.data.vehicle_files import (
 from hybridqcm.errors import ConfigError, DatasetError
 from hybridqcm.estimation import settings as estimate_settings
 from hybridqcm.estimation.draws import NormalStream
+from hybridqcm.estimation.hold import HOLDS
 from hybridqcm.estimation.plan_settings import check_spline_degree, interval_settings, solver_settings
 from hybridqcm.estimation.refinement import GaussNewtonStage, RefinementSettings
 from hybridqcm.estimation.response import ExactResponse
@@ -99,7 +100,7 @@ def _check_settings(cfg) -> tuple[str, str, int, str]:
         raise ConfigError(f"n_samples must be >= 1 (or null for all), got {cfg.n_samples}")
     if int(cfg.batch_size) < 1:
         raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
-    if str(cfg.hold) not in ("spline", "foh", "zoh") or int(cfg.substeps) < 1:
+    if str(cfg.hold) not in HOLDS or int(cfg.substeps) < 1:
         raise ConfigError(f"hold={cfg.hold!r}, substeps={cfg.substeps}: hold is spline, foh or zoh and substeps >= 1")
     degree = check_spline_degree(cfg)
     if cfg.init.get("equation_error", False) not in (False, True, "seats"):

@@ -38,6 +38,7 @@ import math
 import torch
 from torch import Tensor
 
+from hybridqcm.physics.parameters import REFERENCE_VEHICLE as _REF
 from hybridqcm.physics.vehicle_geometry import (
     FULL_CAR,
     SOURCE_SEAT,
@@ -56,7 +57,8 @@ TYRE_DAMPING = 100.0  # only where tyres are damped
 UNSPRUNG = {"f": 40.0, "b": 35.0}
 RIDE_HZ = {"f": 1.15, "b": 1.35}
 BODY_DAMPING_RATIO = 0.30
-SEAT = {"m3": 80.0, "k3": 98_935.0, "c3": 615.0}
+# the source's seat and occupant (the quarter car's reference, physics/parameters.py)
+SEAT = {"m3": _REF.m3, "k3": _REF.K3, "c3": _REF.C3}
 # name -> (x, y) [m]
 SEAT_POSITIONS = {
     "driver": (-0.15, -0.37),
