@@ -50,10 +50,14 @@ def integrate_twice(accel: Tensor, h: float) -> tuple[Tensor, Tensor]:
 
 
 def _row_fit(target: Tensor, regressors: list[Tensor]) -> Tensor:
-    """Least squares target [b, T] ≈ Σ_k c_k regressors[k] [b, T]; columns scaled to unit norm first."""
+    """Least squares target [b, T] ≈ Σ_k c_k regressors[k] [b, T]; columns scaled to unit norm first.
+
+    The SVD driver (gelsd), not the CPU default (gelsy): on nearly rank-deficient rows gelsy's answer
+    changed from call to call on the same input (order one; its pivoting reads uninitialised memory), so
+    two runs of one half car differed by 1e-8."""
     X = torch.stack(regressors, -1)  # [b, T, p]
     scale = X.square().sum(1).sqrt().clamp_min(1e-300)  # [b, p]
-    solution = torch.linalg.lstsq(X / scale[:, None, :], target[..., None]).solution[..., 0]
+    solution = torch.linalg.lstsq(X / scale[:, None, :], target[..., None], driver="gelsd").solution[..., 0]
     return solution / scale
 
 
