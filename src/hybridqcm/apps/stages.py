@@ -202,7 +202,7 @@ def demo_stages(
             "occupant mass from the seat accelerometer pair, no road",
             cnn="exp2_physics",
             # our generator's occupants are rigid and its channels share one clock: the rigid model alone
-            # (the default fits persons too, and takes ~10x longer; docs/notes/persons.md)
+            # (the default fits persons too, and takes ~10x longer; docs/measurements/persons.md)
             extra=["init.cnn=true", "occupant.models=[rigid]", "delay=null"],
         ),
     ]
@@ -427,7 +427,7 @@ def noise_stages(
     and the demo's CNN alone on the whole test split at each level (issue 10's table).
     Uses the demo's dataset and networks (run `make demo` first); ``samples`` bounds exp 10 (about 0.3 s
     per recording under noise on two processes). It is the whole test split (1 200), where a coverage is
-    known to 0.6 %: subsets of 400 differed by up to 6 points (docs/notes/real_recordings.md). The
+    known to 0.6 %: subsets of 400 differed by up to 6 points (docs/measurements/real_recordings.md). The
     road-free model reads every test recording too."""
     cnn_path, unet_path = (f"{networks}/{name}/checkpoints/last.ckpt" for name in ("exp2_physics", "exp9_unet"))
     cnn, unet = f"cnn_ckpt={cnn_path}", f"unet_ckpt={unet_path}"

@@ -88,7 +88,7 @@ class SolverConfig:
     num_threads: int | None = 1
     # How a step is applied (with column scaling all three give the same direction):
     #   "unconstrained": p <- p - αδ; iterates may leave p > 0 on the way, a final estimate
-    #                    with any p_j <= 0 gets status DIVERGED (default: see docs/notes/estimation.md,
+    #                    with any p_j <= 0 gets status DIVERGED (default: see docs/design/estimation.md,
     #                    ~75 % of exp-5 paths cross p3/p5/p7 <= 0 and most come back to the truth);
     #   "linear": p <- p - αδ, trials with any p <= 0 count as Armijo failures (SPEC/issue wording);
     #   "log": p <- p exp(-αδ/p), a step in log p (positivity by construction).
@@ -314,7 +314,7 @@ IterationCallback = Callable[[int, Tensor, int], None]  # (iteration, loss [batc
 def torch_threads(count: int | None) -> Iterator[None]:
     """torch's intra-op threads set to ``count`` (None or 0: unchanged) inside the block. The solver's
     tensors are small ([chunk, time] per step): more threads cost more in wake-ups than they save,
-    and on a loaded machine each parallel region waits for a busy core (docs/notes/real_recordings.md)."""
+    and on a loaded machine each parallel region waits for a busy core (docs/measurements/real_recordings.md)."""
     before = torch.get_num_threads()
     if count:
         torch.set_num_threads(int(count))
