@@ -18,7 +18,7 @@ schema file: the source's root attributes, accel/road/params) into data/bench_sc
 qcm-estimate process per size n over its first n recordings; prints its peak RSS (getrusage of the waited-for child).
 --cheap: one GN iteration per recording on the Euler model, p1 free (the memory path is the same: blocks
 read, solved, written as shards, merged), so 170 000 recordings fit in minutes.
-Results and commands: docs/notes/scaling.md.
+Results and commands: docs/measurements/scaling.md.
 """
 
 from __future__ import annotations

@@ -71,7 +71,7 @@ first vehicle in the layout `qcm-import` reads (t, a3, a2, a1 in m/s²), its tru
 `drives` writes drives of any length (minutes to an hour) of one vehicle each, for qcm-import: one CSV with
 a recording column (t, a3, a2 on one clock), or per drive a seat and a floor logger's CSV (phone-app columns,
 own clock, rate, jitter, tilt, gravity), and truth.json; made by the exact convolution of the road with each
-vehicle's first-order-hold impulse response (impulse_responses; see docs/notes/drives.md). `score-drives`
+vehicle's first-order-hold impulse response (impulse_responses; see docs/design/drives.md). `score-drives`
 scores a qcm-estimate aggregate=drive run folder against it (mean / worst drive error, coverage, time to
 ±5 / ±2 %, splits at an occupant change and without one).
 `score` reads a qcm-estimate run folder and prints the occupant mass error and status counts, how many

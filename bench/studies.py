@@ -1,4 +1,4 @@
-"""Small reproducible studies behind design choices (numbers quoted in docs/notes/estimation.md).
+"""Small reproducible studies behind design choices (numbers quoted in docs/design/estimation.md).
 
     .venv/bin/python bench/studies.py exp10-completion --data data/reference.h5 --samples 1000 --error 0.03
     .venv/bin/python bench/studies.py solver-variants --data data/reference.h5 --samples 500

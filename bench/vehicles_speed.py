@@ -9,7 +9,7 @@ times, one process each, the same settings otherwise. Prints per run the GN CPU 
 (the busiest process's CPU time: steadier than wall time on a shared machine) and the wall seconds of the
 solve, the median ratio vehicle / quarter car of each, and what 17 000 recordings would take at these
 rates (the blocks are independent, so time grows linearly with the count). Further arguments are Hydra
-overrides for both runs. Results and commands: docs/notes/vehicles.md.
+overrides for both runs. Results and commands: docs/measurements/vehicles.md.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """qcm-estimate with the networks on a GPU: the same estimates as on the CPU. Skipped without CUDA
-(CI has none); run on a GPU machine (docs/notes/scaling.md, "On a GPU")."""
+(CI has none); run on a GPU machine (docs/measurements/scaling.md, "On a GPU")."""
 
 from __future__ import annotations
 

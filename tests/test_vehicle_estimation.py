@@ -4,7 +4,7 @@
   differences of its own outputs, for both vehicles (the full car with two seats and damped tyres);
 * the Fisher information with every parameter free has exactly one null direction — all masses,
   inertias, stiffnesses and dampings scaled together (geometry and initial state unchanged) — and none
-  once the seats' k3 are known (docs/notes/vehicles.md, "What the data identify");
+  once the seats' k3 are known (docs/design/vehicles.md, "What the data identify");
 * GN from the reference sedan (± 10 %) recovers a few noise-free recordings.
 """
 

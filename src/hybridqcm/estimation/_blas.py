@@ -36,7 +36,7 @@ def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
 def torch_threads(count: int | None) -> Iterator[None]:
     """torch's intra-op threads set to ``count`` (None or 0: unchanged) inside the block. The solver's
     tensors are small ([chunk, time] per step): more threads cost more in wake-ups than they save,
-    and on a loaded machine each parallel region waits for a busy core (docs/notes/real_recordings.md)."""
+    and on a loaded machine each parallel region waits for a busy core (docs/measurements/real_recordings.md)."""
     before = torch.get_num_threads()
     if count:
         torch.set_num_threads(int(count))

@@ -54,7 +54,7 @@ from ._blas import batched_matmul as _matmul
 
 _CDTYPE = torch.complex128
 # cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
-# Measured differences from the recursion (docs/notes/estimation.md): two nearly equal real
+# Measured differences from the recursion (docs/measurements/exact_discretisation.md): two nearly equal real
 # eigenvalues (an almost critically damped mode) cost ~6e-18 times the square of this ratio
 # (2e-10 at 5.7e3), other pairs far less (< 1e-12 up to 1.4e6 for the quarter car).
 _LIMIT = 1e5

@@ -132,7 +132,7 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
 
 
 def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
-    """``tables(record)`` (apps/estimate_report.block_tables) with each window's shared parameters added to
+    """``tables(record)`` (estimation/tables.block_tables) with each window's shared parameters added to
     the block's columns: drive_theta [b, P], drive_cov [b, P, P] (the reported covariance's parameter block:
     the initial state marginalised), drive_model_cov (the model-based σ̂²(JᵀJ)⁻¹ block: the robust one is
     it rescaled per parameter) and drive_model [b] (index into :func:`model_names`)."""
@@ -159,7 +159,7 @@ def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
 
 
 def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
-    """``skipped_tables(index, status, true)`` (apps/estimate_report: windows kept from the fit, no_signal or
+    """``skipped_tables(index, status, true)`` (estimation/tables: windows kept from the fit, no_signal or
     clipped) with :func:`drive_columns`' columns added, NaN: a block's fitted and skipped windows merge into
     one table, and such a window is never usable."""
 

@@ -54,7 +54,7 @@ Layout. Every per-sample quantity is held batch innermost (matrices [r, c, b], t
 batch rows: 3.5x faster than torch.bmm over 512 tiny matrices for the exponential's tangent
 products, and the only fast form of the per-step recursion. Each step's [o, 1 + P + n, b] block
 of the result is transposed (a 2-D transpose, PyTorch's fast path) into the batch-first
-[b, T, o, 1 + P + n] result while still in cache. Timings: docs/notes/estimation.md.
+[b, T, o, 1 + P + n] result while still in cache. Timings: docs/measurements/exact_discretisation.md.
 """
 
 from __future__ import annotations

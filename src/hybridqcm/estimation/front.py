@@ -211,7 +211,7 @@ class HybridEstimator(LightningModule):
     def prepare(self, batch: Mapping[str, Tensor]) -> dict[str, Tensor]:
         """The batch's GN problem (class docstring). The networks run in full float32 on a GPU too:
         TF32 convolutions moved their outputs ~1e-4 from the CPU's on an H100, and GN's path (restarts,
-        noise model, intervals) with them; float32 made it ~2e-7 (docs/notes/scaling.md)."""
+        noise model, intervals) with them; float32 made it ~2e-7 (docs/measurements/scaling.md)."""
         with full_fp32_convolutions():
             return self._prepare(batch)
 

@@ -11,7 +11,7 @@ so for a given p the best x0 is a linear least-squares problem,
 
 Starting Gauss-Newton from (p0, x0*(p0)) instead of (p0, 0) removes the transient of a window
 cut mid-drive (the true x0 is far from rest) from the first iterations' residual; only p's own
-error is left there (docs/notes/real_recordings.md, "x0 start by least squares").
+error is left there (docs/design/exact_discretisation.md, "x0 start by least squares").
 
 F and H come from ONE sensitivity evaluation of the response model at (p0, x0 = 0): column 0 is
 F, the columns after the physical parameters are H. The small problem [b, T·o_obs, n] is solved

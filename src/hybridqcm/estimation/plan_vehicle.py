@@ -63,7 +63,7 @@ def _known_names(cfg, layout: VehicleLayout, model: VehicleModel) -> list[str]:
     if len(out) == len(model.param_names):
         raise ConfigError(f"known lists all {len(out)} parameters of the {layout.kind}: nothing left to estimate")
     if not any(n not in layout.signed_names and not n.startswith(("l_", "w_")) for n in out):
-        # docs/notes/vehicles.md, "What the data identify": M, C, K, F times one factor leave every acceleration
+        # docs/design/vehicles.md, "What the data identify": M, C, K, F times one factor leave every acceleration
         raise ConfigError(
             f"known={out}: one common factor of every mass, inertia, stiffness and damping is not in the data; "
             f"hold one of them known (the experiments hold the seats' k3: known=[k3])"

@@ -83,7 +83,7 @@ class Embedding(nn.Module):
 
     Why the noise summaries: white noise of std σ has a second difference of RMS √6 σ, while the
     100 Hz response is smooth, so this ratio reads the noise level almost directly. Without it
-    the CNN's posterior width did not follow the noise level (measured, docs/notes/sbi.md).
+    the CNN's posterior width did not follow the noise level (measured, docs/measurements/sbi.md).
     """
 
     def __init__(

@@ -79,7 +79,7 @@ class SolverConfig:
     num_threads: int | None = 1
     # How a step is applied (with column scaling all three give the same direction):
     #   "unconstrained": p <- p - αδ; iterates may leave p > 0 on the way, a final estimate
-    #                    with any p_j <= 0 gets status DIVERGED (default: see docs/notes/estimation.md,
+    #                    with any p_j <= 0 gets status DIVERGED (default: see docs/design/estimation.md,
     #                    ~75 % of exp-5 paths cross p3/p5/p7 <= 0 and most come back to the truth);
     #   "linear": p <- p - αδ, trials with any p <= 0 count as Armijo failures (SPEC/issue wording);
     #   "log": p <- p exp(-αδ/p), a step in log p (positivity by construction).

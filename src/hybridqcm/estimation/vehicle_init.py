@@ -10,7 +10,7 @@ through the samples, integrated exactly) plus the unknown initial state: v_j = V
 q_j = Q_j + q0_j + v0_j t, so the initial state only adds a constant and a slope to each row,
 c0_i + c1_i t, which join the regressors. Each row is one small linear least-squares problem on the
 coordinates it couples to (a seat: itself and the body; a wheel: itself, the body and its road;
-the body's rows: everything). This is the identifiability argument of docs/notes/vehicles.md made
+the body's rows: everything). This is the identifiability argument of docs/design/vehicles.md made
 constructive: the rows give the mass-normalised coefficients, and one known scale (the seats' k3)
 chains them into every physical parameter:
 

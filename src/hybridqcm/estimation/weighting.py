@@ -161,7 +161,7 @@ class NoiseFit:
         # An input "noise" far below any accelerometer's floor is the hold's interpolation error
         # between samples (deterministic, concentrated near Nyquist), not noise: modelling it as
         # white input noise biases the weakly identified p3 of the sprung model on noise-free data
-        # (docs/notes/real_recordings.md). Such samples get the output-noise model.
+        # (docs/design/noise_and_intervals.md). Such samples get the output-noise model.
         samples = road.samples if isinstance(road, PreparedInputs) else road
         window = samples[:, offset : offset + targets.shape[1]]
         input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]

@@ -1,7 +1,7 @@
 """The reference sedan: a mid-size passenger car for the half-car and full-car models.
 
 Not a measured vehicle: a typical mid-size sedan built from the design rules of the ride
-literature, so that every value has a stated origin (table and arithmetic in docs/notes/vehicles.md):
+literature, so that every value has a stated origin (table and arithmetic in docs/design/vehicles.md):
 
 * geometry: wheelbase 2.70 m with the centre of mass 43 % of it behind the front axle
   (l_f = 1.16 m, l_b = 1.54 m: 57 % of the sprung weight on the front axle, a front-engined car),

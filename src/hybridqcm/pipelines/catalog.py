@@ -17,7 +17,7 @@ _DEMO_TRAINED = {"cnn": "exp2_physics", "unet": "exp9_unet"}
 # networks (of _DEMO_TRAINED), extra overrides. exp10_hybrid: n_steps=100 is the source's N, beside its table
 # (the experiment's default is max). occupant_roadfree: our generator's occupants are rigid and its channels
 # share one clock, so the rigid model alone (the default fits persons too, and takes ~10x longer;
-# docs/notes/persons.md).
+# docs/design/persons.md).
 _DEMO_ESTIMATES = (
     ("exp5_random_init", 0.5, "5.11", "exp5", "GN full observation random init (exact model, x0 estimated)", "", ""),
     (
@@ -165,7 +165,7 @@ def noise_stages(
     and the demo's CNN alone on the whole test split at each level (issue 10's table).
     Uses the demo's dataset and networks (run `make demo` first); ``samples`` bounds exp 10 (about 0.3 s
     per recording under noise on two processes). It is the whole test split (1 200), where a coverage is
-    known to 0.6 %: subsets of 400 differed by up to 6 points (docs/notes/real_recordings.md). The
+    known to 0.6 %: subsets of 400 differed by up to 6 points (docs/measurements/real_recordings.md). The
     road-free model reads every test recording too."""
     cnn_path, unet_path = checkpoint(networks, "exp2_physics"), checkpoint(networks, "exp9_unet")
     estimated, tested = ["estimates.csv", "summary.json"], ["error_distribution.csv", "test_metrics.json"]
