@@ -7,7 +7,7 @@ exp10-completion: how the exp-10 GN design copes with an imperfect U-Net, withou
 completed (a2, a1) are the true ones plus a smooth relative error (white noise through a 9-tap
 moving average, scaled to ``error`` x the channel RMS); p1, p2 start at truth x (1 ± 8 %) as a
 CNN would give, p3..p10 at p_ref (1 + δ), p3, p5 known, a3 noise-free. Compared: the source's
-design (10 GN iterations on the completed system) and ours (configs/estimate/experiment/exp10_hybrid.yaml).
+design (10 GN iterations on the completed system) and ours (configs/apps/estimate/experiment/exp10_hybrid.yaml).
 """
 
 from __future__ import annotations

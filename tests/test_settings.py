@@ -44,7 +44,7 @@ def _fields(schema, prefix: str = "") -> list[str]:
 
 
 def test_the_schema_types_every_key_of_estimate_yaml_and_its_experiments():
-    files = [CONFIG_DIR / "estimate.yaml", *sorted((CONFIG_DIR / "estimate" / "experiment").glob("*.yaml"))]
+    files = [CONFIG_DIR / "estimate.yaml", *sorted((CONFIG_DIR / "apps" / "estimate" / "experiment").glob("*.yaml"))]
     assert len(files) == 1 + len(app_experiments("estimate")) > 5
     for path in files:
         data = {k: v for k, v in yaml.safe_load(path.read_text()).items() if k not in ("defaults", "hydra")}

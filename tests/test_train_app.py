@@ -222,11 +222,11 @@ def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
 
 # -- bad input ------------------------------------------------------------------------------------------------
 def test_unknown_and_non_training_experiments(tmp_path):
-    with pytest.raises(ConfigError, match=r"^unknown experiment 'exp99' \(no configs/train/experiment/exp99.yaml\); "):
+    with pytest.raises(ConfigError, match=r"^unknown experiment 'exp99' \(no configs/apps/train/experiment/exp99.yaml\); "):
         check_experiment_overrides(["experiment=exp99"], "train")
     for app, name in (("train", "exp1_mine"), ("estimate", "exp5_gn")):
-        (tmp_path / app / "experiment").mkdir(parents=True)
-        (tmp_path / app / "experiment" / f"{name}.yaml").write_text("# @package _global_\n")
+        (tmp_path / "apps" / app / "experiment").mkdir(parents=True)
+        (tmp_path / "apps" / app / "experiment" / f"{name}.yaml").write_text("# @package _global_\n")
     with pytest.raises(
         ConfigError,
         match=r"^experiment 'exp5_gn' is a qcm-estimate experiment .*: run it with "
@@ -242,7 +242,6 @@ def test_unknown_and_non_training_experiments(tmp_path):
 @pytest.mark.parametrize(
     "overrides, message",
     [
-        (["task=estimate"], "task = 'estimate'"),
         (["train=false"], "needs ckpt_path"),
         (["ckpt_path=/nonexistent/x.ckpt"], "does not exist"),
         (["denoiser_ckpt=/x.ckpt"], "at evaluation"),

@@ -5,9 +5,9 @@ schema registered in Hydra's ConfigStore as ``schema/<app>``: estimation/setting
 against that schema. Each failure is one ConfigError naming the key and value.
 
 Layout: configs/<app>.yaml is app <app>'s primary config; the groups the apps share are folders of
-configs/, and configs/<app>/ (on the app's search path: its `hydra.searchpath`, through the
+configs/, and configs/apps/<app>/ (on the app's search path: its `hydra.searchpath`, through the
 ${hybridqcm_config_dir:} resolver registered here) holds the groups of that app alone, its
-experiments (configs/train/experiment/, configs/estimate/experiment/)."""
+experiments (configs/apps/train/experiment/, configs/apps/estimate/experiment/)."""
 
 from __future__ import annotations
 
@@ -92,29 +92,29 @@ def check_trainer_settings(group, prefix: str = "trainer") -> None:
 
 
 def app_experiments(app: str, config_dir: Path = CONFIG_DIR) -> list[str]:
-    """The experiments of app `app` (train, estimate): configs/<app>/experiment/*.yaml."""
-    return sorted(p.stem for p in (Path(config_dir) / app / "experiment").glob("*.yaml"))
+    """The experiments of app `app` (train, estimate): configs/apps/<app>/experiment/*.yaml."""
+    return sorted(p.stem for p in (Path(config_dir) / "apps" / app / "experiment").glob("*.yaml"))
 
 
 def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path = CONFIG_DIR) -> None:
     """Fail early, in one line, on an experiment=NAME that is not one of this app's, naming the app that runs
     it where another one does (Hydra's own message is a page: the options and the whole search path)."""
     root = Path(config_dir)
-    if not (root / app / "experiment").is_dir():  # an app without experiments: Hydra refuses the override itself
+    if not (root / "apps" / app / "experiment").is_dir():  # an app without experiments: Hydra refuses the override itself
         return
     for arg in args:
         key, _, value = arg.partition("=")
         if key.lstrip("+~") != "experiment" or not value or value == "null":
             continue
         for name in (n.strip() for n in value.split(",")):
-            if (root / app / "experiment" / f"{name}.yaml").is_file():
+            if (root / "apps" / app / "experiment" / f"{name}.yaml").is_file():
                 continue
-            others = sorted(p.parent.parent.name for p in root.glob(f"*/experiment/{name}.yaml"))
+            others = sorted(p.parent.parent.name for p in root.glob(f"apps/*/experiment/{name}.yaml"))
             what = (
-                f"experiment {name!r} is a qcm-{others[0]} experiment (configs/{others[0]}/experiment/{name}.yaml): "
+                f"experiment {name!r} is a qcm-{others[0]} experiment (configs/apps/{others[0]}/experiment/{name}.yaml): "
                 f"run it with qcm-{others[0]}"
                 if others
-                else f"unknown experiment {name!r} (no configs/{app}/experiment/{name}.yaml)"
+                else f"unknown experiment {name!r} (no configs/apps/{app}/experiment/{name}.yaml)"
             )
             raise ConfigError(f"{what}; qcm-{app} experiments: {', '.join(app_experiments(app, root))}")
 

@@ -114,7 +114,7 @@ def check_top_level_keys(cfg, config_dir: Path = CONFIG_DIR) -> None:
     known = set(yaml.safe_load((config_dir / "train.yaml").read_text()) or {})
     for entry in (yaml.safe_load((config_dir / "train.yaml").read_text()) or {}).get("defaults", []):
         known |= set(entry) if isinstance(entry, dict) else {str(entry)}
-    for folder in ("train/experiment", "hparams_search", "debug", "launcher"):
+    for folder in ("apps/train/experiment", "hparams_search", "debug", "launcher"):
         for path in (config_dir / folder).glob("*.yaml"):
             data = yaml.safe_load(path.read_text()) or {}
             if isinstance(data, dict):

@@ -29,7 +29,7 @@ def _register_resolvers() -> None:
 
 def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
     """One line per config group the app's defaults list names (not Hydra's own), with its options from
-    the app's search path: configs/ and its own configs/<app>/ (its experiments). Hydra's default --help
+    the app's search path: configs/ and its own configs/apps/<app>/ (its experiments). Hydra's default --help
     listed every folder of configs/, the groups of the other apps included, which this app then refuses."""
     import yaml
 
@@ -40,7 +40,7 @@ def app_groups_help(config_name: str, config_dir: Path | None = None) -> str:
         if not isinstance(entry, dict):
             continue
         group = str(next(iter(entry))).split("@")[0].removeprefix("override ").strip()
-        folders = [f for f in (root / group, root / config_name / group) if f.is_dir()]
+        folders = [f for f in (root / group, root / "apps" / config_name / group) if f.is_dir()]
         if group == "hydra" or not folders:
             continue
         lines.append(f"{group}: {', '.join(sorted({p.stem for f in folders for p in f.glob('*.yaml')}))}")
