@@ -5,7 +5,7 @@
 Newton's law for each body and Euler's for each angle, written from the forces of the springs and
 dampers (not from physics/vehicle_model.py's matrices), at every stored sample of every recording:
 prints per degree of freedom the largest |residual| / (that degree of freedom's RMS acceleration in its
-recording), over the file, against the target 1e-6. tests/test_vehicles.py checks the same on small files.
+recording), over the file, against the target 1e-6. tests/test_vehicle_model.py checks the same on small files.
 """
 
 from __future__ import annotations

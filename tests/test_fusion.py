@@ -231,7 +231,7 @@ def test_exp13_fast_dev_run_on_cpu(tmp_path):
     import json
 
     from hybridqcm.training import train
-    from test_train_app import _cfg
+    from test_app_train import _cfg
 
     overrides = [
         "experiment=exp13_cnn_uncertainty",

@@ -137,7 +137,7 @@ def test_a_bad_occupant_setting_on_the_console_is_one_line(tiny_dataset, tmp_pat
 
 
 def test_body_models_are_refused_for_the_euler_reproduction(tiny_dataset, tmp_path):
-    """Body models exist for the exact continuous-time models only (tests/test_occupant_vehicle.py);
+    """Body models exist for the exact continuous-time models only (tests/test_linear_models.py);
     the tiny file is our Euler generator's, which the Euler recursion fits."""
     proc = _app(tmp_path, "experiment=exp5_random_init", f"data.path={tiny_dataset}", "occupant.models=[body1]")
     assert proc.returncode != 0 and "exact continuous-time model" in proc.stderr and "Traceback" not in proc.stderr

@@ -65,7 +65,7 @@ def test_every_estimation_experiment_composes_against_the_schema(name):
 
 
 BAD = [
-    # before: check_setting_types (tests/test_validation.py, test_occupant.py, test_vehicle_apps.py)
+    # before: check_setting_types (tests/test_config.py, test_occupant.py, test_app_vehicles.py)
     (["n_samples=abc"], r"n_samples='abc': give a whole number or null"),
     (["batch_size=2.5"], r"batch_size=2.5: give a whole number"),
     (["noise_sigma=x"], r"noise_sigma='x': give a number"),

@@ -16,7 +16,7 @@ from hydra.utils import instantiate
 from hybridqcm.errors import ConfigError
 from hybridqcm.tracking import log_estimation_to_tensorboard
 from hybridqcm.training import prepare, train
-from test_train_app import BIN, SMALL, SMALL_NET, _cfg, data  # noqa: F401 - the tiny-dataset fixture of the train tests
+from test_app_train import BIN, SMALL, SMALL_NET, _cfg, data  # noqa: F401 - the tiny-dataset fixture of the train tests
 
 EXP2 = ["experiment=exp2_physics", *SMALL, *SMALL_NET["exp2_physics"]]
 

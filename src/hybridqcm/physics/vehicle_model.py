@@ -20,7 +20,7 @@ and Lagrange's equations d/dt ∂T/∂ẋ + ∂U/∂ẋ + ∂V/∂x = 0 give
 Static equilibrium is the reference (gravity drops out of the linear equations). For the half car
 with its seat at x_s = −l_b this is the source's HCM with its printed pitch row corrected (SPEC
 § 10): I α̈ = −(L_b²(C3 + C2b) + L_f² C2f) α̇ − (L_b²(K3 + K2b) + L_f² K2f) α + ... ;
-tests/test_vehicles.py derives the same equations independently from T, V, U with sympy.
+tests/test_vehicle_model.py derives the same equations independently from T, V, U with sympy.
 
 As a LinearModel (physics/linear_models.py): state (v, q) = (ẋ, x), inputs the wheels' road
 heights u<w> [m] (and, with damped tyres, their velocities du<w> [m/s]), outputs every

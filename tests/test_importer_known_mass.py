@@ -16,7 +16,7 @@ from hybridqcm.data.csv_checks import RecordingError
 from hybridqcm.data.import_writer import import_recordings
 from hybridqcm.data.importer import read_recordings
 from hybridqcm.estimation.calibration_run import known_loads
-from test_import import qcm_import
+from test_importer import qcm_import
 
 
 def _drives(path: Path, loads: list[list[float]], n: int = 200, h: float = 0.01) -> Path:

@@ -13,7 +13,7 @@ import torch
 from hybridqcm.models.export import contract, parity_error, reference_output
 from hybridqcm.models.export_files import ParityError, export, parity_inputs
 from hybridqcm.training import train
-from test_train_app import SMALL, SMALL_NET, _cfg, data, trained  # noqa: F401 - fixtures shared with the train tests
+from test_app_train import SMALL, SMALL_NET, _cfg, data, trained  # noqa: F401 - fixtures shared with the train tests
 
 onnxruntime = pytest.importorskip("onnxruntime")
 
