@@ -222,7 +222,9 @@ def test_multirun_sweep_gets_one_folder_per_job_and_a_summary(data, tmp_path):
 
 # -- bad input ------------------------------------------------------------------------------------------------
 def test_unknown_and_non_training_experiments(tmp_path):
-    with pytest.raises(ConfigError, match=r"^unknown experiment 'exp99' \(no configs/apps/train/experiment/exp99.yaml\); "):
+    with pytest.raises(
+        ConfigError, match=r"^unknown experiment 'exp99' \(no configs/apps/train/experiment/exp99.yaml\); "
+    ):
         check_experiment_overrides(["experiment=exp99"], "train")
     for app, name in (("train", "exp1_mine"), ("estimate", "exp5_gn")):
         (tmp_path / "apps" / app / "experiment").mkdir(parents=True)

@@ -100,7 +100,9 @@ def check_experiment_overrides(args: Sequence[str], app: str, config_dir: Path =
     """Fail early, in one line, on an experiment=NAME that is not one of this app's, naming the app that runs
     it where another one does (Hydra's own message is a page: the options and the whole search path)."""
     root = Path(config_dir)
-    if not (root / "apps" / app / "experiment").is_dir():  # an app without experiments: Hydra refuses the override itself
+    if not (
+        root / "apps" / app / "experiment"
+    ).is_dir():  # an app without experiments: Hydra refuses the override itself
         return
     for arg in args:
         key, _, value = arg.partition("=")
