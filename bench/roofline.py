@@ -33,16 +33,20 @@ Line search (problems.loss_at), per evaluated sample: the model's outputs plus r
 Exact, Van Loan maps (_expm.van_loan_maps): a product S [r, k] T [k, c] with tangents dS [r', P, k],
     dT [k', P, c] costs r c (2k - 1) + r' P c (2k - 1) + 2 r' P c k' (without tangents the first term);
     the exponential takes 5 + s products with r = k = c = N, r' = k' = n (Paterson-Stockmeyer degree 11,
-    s squarings), balancing ≈ 2 sweeps x 6 N²; the fold of the M sub-steps 1 product [n, n] [n, m] and
+    s squarings), balancing ≈ 2 sweeps x 6 N², the Horner blocks' sums 19 N² (+ 15 n P N with
+    tangents); the fold of the M sub-steps 1 product [n, n] [n, m] and
     M - 1 products [n, n] [n, n + 2m].
 Exact outputs, recursion (exact._recursion_outputs): maps (no tangents); forcing 2 (T-1) M n m + 2 (T-1) n m;
     states 2 (T-1) n²; outputs T o (2 (n + m) - 1).
 Exact outputs, modal (exact_outputs for b <= 160 samples, _modal.modal_outputs): eigen-decomposition
-    ≈ 25 n³ (real nonsymmetric, with vectors; Golub & Van Loan's estimate), complex inverse 8 n³,
-    forcing [T, m(M+1)] @ [m(M+1), 2K(1+m)]: 2 T m (M+1) 2K(1+m); recursion (T-1) 8 K (1+m);
+    ≈ 25 n³ (real nonsymmetric, with vectors; Golub & Van Loan's estimate), complex inverse 8 n³
+    (these two are LAPACK calls, estimated, not checked by tests/test_roofline.py), gamma, xi0, beta of
+    the kept modes 8 (o n K + K n + K n m), the hold's weights ≈ 200 K + 44 (M+1) K, forcing [T, m(M+1)] @ [m(M+1), 2K(1+m)]: 2 T m (M+1) 2K(1+m); recursion (T-1) 8 K (1+m);
     final [T, 2K(1+m) + m + m%2] @ [., o]: 2 T (2K(1+m) + m + m%2) o.
 Exact sensitivities, modal (_modal.modal_sensitivities, the default): eigen-decomposition and inverse as
-    above; V^-1 dA_j V: 4 P n³ (real x complex) + 8 P n³; coefficients 6 (1+m) 2 K o W + 6 P o K (1+m);
+    above; V^-1 dA_j V 16 P n³ (two complex products); beta, gamma, xi0, beta''_j, Gam_j and their
+    Sylvester corrections 8 (n² m + o n² + n² + P K n + 2 P K n m + 2 P o n K); S_j 11 P n² (complex
+    division); the hold's weights as above; coefficients 6 (1+m) 2 K o W + 6 P o K (1+m);
     forcing [T, m(M+1)] @ [m(M+1), 8K]: 2 T m (M+1) 8K; recursion (T-1) 20 K (1+m);
     final [T, 8K + m + m%2] @ [., o W]: 2 T (8K + m + m%2) o W. Samples the modal path leaves to the
     recursion (ok False) are counted again at the recursion's cost.
@@ -113,13 +117,19 @@ def _iprod(r: int, k: int, c: int, r_t: int = 0, n_dir: int = 0, k_t: int = 0) -
 def van_loan_flops(substeps: int, squarings: int, tangents: bool, n=N_STATE, m=N_IN, P=N_PARAMS) -> int:
     """One sample's exponential of the Van Loan matrix and the fold of the sub-steps (per sample)."""
     N, nd = n + 2 * m, (P if tangents else 0)
-    expm = (5 + squarings) * _iprod(N, N, N, n, nd, n) + 2 * 6 * N * N
+    expm = (5 + squarings) * _iprod(N, N, N, n, nd, n) + 12 * N * N + 19 * N * N + 15 * n * nd * N
     fold = _iprod(n, n, m, n, nd, n) + (substeps - 1) * _iprod(n, n, n + 2 * m, n, nd, n)
     return expm + fold
 
 
 def _eig_flops(n=N_STATE) -> int:
+    """The eigen-decomposition and the inverse of the eigenvectors (LAPACK; an estimate)."""
     return 25 * n**3 + 8 * n**3
+
+
+def _hold_weights_flops(K: int, substeps: int) -> int:
+    """_modal._hold_weights: phi_1..3 by Horner (18 complex terms) and the M + 1 weights and their derivatives."""
+    return 200 * K + 44 * (substeps + 1) * K
 
 
 def exact_outputs_flops(method: str, steps, substeps, squarings=0, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT) -> int:
@@ -134,7 +144,8 @@ def exact_outputs_flops(method: str, steps, substeps, squarings=0, K=N_STATE, n=
             + T * o * (2 * (n + m) - 1)
         )
     basis = 2 * K * (1 + m)
-    return _eig_flops(n) + 2 * T * m * (M + 1) * basis + (T - 1) * 8 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o
+    setup = _eig_flops(n) + 8 * (o * n * K + K * n + K * n * m) + _hold_weights_flops(K, M)
+    return setup + 2 * T * m * (M + 1) * basis + (T - 1) * 8 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o
 
 
 def exact_sensitivities_flops(
@@ -147,7 +158,15 @@ def exact_sensitivities_flops(
         per_step = 2 * n * P * (2 * n + (M + 1) * m) + 2 * n * o * P + 2 * o * n * n
         return van_loan_flops(M, squarings, True) + primal + (T - 1) * per_step + T * 2 * o * P * (n + m)
     basis = 8 * K
-    setup = _eig_flops(n) + 12 * P * n**3 + 6 * (1 + m) * 2 * K * o * W + 6 * P * o * K * (1 + m)
+    products = 16 * P * n**3 + 8 * (n * n * m + o * n * n + n * n + P * K * n + 2 * P * K * n * m + 2 * P * o * n * K)
+    setup = (
+        _eig_flops(n)
+        + products
+        + _hold_weights_flops(K, M)
+        + 11 * P * n * n
+        + 6 * (1 + m) * 2 * K * o * W
+        + 6 * P * o * K * (1 + m)
+    )
     return setup + 2 * T * m * (M + 1) * basis + (T - 1) * 20 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o * W
 
 
