@@ -121,7 +121,7 @@ def test_gram_flops_match_the_normal_equations(roofline, monkeypatch):
 
 
 def test_exact_layer_flops_match_the_dispatched_ops(roofline, monkeypatch):
-    """Within 2 % for the step recursion and 10 % for the modal path (whose small setup ops are summarised);
+    """Within 1 % for the step recursion and 8 % for the modal path (whose small setup ops are summarised);
     the LAPACK eigen-decomposition and inverse are estimates, left out of the comparison."""
     for module in (exact, _modal, _expm, hold):
         monkeypatch.setattr(module, "_matmul", torch.matmul)
@@ -134,7 +134,7 @@ def test_exact_layer_flops_match_the_dispatched_ops(roofline, monkeypatch):
     squarings = roofline._squarings(params, 0.01, M)
     K = roofline._modes(model.matrices(params)[0])
     window = dict(start=margin, n_steps=T, held=held)
-    for method, tolerance in (("recursion", 0.02), ("modal", 0.10)):
+    for method, tolerance in (("recursion", 0.01), ("modal", 0.08)):
         for kind in ("sensitivities", "outputs"):
             counter = DispatchCounter()
             with counter:
