@@ -4,7 +4,8 @@
         [--threads 1 2] [--repeats 3] [--substeps 16] [--margin 8] [--chunk 512] [--quick]
 
 Setup: bench/bench_exact.py's ``--gn`` cases (``gn_cases``: synthetic thesis-prior samples, start 10 % off
-the reference vehicle, x0 unknown for the exact model, the Euler model from rest as there), one GN
+the reference vehicle, x0 unknown for the exact model, the Euler model from rest as there, and here also
+the Euler model with x0 unknown, "euler x0", W = 17 columns like the exact model's), one GN
 iteration of the solver (max_iterations=1, all samples active), timed as ``result.seconds[0]``, best of
 --repeats, the cases alternating. The models' calls are recorded during the timed runs (batch sizes,
 parameters, which samples the modal path left to the recursion; a list append per call) and the FLOPs
@@ -73,6 +74,7 @@ from __future__ import annotations
 import argparse
 import functools
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -352,12 +354,23 @@ def time_iterations(args, threads: int) -> tuple[dict[str, float], dict[str, dic
     """Best seconds of one GN iteration per case, and the counted terms of each (recorded in the timed runs)."""
     import hybridqcm.estimation.response as response
     from hybridqcm.estimation.exact import exact_sensitivities
+    from hybridqcm.estimation.problems import LeastSquaresProblem
+    from hybridqcm.estimation.response import EulerResponse
     from hybridqcm.estimation.solver import GaussNewton, SolverConfig
 
     gn_args = argparse.Namespace(
         samples=args.samples, steps=args.steps, margin=args.margin, hold="spline", substeps=args.substeps
     )
     cases = bench_exact.gn_cases(gn_args)
+    # the Euler model with x0 unknown too (θ = p, x0: the exact model's 17 columns), beside bench_exact's from rest
+    problem, init = cases["euler"]
+    euler_x0 = EulerResponse(0.01, initial_state="unknown")
+    theta0 = torch.cat([init, torch.zeros(init.shape[0], 6, dtype=torch.float64)], 1)
+    cases = {
+        "euler": cases["euler"],
+        "euler x0": (LeastSquaresProblem(problem.targets, problem.inputs, 0.01, model=euler_x0), theta0),
+        **{k: v for k, v in cases.items() if k != "euler"},
+    }
     solver = GaussNewton(SolverConfig(max_iterations=1, num_threads=threads, chunk_size=args.chunk))
     original = response.exact_sensitivities
     best: dict[str, float] = {}
@@ -412,6 +425,8 @@ def main() -> None:
         args.samples, args.repeats = min(args.samples, 300), 1
     before = torch.get_num_threads()
     for threads in args.threads:
+        load = ", ".join(f"{x:.2f}" for x in os.getloadavg())  # a shared machine: say how busy it was
+        print(f"\nload average before the {threads}-thread run: {load} ({os.cpu_count()} CPUs)")
         torch.set_num_threads(threads)
         limits = machine_limits(args.quick, args.repeats)
         best, terms = time_iterations(args, threads)
