@@ -100,14 +100,12 @@ def _model(name: str):
     return {"quarter": QuarterCarRoad, "seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}[name]()
 
 
-def gauss_newton(args) -> None:
-    """One GN iteration over all samples: Euler vs exact (recursion) vs exact (modal)."""
-    import functools
-
+def gn_cases(args) -> dict:
+    """The --gn setup (also bench/roofline.py's): {name: (problem, θ0)} for one GN iteration over
+    args.samples x args.steps, inputs with args.margin samples on each side; "euler" from rest,
+    "exact recursion" and "exact modal" with x0 unknown (one ExactResponse shared by both)."""
     import hybridqcm.estimation.response as response
-    from hybridqcm.estimation.exact import exact_sensitivities
     from hybridqcm.estimation.problems import LeastSquaresProblem
-    from hybridqcm.estimation.solver import GaussNewton, SolverConfig
     from hybridqcm.physics import reference_params
     from hybridqcm.physics.linear_models import QuarterCarRoad
     from hybridqcm.testing import synthetic_samples
@@ -119,12 +117,24 @@ def gauss_newton(args) -> None:
     accel, road = data["accel"][:, margin : margin + N].to(torch.float64), data["road"].to(torch.float64)
     exact = response.ExactResponse(QuarterCarRoad(), 0.01, args.hold, args.substeps, initial_state="unknown")
     theta0 = torch.cat([init, torch.zeros(n, 6, dtype=torch.float64)], 1)
-    solver = GaussNewton(SolverConfig(max_iterations=1, num_threads=args.threads, chunk_size=args.chunk))
-    cases = {
+    return {
         "euler": (LeastSquaresProblem(accel, road[:, margin : margin + N], 0.01), init),
         "exact recursion": (LeastSquaresProblem(accel, road, 0.01, model=exact, input_offset=margin), theta0),
         "exact modal": (LeastSquaresProblem(accel, road, 0.01, model=exact, input_offset=margin), theta0),
     }
+
+
+def gauss_newton(args) -> None:
+    """One GN iteration over all samples: Euler vs exact (recursion) vs exact (modal)."""
+    import functools
+
+    import hybridqcm.estimation.response as response
+    from hybridqcm.estimation.exact import exact_sensitivities
+    from hybridqcm.estimation.solver import GaussNewton, SolverConfig
+
+    n, N, margin = args.samples, args.steps, args.margin
+    solver = GaussNewton(SolverConfig(max_iterations=1, num_threads=args.threads, chunk_size=args.chunk))
+    cases = gn_cases(args)
     original = response.exact_sensitivities
     best: dict[str, float] = {}
     try:
