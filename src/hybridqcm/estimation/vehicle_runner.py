@@ -18,9 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from lightning.fabric.utilities.rank_zero import rank_zero_only
 
-from hybridqcm import config, runfolder
 from hybridqcm.estimation.blocks import RankBlocks, block_rows
 from hybridqcm.estimation.plan_vehicle import (
     VehicleBlocks,
@@ -28,7 +26,8 @@ from hybridqcm.estimation.plan_vehicle import (
     build_vehicle_refinement,
     validate_vehicle,
 )
-from hybridqcm.estimation.shards import ShardStore, ShardWriter, run_fingerprint
+from hybridqcm.estimation.runner import prepare_run
+from hybridqcm.estimation.shards import ShardStore, ShardWriter
 from hybridqcm.estimation.tables import STATUS_HEADER, block_stage_stats, merge_stage_stats
 from hybridqcm.estimation.vehicle_front import VehicleFront
 from hybridqcm.estimation.vehicle_tables import vehicle_block_tables, vehicle_estimates_header
@@ -79,17 +78,7 @@ def solve_vehicle(cfg, build_trainer: Callable, run_dir: Path) -> VehicleSolved 
     ``build_trainer(cfg, callbacks, run_dir)`` is estimation/runner.py's. None on ranks other than the first."""
     t_start = time.perf_counter()
     plan = validate_vehicle(cfg)
-    config.check_writable_dir(run_dir)
-    store = ShardStore(run_dir, run_fingerprint(cfg, [plan["path"]]))
-    if rank_zero_only.rank == 0:
-        runfolder.prepare_run_dir(
-            run_dir,
-            runfolder.ESTIMATE_ARTEFACTS,
-            bool(cfg.get("overwrite", False)),
-            scratch=runfolder.ESTIMATE_SCRATCH,
-        )
-        if cfg.get("overwrite", False):
-            store.remove()
+    store = prepare_run(cfg, plan, run_dir, [plan["path"]])
     n_samples = plan["n_samples"]
     blocks = block_rows(n_samples, int(cfg.batch_size))
     pending = store.pending(blocks)
