@@ -389,7 +389,7 @@ def test_sprung_persons_are_weighed_by_their_static_mass(persons_file, tmp_path)
 @pytest.mark.slow
 def test_road_driven_persons_from_a3_alone(tmp_path):
     """exp 8 (a3 and the road measured, p3, p5 known) on another simulator's seated persons: with the body
-    models the static mass is within 1 %; the rigid model is > 10 % off."""
+    models the static mass is within 1 % and body1 is chosen; the rigid model is > 10 % off on average."""
     import csv
     import subprocess
     import sys
@@ -417,5 +417,9 @@ def test_road_driven_persons_from_a3_alone(tmp_path):
         m3 = torch.tensor(f["test/truth_m3"][()])
     est = torch.tensor([float(r["m3"]) for r in rows])
     assert ((est / m3 - 1).abs() < 0.01).all()
-    assert ((torch.tensor([float(r["m3_rigid"]) for r in rows]) / m3 - 1).abs() > 0.1).all()
+    # the rigid model is far off on average (a person with little mass on the body mode can come close) and
+    # never the one chosen
+    rigid_error = (torch.tensor([float(r["m3_rigid"]) for r in rows]) / m3 - 1).abs()
+    assert rigid_error.mean() > 0.1 and rigid_error.max() > 0.3, rigid_error
+    assert [r["occupant_model"] for r in rows] == ["body1"] * len(rows)
     assert not (tmp_path / "run" / "plots" / f"apparent_mass_{0:06d}.png").exists()  # a2 is not measured
