@@ -208,3 +208,32 @@ def test_models_modules_import_only_the_layers_below(module):
     graph = import_graph()
     inside = {m for m in graph[module] if m.startswith("hybridqcm.models")}
     assert inside <= MODELS_LAYERS[module], sorted(inside - MODELS_LAYERS[module])
+
+
+# The package's layers (issue 29): a module imports only its own layer and those below. Top-level helper
+# modules (errors, atomic, config, console, metrics, plots, ...) sit below everything except `training`
+# (qcm-train's work) and `testing` (fixtures for tests and bench), which build on models and estimation.
+PACKAGE_LAYERS = ("physics", "data", "models", "estimation", "reports", "pipelines", "apps")
+
+
+def _layer(module: str) -> int:
+    part = module.split(".")[1] if module.count(".") >= 1 else ""
+    if part in PACKAGE_LAYERS:
+        return PACKAGE_LAYERS.index(part)
+    return PACKAGE_LAYERS.index("reports") if part in ("training", "testing") else -1  # helpers: below all
+
+
+def test_package_layers_point_down():
+    graph = import_graph()
+    upward = sorted(
+        f"{module} -> {target}"
+        for module, targets in graph.items()
+        for target in targets
+        if _layer(target) > max(_layer(module), -1) and not (_layer(module) == -1 and _layer(target) == -1)
+    )
+    assert not upward, upward
+
+
+def test_layer_check_sees_an_upward_import():
+    assert _layer("hybridqcm.estimation.runner") < _layer("hybridqcm.reports.vehicle")
+    assert _layer("hybridqcm.config") < _layer("hybridqcm.physics.road") < _layer("hybridqcm.apps.estimate")
