@@ -56,6 +56,23 @@ def estimates_header(theta_names: Sequence[str], n_params: int, extra: Sequence[
 SEAT_COLUMNS = ("occupant_mass", "occupant_mass_low", "occupant_mass_high")
 
 
+def status_row(record: Mapping, i: int, index: int, status: str) -> list:
+    """Row ``i`` of a block's status.csv (STATUS_HEADER) from the refinement's record (its final fit);
+    ``index`` is the recording's row in the file, ``status`` its label."""
+    result = record["final"]
+    return [
+        index,
+        status,
+        int(result.iterations[i]),
+        repr(float(result.loss[i])),
+        repr(float(record["relative_loss"][i])),
+        int(record["restarts"][i]),
+        repr(float(result.condition_number[i])),
+        repr(float(result.relative_residual[i])),
+        repr(float(result.whiteness[i])),
+    ]
+
+
 def block_tables(
     record: Mapping,
     n_params: int,
@@ -88,7 +105,6 @@ def block_tables(
         extra_values += [torch.as_tensor(c) for c in seat.occupant_interval(p2, p2_low, p2_high)]
     index = record["index"]
     rows, status_rows = [], []
-    condition = result.condition_number
     for i in range(params.shape[0]):
         rows.append(
             [
@@ -105,19 +121,7 @@ def block_tables(
                 *[v[i] if isinstance(v, list) else repr(float(v[i])) for v in extra_values],
             ]
         )
-        status_rows.append(
-            [
-                int(index[i]),
-                status[i],
-                int(result.iterations[i]),
-                repr(float(result.loss[i])),
-                repr(float(record["relative_loss"][i])),
-                int(record["restarts"][i]),
-                repr(float(condition[i])),
-                repr(float(result.relative_residual[i])),
-                repr(float(result.whiteness[i])),
-            ]
-        )
+        status_rows.append(status_row(record, i, int(index[i]), status[i]))
     scored = n_params if n_scored is None else n_scored
     columns = {
         "index": index.long(),

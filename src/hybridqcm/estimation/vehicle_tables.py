@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 from hybridqcm.estimation.solver import STATUS_LABELS
+from hybridqcm.estimation.tables import status_row
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
 
 
@@ -35,7 +36,6 @@ def vehicle_block_tables(record: Mapping, n_params: int, names: Sequence[str], l
     high = params[:, masses] + 1.96 * std[:, masses]
     index = record["index"]
     rows, status_rows = [], []
-    condition = result.condition_number
     for i in range(params.shape[0]):
         bounds = [repr(float(v)) for pair in zip(low[i], high[i]) for v in pair]
         rows.append(
@@ -49,19 +49,7 @@ def vehicle_block_tables(record: Mapping, n_params: int, names: Sequence[str], l
                 *[repr(float(x)) for x in x0_std[i]],
             ]
         )
-        status_rows.append(
-            [
-                int(index[i]),
-                status[i],
-                int(result.iterations[i]),
-                repr(float(result.loss[i])),
-                repr(float(record["relative_loss"][i])),
-                int(record["restarts"][i]),
-                repr(float(condition[i])),
-                repr(float(result.relative_residual[i])),
-                repr(float(result.whiteness[i])),
-            ]
-        )
+        status_rows.append(status_row(record, i, int(index[i]), status[i]))
     columns = {
         "index": index.long(),
         "params": params.double(),
