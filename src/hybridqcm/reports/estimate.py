@@ -40,6 +40,19 @@ def noise_label(noise_sigma: float, sensor) -> str:
     return "; ".join(parts) or "none"
 
 
+def failed_and_errors(params, true, status_codes, free, summary: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """(failed [M] bool, relative errors [M, len(free)] of the free parameters, inf where failed), and the
+    summary's failed_samples / all_within_1pct / all_within_10pct. A diverged or non-finite sample counts
+    as failed (and, in the callers, as not covered), never as a success."""
+    failed = ~torch.isfinite(params).all(1) | (status_codes == int(SolverStatus.DIVERGED))
+    err = ((params - true).abs() / true.abs())[:, free]
+    err = torch.where(failed[:, None] | ~torch.isfinite(err), torch.full_like(err, math.inf), err)
+    summary["failed_samples"] = int(failed.sum())
+    summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
+    summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
+    return failed, err
+
+
 def write_metrics(
     cfg,
     columns: Mapping[str, torch.Tensor],
@@ -82,13 +95,7 @@ def write_metrics(
     window = cfg.n_steps if n_steps is None else n_steps
     title = f"{cfg.experiment_name}: {n} samples, N = {window}, sensor noise: {noise}"
     write_error_distribution(table_rows, run_dir, title=title)
-    # A diverged or non-finite sample counts as failed / not covered, never as a success.
-    failed = ~torch.isfinite(params).all(1) | (status_codes == int(SolverStatus.DIVERGED))
-    err = ((params - true).abs() / true.abs())[:, free]
-    err = torch.where(failed[:, None] | ~torch.isfinite(err), torch.full_like(err, math.inf), err)
-    summary["failed_samples"] = int(failed.sum())
-    summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
-    summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
+    failed, err = failed_and_errors(params, true, status_codes, free, summary)
     # calibration: fraction of true values inside the 95 % interval; a failed sample or an infinite
     # interval (diverged, not identifiable) covers nothing: it is a failure, not a success.
     cal_rows = []

@@ -24,7 +24,7 @@ from hybridqcm.console import print_table
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
 from hybridqcm.metrics import coverage_95, error_distribution_rows, write_error_distribution
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
-from hybridqcm.reports.estimate import log_stage_losses
+from hybridqcm.reports.estimate import failed_and_errors, log_stage_losses
 
 
 def write_vehicle_metrics(cfg, columns: Mapping[str, torch.Tensor], plan: Mapping, run_dir: Path, noise: str):
@@ -47,12 +47,7 @@ def write_vehicle_metrics(cfg, columns: Mapping[str, torch.Tensor], plan: Mappin
     title = f"{cfg.experiment_name}: {n} samples, N = {plan['n_steps']}, sensor noise: {noise}"
     table_rows = error_distribution_rows(params[:, free], true[:, free], free_names)
     write_error_distribution(table_rows, run_dir, title=title)
-    failed = ~torch.isfinite(params).all(1) | (status_codes == int(SolverStatus.DIVERGED))
-    err = ((params - true).abs() / true.abs())[:, free]
-    err = torch.where(failed[:, None] | ~torch.isfinite(err), torch.full_like(err, math.inf), err)
-    summary["failed_samples"] = int(failed.sum())
-    summary["all_within_1pct"] = float((err <= 0.01).all(1).double().mean())
-    summary["all_within_10pct"] = float((err <= 0.10).all(1).double().mean())
+    failed, err = failed_and_errors(params, true, status_codes, free, summary)
     summary["worst_parameter_within_1pct"] = min(
         ((name, float((err[:, k] <= 0.01).double().mean())) for k, name in enumerate(free_names)), key=lambda x: x[1]
     )
