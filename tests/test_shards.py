@@ -223,3 +223,15 @@ def test_cpu_ranks_are_forked_at_one_thread_and_other_accelerators_keep_their_st
     strategy = runner.instantiate(cfg.trainer.strategy)
     assert not isinstance(strategy, ForkedCPUDDP) and strategy._start_method == "spawn"
     assert not runner._resolves_to_cpu("gpu") and runner._resolves_to_cpu("cpu")
+
+
+def test_gn_device_is_cpu_or_the_accelerator_and_named_when_wrong(tiny_dataset, tmp_path, monkeypatch):
+    from hybridqcm.estimation.runner import gn_on_device
+
+    build = object()
+    assert gn_on_device(_cfg([*ROADFREE]), lambda: build) is None  # the default: GN on the CPU
+    assert gn_on_device(_cfg([*ROADFREE, "gn_device=accelerator"]), lambda: build)() is build
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=r"^gn_device='gpu': choose one of \['cpu', 'accelerator'\]$"):
+        run(_cfg([*ROADFREE, f"data.path={tiny_dataset}", "n_samples=2", "gn_device=gpu"]))
+    assert not (tmp_path / "estimates.csv").exists()

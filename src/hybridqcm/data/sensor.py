@@ -51,12 +51,13 @@ def keyed_normals(keys: Sequence[Sequence[int]], shape: tuple[int, ...]) -> Tens
     """[len(keys), *shape] float64 standard normals, row k from a generator of its own seeded by
     numpy's SeedSequence(keys[k]): a row depends on its key alone, never on the other rows of the
     batch (per-sample sensor noise, per-recording restart draws)."""
-    out = torch.empty(len(keys), *shape, dtype=torch.float64)
+    # drawn on the CPU whatever the default device (GN on a GPU): the same numbers on every machine
+    out = torch.empty(len(keys), *shape, dtype=torch.float64, device="cpu")
     generator = torch.Generator()
     for row, key in enumerate(keys):
         state = np.random.SeedSequence([int(k) for k in key]).generate_state(2, np.uint32)
         generator.manual_seed(int(state[0]) << 32 | int(state[1]))
-        out[row] = torch.randn(*shape, generator=generator, dtype=torch.float64)
+        out[row] = torch.randn(*shape, generator=generator, dtype=torch.float64, device="cpu")
     return out
 
 

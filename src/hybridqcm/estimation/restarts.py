@@ -77,7 +77,7 @@ class Restarts:
         """[len(index), width] float64 standard normal draws for restart ``attempt`` of the recordings
         ``index``, each from its own generator seeded by (seed, recording, attempt)."""
         keys = [[self.seed % 2**63, int(i) % 2**63, int(attempt), 2] for i in index.tolist()]
-        return keyed_normals(keys, (width,))
+        return keyed_normals(keys, (width,)).to(index.device)
 
 
 def flag_outliers(

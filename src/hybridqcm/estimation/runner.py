@@ -32,6 +32,7 @@ from lightning.pytorch.strategies import DDPStrategy
 from omegaconf import DictConfig
 
 from hybridqcm import config, runfolder
+from hybridqcm.errors import ConfigError
 from hybridqcm.estimation.blocks import InputSettings, RankBlocks, RecordingBlocks, block_rows
 from hybridqcm.estimation.front import HybridEstimator
 from hybridqcm.estimation.plan_occupant import build_selection
@@ -51,6 +52,8 @@ from hybridqcm.estimation.tables import (
 )
 from hybridqcm.estimation.weighting import NoiseWeighting
 from hybridqcm.physics.parameters import PARAM_NAMES, PhysicalConstants
+
+GN_DEVICES = ("cpu", "accelerator")  # gn_device: where Gauss-Newton runs
 
 
 def build_module(cfg, plan) -> HybridEstimator:
@@ -280,6 +283,15 @@ def prepare_run(cfg, plan, run_dir: Path, inputs_used) -> ShardStore:
     return store
 
 
+def gn_on_device(cfg, build: Callable):
+    """``build`` (a refinement factory) where GN is to run on the trainer's device (gn_device=accelerator),
+    else None (GN on the CPU). Refused in one line unless gn_device is cpu or accelerator."""
+    where = str(cfg.get("gn_device", "cpu"))
+    if where not in GN_DEVICES:
+        raise ConfigError(f"gn_device={where!r}: choose one of {list(GN_DEVICES)}")
+    return build if where == "accelerator" else None
+
+
 def run_blocks(cfg, plan) -> list[tuple[int, int]]:
     """The run's blocks [start, stop) of recordings: batch_size each, at most block_samples time steps."""
     per_block = int(cfg.batch_size)
@@ -316,6 +328,7 @@ def solve(cfg, plan, run_dir: Path, store: ShardStore, refinement, tables: Estim
         block_stage_stats,
         tables.skipped,
         merge_block_tables,
+        gn_on_device(cfg, lambda: build_refinement(cfg, plan)),
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:
@@ -372,6 +385,7 @@ __all__ = [
     "Solved",
     "build_module",
     "build_refinement",
+    "gn_on_device",
     "build_trainer",
     "estimate_tables",
     "max_rss_mib",

@@ -157,6 +157,7 @@ class EstimateSettings:
     overwrite: bool = MISSING
     batch_size: int = MISSING
     block_samples: Optional[int] = MISSING
+    gn_device: str = MISSING  # cpu | accelerator
     keep_shards: bool = MISSING
     plots: bool = MISSING
     tensorboard: bool = MISSING

@@ -111,6 +111,7 @@ class ShardStore:
         stats,
         seconds: tuple[float, float] = (float("nan"), float("nan")),
         device: str | None = None,
+        device_memory_mib: float | None = None,
     ) -> None:
         atomic_write_csv(self.path(block, ".csv"), header, estimates)
         atomic_write_csv(self.path(block, ".status.csv"), status_header, status)
@@ -125,6 +126,7 @@ class ShardStore:
             "fingerprint": self.fingerprint,
             "pid": os.getpid(),
             "device": device,  # where the predict step (the networks) ran, e.g. cuda:0
+            "device_memory_mib": device_memory_mib,  # peak of GN on that device (gn_device=accelerator)
         }
         atomic_write_text(self.path(block, ".done.json"), json.dumps(record) + "\n")
 
@@ -190,8 +192,14 @@ class BlockRefinement(GaussNewtonRefinement):
 
 
 class ShardWriter(BasePredictionWriter):
-    """Prediction writer: runs the GN stages on each predicted block (on the CPU, float64) and writes
-    the block's shard. ``tables(record) -> (rows, status rows, columns)`` formats a block."""
+    """Prediction writer: runs the GN stages on each predicted block (float64) and writes the block's
+    shard. ``tables(record) -> (rows, status rows, columns)`` formats a block.
+
+    GN runs on the CPU unless ``on_device`` builds a refinement for the predict device (gn_device=
+    accelerator): then, on a non-CPU device, that refinement is built once per device and the block is
+    solved under ``torch.device(device)``, so every tensor the solve makes (states, masks, line-search
+    steps, the refinement's own constants) lives beside the block; the record comes back to the CPU
+    for the tables. A block's peak device memory is in its marker (``device_memory_mib``)."""
 
     def __init__(
         self,
@@ -203,21 +211,39 @@ class ShardWriter(BasePredictionWriter):
         stage_stats: Callable,
         skipped_tables: Callable | None = None,
         merge_tables: Callable | None = None,
+        on_device: Callable[[], BlockRefinement] | None = None,
     ):
         super().__init__(write_interval="batch")
         self.store, self.refinement = store, refinement
+        self.on_device, self._device_refinements = on_device, {}
         self.header, self.status_header = list(header), list(status_header)
         self.tables, self.stage_stats = tables, stage_stats
         # windows kept from the fit (batch "skipped_index"/"skipped_status"): their rows, merged in index order
         self.skipped_tables, self.merge_tables = skipped_tables, merge_tables
 
+    def _refine(self, prediction, pl_module, block: int) -> tuple[dict, float | None]:
+        """(the block's record on the CPU, the solve's peak device memory in MiB or None on the CPU)."""
+        device = pl_module.device
+        if self.on_device is None or device.type == "cpu":
+            return self.refinement.refine_block(move_data_to_device(prediction, "cpu"), pl_module, block), None
+        with torch.device(device):
+            refinement = self._device_refinements.get(str(device))
+            if refinement is None:
+                refinement = self._device_refinements[str(device)] = self.on_device()
+            cuda = device.type == "cuda"
+            if cuda:
+                torch.cuda.reset_peak_memory_stats(device)
+            record = refinement.refine_block(prediction, pl_module, block)
+            memory = torch.cuda.max_memory_allocated(device) / 2**20 if cuda else None
+        return move_data_to_device(record, "cpu"), memory
+
     def write_on_batch_end(self, trainer, pl_module, prediction, batch_indices, batch, batch_idx, dataloader_idx=0):
         t0, c0 = time.perf_counter(), time.process_time()
         block = int(batch["block"])
         tables, stats = None, {}
+        memory = None
         if int(batch["index"].shape[0]):  # a block of windows all kept from the fit has nothing to refine
-            prediction = move_data_to_device(prediction, "cpu")
-            record = self.refinement.refine_block(prediction, pl_module, block)
+            record, memory = self._refine(prediction, pl_module, block)
             tables, stats = self.tables(record), self.stage_stats(record)
             true = batch.get("true")
             tables[2]["true"] = None if true is None else true.detach().cpu().double()
@@ -238,6 +264,7 @@ class ShardWriter(BasePredictionWriter):
             stats,
             (time.perf_counter() - t0, time.process_time() - c0),
             str(pl_module.device),
+            memory,
         )
 
 

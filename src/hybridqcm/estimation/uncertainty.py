@@ -168,8 +168,8 @@ def robust_covariance(
         data_cov = meat
         if cfg.covariance_dof:
             # The variance is estimated from few effective groups: widen to the Student-t quantile.
-            nu = dof.clamp_min(1.0).numpy()
-            ratio = torch.from_numpy(student_t.ppf(0.975, nu) / student_t.ppf(0.975, math.inf)).to(data_cov.dtype)
+            nu = dof.clamp_min(1.0).cpu().numpy()
+            ratio = torch.from_numpy(student_t.ppf(0.975, nu) / student_t.ppf(0.975, math.inf)).to(data_cov)
             data_cov = data_cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
     else:
         factor = n_groups / (n_groups - n_free)

@@ -26,7 +26,7 @@ from hybridqcm.estimation.plan_vehicle import (
     build_vehicle_refinement,
     validate_vehicle,
 )
-from hybridqcm.estimation.runner import prepare_run
+from hybridqcm.estimation.runner import gn_on_device, prepare_run
 from hybridqcm.estimation.shards import ShardStore, ShardWriter
 from hybridqcm.estimation.tables import STATUS_HEADER, block_stage_stats, merge_stage_stats
 from hybridqcm.estimation.vehicle_front import VehicleFront
@@ -94,6 +94,7 @@ def solve_vehicle(cfg, build_trainer: Callable, run_dir: Path) -> VehicleSolved 
         STATUS_HEADER,
         lambda record: vehicle_block_tables(record, len(model.param_names), model.param_names, layout),
         block_stage_stats,
+        on_device=gn_on_device(cfg, lambda: build_vehicle_refinement(cfg, plan)),
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:  # as apps/estimate.py: tensors to spawned ranks through the file system

@@ -336,6 +336,9 @@ def run_summary(cfg, plan, solved, run_dir: Path) -> dict:
         "seconds_blocks_per_process": _per_process_seconds(markers),
         "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
         "predict_devices": sorted({m["device"] for m in markers if m.get("device")}),  # the networks' device(s)
+        "gn_device": str(cfg.get("gn_device", "cpu")),
+        # peak memory of one block's GN on the device (gn_device=accelerator on a GPU), else null
+        "device_memory_mib": max((m["device_memory_mib"] for m in markers if m.get("device_memory_mib")), default=None),
     }
 
 
