@@ -102,9 +102,9 @@ def test_exp10_on_the_gpu_gives_the_cpu_estimates(tiny_dataset, tmp_path, monkey
     "experiment",
     [
         ["experiment=exp5_random_init", "n_samples=8"],  # the exact model, x0 unknown, restarts
-        ["experiment=occupant_roadfree", "n_samples=8", "noise_sigma=0.05"],  # model selection, delay, intervals
+        ["experiment=exp8_occupant_only", "n_samples=8", "noise_sigma=0.05"],  # noise model, intervals
     ],
-    ids=["exp5", "occupant_roadfree"],
+    ids=["exp5", "exp8_noise"],
 )
 def test_gauss_newton_on_the_gpu_gives_the_cpu_estimates(experiment, tmp_path, monkeypatch):
     from conftest import make_foreign

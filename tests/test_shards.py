@@ -235,3 +235,7 @@ def test_gn_device_is_cpu_or_the_accelerator_and_named_when_wrong(tiny_dataset, 
     with pytest.raises(ConfigError, match=r"^gn_device='gpu': choose one of \['cpu', 'accelerator'\]$"):
         run(_cfg([*ROADFREE, f"data.path={tiny_dataset}", "n_samples=2", "gn_device=gpu"]))
     assert not (tmp_path / "estimates.csv").exists()
+    # the road-free occupant fit is not validated on a GPU: refused before any work, wherever it would run
+    with pytest.raises(ConfigError, match=r"^gn_device=accelerator: only the road-driven quarter car's"):
+        run(_cfg([*ROADFREE, f"data.path={tiny_dataset}", "n_samples=2", "gn_device=accelerator"]))
+    assert not (tmp_path / "estimates.csv").exists()

@@ -94,7 +94,7 @@ def solve_vehicle(cfg, build_trainer: Callable, run_dir: Path) -> VehicleSolved 
         STATUS_HEADER,
         lambda record: vehicle_block_tables(record, len(model.param_names), model.param_names, layout),
         block_stage_stats,
-        on_device=gn_on_device(cfg, lambda: build_vehicle_refinement(cfg, plan)),
+        on_device=gn_on_device(cfg, lambda: build_vehicle_refinement(cfg, plan), road_driven=False),
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:  # as apps/estimate.py: tensors to spawned ranks through the file system
