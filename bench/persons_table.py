@@ -253,8 +253,8 @@ def speed(args) -> None:
             r, p = med["rigid"], med["persons"]
             print(
                 f"| tree{t} | {name} | {r['wall']:.2f} ({r['cpu']:.2f}) | {p['wall']:.2f} ({p['cpu']:.2f}) | "
-                f"{p['wall'] / r['wall']:.1f}× ({p['cpu'] / r['cpu']:.1f}×) | {args.n / r['wall']:.0f} | "
-                f"{args.n / p['wall']:.1f} |"
+                f"{p['wall'] / r['wall']:.1f}× ({p['cpu'] / r['cpu']:.1f}×) | {args.n / r['wall']:.1f} | "
+                f"{args.n / p['wall']:.2f} |"
             )
 
 
