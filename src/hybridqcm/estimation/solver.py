@@ -181,6 +181,7 @@ class _Run:
     active: Tensor
     history: list = field(default_factory=list)
     seconds: list = field(default_factory=list)
+    exponent: Tensor | None = None  # [batch] each sample's last accepted e (α = α0 2^-e): "interpolate" starts there
 
 
 class NonlinearLeastSquares(ABC):
@@ -287,6 +288,7 @@ class NonlinearLeastSquares(ABC):
             iterations=torch.zeros(batch, dtype=torch.int64),
             loss=torch.full((batch,), math.inf, dtype=dtype),
             active=~bad_start,
+            exponent=torch.zeros(batch, dtype=torch.long),
         )
 
     def _stop(self, run: _Run, index: Tensor, iteration: int) -> None:
@@ -428,7 +430,9 @@ class NonlinearLeastSquares(ABC):
     def _line_search(self, run: _Run, index, step, loss_now, predicted):
         """Per-sample Armijo backtracking over α = α0 2^-e, e = 0..max_backtracks; returns (α [b] with 0 = none
         found, new loss [b]). "halve" tries e = 0, 1, 2, ... and takes the first that passes; "interpolate" takes
-        the same α where the test passes for every e from some e* on (_next_exponent), in fewer trials."""
+        the same α where the test passes for every e from some e* on (_next_exponent), in fewer trials: it starts
+        one e above the sample's last accepted one (a weakly identified direction overshoots alike from one
+        iteration to the next), where a failure confirms everything above it."""
         cfg, params, free = self.config, run.params, run.free
         b = index.numel()
         alpha0 = torch.full((b,), cfg.initial_step, dtype=params.dtype)
@@ -436,6 +440,8 @@ class NonlinearLeastSquares(ABC):
             relative = self._relative_step(step, params[index][:, free])
             alpha0 = torch.minimum(alpha0, cfg.max_relative_step / relative.clamp_min(1e-300))
         exponent = torch.zeros(b, dtype=torch.long)  # the trial's e
+        if cfg.backtrack == "interpolate":  # one e above the last accepted one: where it fails, e* is known
+            exponent = (run.exponent[index] - 1).clamp(0, cfg.max_backtracks)
         failed = torch.full((b,), -1, dtype=torch.long)  # the largest e that failed (-1: none yet)
         passed = torch.full((b,), cfg.max_backtracks + 1, dtype=torch.long)  # the smallest e that passed
         new_loss = loss_now.clone()
@@ -473,6 +479,7 @@ class NonlinearLeastSquares(ABC):
             searching[pos[nxt > cfg.max_backtracks]] = False
             exponent[pos] = nxt
         found = passed <= cfg.max_backtracks
+        run.exponent[index[found]] = passed[found]
         accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(cfg.max_backtracks).to(params.dtype), 0.0)
         return accepted_alpha, torch.where(found, new_loss, loss_now)
 
