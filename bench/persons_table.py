@@ -4,6 +4,7 @@
     .venv/bin/python bench/persons_table.py run   [--n 100] [--files rigid_n0 body1_n5 ...]   # the runs
     .venv/bin/python bench/persons_table.py import --csv RUN/estimates.csv --file body1_n5      # a run made elsewhere
     .venv/bin/python bench/persons_table.py table [--out docs/results/persons.md]              # the table
+    .venv/bin/python bench/persons_table.py speed --n 32 --files rigid_n5 [--trees OLD .]      # the time ratio
 
 The recordings come from the second simulator (bench/foreign_sim.py; data/persons/*.h5, made as its
 docstring says, 400 each) and the bounds from bench/occupant_crb.py (data/persons/crb_<file>.json). `run`
@@ -12,7 +13,12 @@ estimates the first --n recordings of each file twice, into outputs/persons/<fil
 default: rigid, body1, body2 by evidence, delay auto), on two processes; a run folder that holds a
 summary.json is kept. `import CSV FILE` files an estimates.csv made elsewhere (a larger machine's run of
 the same command) as FILE's "after" run. `table` reads the run folders (estimates.csv against the file's truth) and
-writes the markdown table with the commands that produced it.
+writes the markdown table with the commands that produced it. `speed` times both methods on the same first --n
+recordings of each file, one process each (`trainer=cpu batch_size=N`), alternating `--repeat` times, and prints
+seconds_solve (wall) and the process's CPU seconds of each, the ratio default / rigid (issue 28's target ≤ 4×) and
+the recordings per second of seconds_solve (issue 33's target ≥ 800 for the default on rigid recordings); with
+`--trees` the same for each source tree (its src/ and configs/, e.g. an exported copy of main), side by side in
+one run so that the machine's load falls on all alike.
 """
 
 from __future__ import annotations
@@ -194,6 +200,64 @@ def table(args) -> None:
     print("\n".join(lines))
 
 
+def _speed_once(tree: Path, name: str, method: str, n: int, folder: Path) -> dict:
+    """One timed run of ``method`` on the first ``n`` recordings of ``name`` with the code of ``tree``."""
+    import os
+
+    command = [
+        str(Path(sys.executable).parent / "qcm-estimate"),
+        *METHODS[method],
+        f"data.path={DATA / (name + '.h5')}",
+        f"n_samples={n}",
+        f"hydra.run.dir={folder}",
+        "trainer=cpu",
+        f"batch_size={n}",
+        "progress=false",
+        "plots=false",
+        "tensorboard=false",
+        "overwrite=true",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(tree / "src")}
+    proc = subprocess.run(command, capture_output=True, text=True, cwd=tree, env=env)
+    if proc.returncode != 0:
+        sys.exit(f"{name} {method} ({tree}): qcm-estimate failed: {proc.stderr.strip().splitlines()[-1:]}")
+    summary = json.loads((folder / "summary.json").read_text())
+    return {"wall": float(summary["seconds_solve"]), "cpu": float(summary["cpu_seconds_blocks"])}
+
+
+def speed(args) -> None:
+    """Both methods' solve time on the same recordings, alternating, per tree (module docstring)."""
+    trees = [Path(t).resolve() for t in args.trees]
+    args.runs = args.runs.resolve()
+    times: dict = {}
+    for repeat in range(args.repeat):
+        for name in args.files:
+            if not (DATA / f"{name}.h5").is_file():
+                sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
+            for t, tree in enumerate(trees):
+                for method in METHODS:
+                    folder = args.runs / f"{name}__{method}__tree{t}"
+                    took = _speed_once(tree, name, method, args.n, folder)
+                    times.setdefault((t, name, method), []).append(took)
+                    print(f"# {name} {method} tree{t} run {repeat + 1}: {took['wall']:.2f} s, cpu {took['cpu']:.2f} s")
+    print(f"\n{args.n} recordings each, one process, {args.repeat} alternating run(s) (median); trees:")
+    for t, tree in enumerate(trees):
+        print(f"  tree{t}: {tree}")
+    print("\n| tree | file | rigid s (cpu) | default s (cpu) | default / rigid (cpu) | rec/s rigid | rec/s default |")
+    print("|---|---|---|---|---|---|---|")
+    for t in range(len(trees)):
+        for name in args.files:
+            med = {
+                m: {k: float(np.median([x[k] for x in times[(t, name, m)]])) for k in ("wall", "cpu")} for m in METHODS
+            }
+            r, p = med["rigid"], med["persons"]
+            print(
+                f"| tree{t} | {name} | {r['wall']:.2f} ({r['cpu']:.2f}) | {p['wall']:.2f} ({p['cpu']:.2f}) | "
+                f"{p['wall'] / r['wall']:.1f}× ({p['cpu'] / r['cpu']:.1f}×) | {args.n / r['wall']:.1f} | "
+                f"{args.n / p['wall']:.2f} |"
+            )
+
+
 def import_run(args) -> None:
     """An estimates.csv of the "after" command made on another machine, filed as FILE's run (no timing)."""
     import shutil
@@ -225,8 +289,14 @@ def main(argv=None) -> None:
     i = sub.add_parser("import", help="file an estimates.csv made elsewhere as a file's after-run")
     i.add_argument("--csv", required=True)
     i.add_argument("--file", required=True, choices=FILES)
+    v = sub.add_parser("speed", help="time the default against the rigid one-clock fit, side by side")
+    v.add_argument("--n", type=int, default=32)
+    v.add_argument("--files", nargs="+", default=["rigid_n5", "body1_n5"])
+    v.add_argument("--repeat", type=int, default=1, help="alternating runs of each (the median is printed)")
+    v.add_argument("--trees", nargs="+", default=[str(ROOT)], help="source trees (their src/ and configs/)")
+    v.add_argument("--runs", type=Path, default=ROOT / "outputs" / "persons_speed_bench")
     args = ap.parse_args(argv)
-    {"run": run, "table": table, "import": import_run}[args.command](args)
+    {"run": run, "table": table, "import": import_run, "speed": speed}[args.command](args)
 
 
 if __name__ == "__main__":

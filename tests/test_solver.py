@@ -291,3 +291,54 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
             model=_linear_model(design),
             prior_mean=mean,
         )
+
+
+def _armijo_search(phi, loss0, slope, last=30):
+    """Drive _next_exponent on a 1-D loss φ(α) (α = 2^-e): the accepted e and the number of trials."""
+    from hybridqcm.estimation.solver import _next_exponent
+
+    failed, passed, e, trials = -1, last + 1, 0, 0
+    while 0 <= e <= last:
+        alpha = 0.5**e
+        value = phi(alpha)
+        trials += 1
+        if math.isfinite(value) and value <= loss0 - 1e-4 * alpha * slope:
+            passed = e
+        else:
+            failed = e
+        t = lambda x, dtype=torch.float64: torch.tensor([x], dtype=dtype)  # noqa: E731
+        e = int(
+            _next_exponent(t(failed, torch.long), t(passed, torch.long), t(alpha), t(value), t(loss0), t(slope), last)
+        )
+    return (passed if passed <= last else None), trials
+
+
+@pytest.mark.parametrize("power", [2, 4, 8])
+@pytest.mark.parametrize("overshoot", [1.0, 3.0, 50.0, 2000.0, 1e5])
+def test_interpolated_line_search_ends_on_the_halving_step(power, overshoot):
+    """φ(α) = L0 − gα + 1.5 g (sα)^p / (s p): a step that overshoots by ``overshoot`` a loss of growth ``power``.
+    The halving search's answer (the first e = 0, 1, ... that passes Armijo, found by a scan) is found, in far
+    fewer trials where halving needs many."""
+    loss0, slope = 10.0, 2.0
+
+    def phi(alpha):
+        x = alpha * overshoot
+        return loss0 - slope * alpha + slope / overshoot * x**power / power * 1.5 if x < 1e30 else math.inf
+
+    halving = next((e for e in range(31) if phi(0.5**e) <= loss0 - 1e-4 * 0.5**e * slope), None)
+    found, trials = _armijo_search(phi, loss0, slope)
+    assert found == halving
+    assert trials <= 7  # the parabola's guess, then a bisection of at most 30 exponents
+    if halving >= 11:
+        assert trials <= halving + 1 - 4
+
+
+def test_interpolated_line_search_gives_the_halving_estimates(data):
+    problem = LeastSquaresProblem(data["accel"][:16], data["road"][:16], H)
+    init = _near_truth(data["params"][:16], 0.3, seed=3)
+    halve = GaussNewton(SolverConfig(max_iterations=40)).solve(problem, init)
+    interpolate = GaussNewton(SolverConfig(max_iterations=40, backtrack="interpolate")).solve(problem, init)
+    assert torch.equal(interpolate.status, halve.status) and torch.equal(interpolate.iterations, halve.iterations)
+    assert torch.allclose(interpolate.params, halve.params, rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match="backtrack"):
+        GaussNewton(SolverConfig(backtrack="cubic"))
