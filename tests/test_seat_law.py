@@ -120,7 +120,23 @@ def test_a_simulated_foam_seat_calibrated_by_qcm_calibrate_recovers_its_law(tmp_
     with open(tmp_path / "est" / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     with h5py.File(unknown, "r") as f:
-        truth = f["test/truth_occupant_mass"][()][[int(r["index"]) for r in rows]]
-    assert "known_mass" not in h5py.File(unknown, "r")["test"]
+        truth_all = f["test/truth_occupant_mass"][()]
+        assert "known_mass" not in f["test"]
+    truth = truth_all[[int(r["index"]) for r in rows]]
     mass = np.array([float(r["occupant_mass"]) for r in rows])
     assert np.all(np.abs(mass / truth - 1) < 0.01), (mass, truth)
+
+    # the road-driven quarter car (exp5: all ten parameters from a3, a2, a1 and the road) reads it too
+    proc = _app(
+        "estimate", tmp_path / "road", "experiment=exp5_random_init", "n_samples=3", f"data.path={unknown}",
+        f"seat_file={seat_file}", "plots=false",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    with open(tmp_path / "road" / "estimates.csv", newline="") as handle:
+        rows = [r for r in csv.DictReader(handle) if r["status"] == "converged"]
+    assert rows
+    for r in rows:
+        truth_i = truth_all[int(r["index"])]
+        low, mass, high = (float(r[f"occupant_mass{k}"]) for k in ("_low", "", "_high"))
+        assert abs(mass / truth_i - 1) < 0.01 and low <= truth_i <= high, (r["index"], mass, truth_i)
+    assert json.loads((tmp_path / "road" / "summary.json").read_text())["mass_scale"]["calibrated"] is True
