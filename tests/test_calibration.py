@@ -185,7 +185,7 @@ def test_a_seat_file_is_created_exclusively(tmp_path):
     assert atomic_create_text(path, "second", overwrite=True).read_text() == "second"
 
 
-def test_seat_file_is_refused_outside_the_road_free_seat_model(tmp_path, tiny_dataset):
+def test_seat_file_is_read_by_the_quarter_cars_models_and_refused_by_the_half_car(tmp_path, tiny_dataset):
     from hydra import compose, initialize_config_dir
 
     from hybridqcm.config import CONFIG_DIR
@@ -195,11 +195,13 @@ def test_seat_file_is_refused_outside_the_road_free_seat_model(tmp_path, tiny_da
 
     _, seat_file = _document(tmp_path)
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose(
+        road = compose(
             "estimate", overrides=["experiment=exp5_random_init", f"data.path={tiny_dataset}", f"seat_file={seat_file}"]
         )
-    with pytest.raises(ConfigError, match="road-free seat model"):
-        seat_plan(cfg, validate(cfg))
+        half = compose("estimate", overrides=["experiment=hcm_full_observation", f"seat_file={seat_file}"])
+    assert seat_plan(road, validate(road)).exponent == pytest.approx(E)  # road-driven: p2 = K3 / M as well
+    with pytest.raises(ConfigError, match="seat_file=.*read by the quarter car's models.*vehicle_model=half_car"):
+        seat_plan(half, None)
 
 
 # ------------------------------------------------------------------------------------------------ console

@@ -62,7 +62,7 @@ def run(cfg, run_dir: Path | None = None) -> dict:
         names = list(refinement.response.theta_names)[:n_theta]
 
         def aggregate(columns):
-            return aggregate_drives(cfg, plan, drive, columns, run_dir, model_names(refinement), names)
+            return aggregate_drives(cfg, plan, drive, columns, run_dir, model_names(refinement), names, seat=seat)
 
     solved = runner.solve(cfg, plan, run_dir, store, refinement, tables)
     if solved is None:  # not rank 0: the merge and the report are rank 0's

@@ -6,6 +6,8 @@ Examples:
     qcm-simulate preset=small physics=euler                  # the source protocol: Euler from rest
     qcm-simulate h=0.002 n_steps=2560              # a 500 Hz logger (same 5.12 s window)
     qcm-simulate preset=small occupant=body1       # seated persons: seat pan + one body mode
+    qcm-simulate preset=small seat.law=power seat.exponent=0.5 seat.pan_mass=12 [seat.known_loads=[0,40,80,120]]
+                                                   # a foam seat with a pan (and calibration drives; issue 31)
     qcm-simulate vehicle=full_car seats=[driver,rear_left] output=data/fcm.h5   # the full car (issue 30)
     qcm-simulate output=data/mine.h5 seed=7 prior=physical overwrite=true
     qcm-simulate --cfg job                         # show the resolved configuration

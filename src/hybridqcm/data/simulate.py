@@ -227,6 +227,8 @@ def simulate_samples(
             if body is not None:
                 out["occupant_params"] = body
         out["warmup"] = warmup
+    if getattr(draw, "occupant", None) is not None:  # a seat law's prior (physics/seat_law.py)
+        out["occupant_mass"] = draw.occupant
     return {
         **out,
         "params": draw.params,
@@ -324,19 +326,27 @@ def _samples_progress(progress: bool):
     return Progress(*columns, disable=not progress, transient=False)
 
 
+def seat_truth_keys(prior) -> tuple[str, ...]:
+    """The keys a seat law's prior adds to a split: truth_occupant_mass [M] kg (the occupant alone) and, for
+    calibration drives with known loads, known_mass [M] kg (the same values: the load on the empty seat)."""
+    if not hasattr(prior, "seat"):
+        return ()
+    return ("truth_occupant_mass",) + (("known_mass",) if prior.known_loads is not None else ())
+
+
 def _write_split(writer, split: str, split_index: int, classes: list[int], run: Mapping, advance) -> SplitSummary:
     """Simulate one split chunk by chunk into ``writer``; ``run``: write_dataset's settings (and basis, n_body)."""
     seed, samples_per_profile, n_body = run["seed"], run["samples_per_profile"], run["n_body"]
     generator = torch.Generator().manual_seed(int(seed) * 1000 + split_index)
     n_samples = len(classes) * samples_per_profile
-    writer.create_split(
-        split,
-        n_samples,
-        run["n_steps"],
-        extra={"occupant_params": (np.dtype("float64"), (n_body,))} if n_body else None,
-    )
+    extra = {"occupant_params": (np.dtype("float64"), (n_body,))} if n_body else {}
+    seat_keys = seat_truth_keys(run["prior"])  # a seat law's truth (physics/seat_law.py): {} for the reference seat
+    extra.update({key: (np.dtype("float64"), ()) for key in seat_keys})
+    writer.create_split(split, n_samples, run["n_steps"], extra=extra or None)
     writer.set_split_attr(split, "occupant", run["occupant"])
     body_rng = body_generator(seed, split_index)
+    if seat_keys:
+        run["prior"].reset()  # each split's known loads cycle from the first
     summary = SplitSummary()
     start_time = time.perf_counter()
     # Shuffle the class order so a prefix of the split is a fair mix of classes.
@@ -375,6 +385,7 @@ def _write_split(writer, split: str, split_index: int, classes: list[int], run: 
             road_class=batch["road_class"].numpy().astype(np.int8),
             profile_id=(batch["profile"] + first).numpy().astype(np.int32),
             **({"occupant_params": batch["occupant_params"].numpy()} if n_body else {}),
+            **{key: batch["occupant_mass"].numpy() for key in seat_keys},
         )
         summary.update(batch)
         advance(batch["params"].shape[0])

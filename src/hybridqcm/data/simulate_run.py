@@ -117,9 +117,54 @@ def check_settings(cfg: DictConfig) -> tuple[Path, str, str, tuple[float, float]
     return output, physics, occupant, warmup_s, vehicle
 
 
+def check_seat(cfg: DictConfig, occupant: str, vehicle: str):
+    """(LoadedSeat, known loads or None) from cfg.seat (physics/seat_law.py), or None for the reference seat
+    without known loads; a one-line ValueError naming the key and value otherwise."""
+    from hybridqcm.physics.seat_law import LoadedSeat
+
+    spec = OmegaConf.to_container(cfg.seat, resolve=True) if cfg.get("seat") is not None else {}
+    if not isinstance(spec, dict):
+        raise ValueError(f"seat={spec!r}: a mapping (seat.law, seat.exponent, seat.pan_mass, seat.known_loads)")
+    known = spec.pop("known_loads", None)
+    unknown = sorted(set(spec) - {"law", "exponent", "c3_exponent", "pan_mass", "reference_load"})
+    if unknown:
+        raise ValueError(f"seat.{unknown[0]}: not a seat key (law, exponent, c3_exponent, pan_mass, known_loads)")
+    law = spec.get("law") or "reference"
+    if law == "power" and spec.get("exponent") is None:
+        raise ValueError("seat.law=power needs seat.exponent (K3 = K3 (M / 80 kg)^exponent), e.g. seat.exponent=0.5")
+    for key in ("exponent", "c3_exponent"):
+        if law == "reference" and spec.get(key) is not None:
+            raise ValueError(f"seat.{key}={spec[key]!r} with seat.law=reference (constant K3, C3): pass seat.law=power")
+    seat = LoadedSeat(**{k: v for k, v in spec.items() if v is not None})
+    if known is not None:
+        known = [known] if isinstance(known, (int, float)) and not isinstance(known, bool) else known
+        if (
+            not isinstance(known, list)
+            or not known
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in known)
+        ):
+            raise ValueError(f"seat.known_loads={known!r}: a list of loads in kg, e.g. [0, 40, 80, 120]")
+        from hybridqcm.physics.prior import build_prior
+        from hybridqcm.physics.seat_law import SeatLawPrior
+
+        SeatLawPrior(build_prior("thesis", h=None), seat, known)  # checks the loads (>= 0, a mass on the spring)
+    if seat.is_reference and known is None:
+        return None
+    if vehicle != "quarter_car":
+        raise ValueError(
+            f"seat.law={seat.law} / seat.pan_mass / seat.known_loads: the quarter car's seat only, not vehicle={vehicle}"
+        )
+    if occupant != "rigid":
+        raise ValueError(
+            f"seat.law={seat.law} / seat.pan_mass / seat.known_loads: rigid occupants only, not occupant={occupant}"
+        )
+    return seat, known
+
+
 def run_simulation(cfg: DictConfig) -> dict:
     """Check cfg, simulate and write cfg.output; returns the per-split summary (also RUN/summary.json)."""
     output, physics, occupant, warmup_s, vehicle = check_settings(cfg)
+    seat = check_seat(cfg, occupant, vehicle)
     if vehicle != "quarter_car":  # the half and full car (issue 30)
         from hybridqcm.data.vehicle_simulate_run import run_vehicle_simulation
 
@@ -142,6 +187,12 @@ def run_simulation(cfg: DictConfig) -> dict:
         mass_range=tuple(options.pop("mass_range")),
         **options,
     )
+    attrs = {}
+    if seat is not None:  # a loaded seat (issue 31): the prior's vehicles under it, the law in the file's attrs
+        from hybridqcm.physics.seat_law import SeatLawPrior
+
+        prior = SeatLawPrior(prior, seat[0], seat[1])
+        attrs["seat"] = json.dumps({**seat[0].as_dict(), "known_loads": seat[1]})
     splits = OmegaConf.to_container(cfg.splits, resolve=True)
     summaries = write_dataset(
         output,
@@ -161,9 +212,14 @@ def run_simulation(cfg: DictConfig) -> dict:
         physics=physics,
         warmup_s=warmup_s,
         occupant=occupant,
+        attrs=attrs,
     )
     summary = {split: s.as_dict() for split, s in summaries.items()}
     _print_summary(output, summary, occupant)
+    if seat is not None:
+        print(
+            f"seat: {attrs['seat']} (/<split>/truth_occupant_mass" + (", known_mass)" if seat[1] is not None else ")")
+        )
     atomic_write_text(summary_path, json.dumps({"output": str(output), **summary}, indent=2))
     return summary
 

@@ -52,18 +52,19 @@ def seat_view_plan(cfg, path, split: str, info: dict, base: str | None) -> dict 
 
 
 def seat_plan(cfg, plan):
-    """The seat file's law (seat_file=, estimation/calibration.py) or None; only the road-free seat model
-    reads one. The key is not ``seat``: that names a seat of a half / full car file (seat_view_plan)."""
+    """The seat file's law (seat_file=, estimation/calibration.py) or None. Every quarter-car model reads one:
+    the road-free seat and sprung models and the road-driven quarter car (exp5 .. exp10) all fit p2 = K3 / M as
+    their second parameter, which the law inverts; the half and full car (``plan`` None) do not. The key is not
+    ``seat``: that names a seat of a half / full car file (seat_view_plan)."""
     path = cfg.get("seat_file")
     if path is None:
         return None
     from hybridqcm.estimation.calibration import load_seat
 
-    if plan is None or plan["base_excitation"] != "seat":
+    if plan is None:
         raise ConfigError(
-            f"seat_file={path}: a seat calibration is used by the road-free seat model "
-            f"(experiment=occupant_roadfree, base_excitation: seat); this run fits "
-            f"{'the ' + str(cfg.get('vehicle_model')) if plan is None else plan['base_excitation'] or 'the road'}"
+            f"seat_file={path}: a seat calibration is read by the quarter car's models (its p2 = K3 / M); "
+            f"vehicle_model={cfg.get('vehicle_model')} fits the seats' k3 and m3 of its own (drop seat_file=)"
         )
     return load_seat(path)
 

@@ -15,6 +15,10 @@ Outputs in the run folder:
                         windows_outliers, windows_overlapping, windows_skipped, model, chi2, dof,
                         chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
                         [, m3_true when the file has params]
+                        [, occupant_mass, occupant_mass_low, occupant_mass_high with a seat file:
+                        the seat law (estimation/calibration.py) at the segment's p2 = K3 / m3, its 95 %
+                        interval the image of m3's joined with the calibration's (common to every window,
+                        so joined after the combination, never shrunk by it)]
                         windows_skipped: windows kept from the fit for want of information (no_signal: the
                         car standing still; clipped; estimation/window_check.py), never combined;
                         windows_rejected: windows fitted but not usable (a status not in drive.statuses,
@@ -60,7 +64,7 @@ from hybridqcm.estimation.drive import (
 )
 from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import STATUS_LABELS
-from hybridqcm.estimation.tables import ALL_STATUS_LABELS
+from hybridqcm.estimation.tables import ALL_STATUS_LABELS, SEAT_COLUMNS
 from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS
 
 DRIVES_HEADER = [
@@ -197,7 +201,15 @@ def _window_reasons(rows: np.ndarray, usable: torch.Tensor, windows: _Windows, d
     return good, overlapping, reason
 
 
-def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, drive: DrivePlan, with_truth: bool):
+def _occupant_cells(seat, K3: float, m3: float, low: float, high: float) -> list[str]:
+    """drives.csv's occupant_mass, _low, _high from a segment's (m3, m3_low, m3_high) with K3: p2 = K3 / m3 and
+    its interval [K3 / m3_high, K3 / m3_low] (0 where m3_high is inf) through the seat law (SeatLaw)."""
+    p2, p2_low, p2_high = K3 / m3, (K3 / high if math.isfinite(high) else 0.0), K3 / low
+    occupant, occupant_low, occupant_high = seat.occupant_interval(np.array(p2), np.array(p2_low), np.array(p2_high))
+    return [_fmt(float(occupant)), _fmt(float(occupant_low)), _fmt(float(occupant_high))]
+
+
+def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, drive: DrivePlan, extra: int):
     """(drives.csv row, drive_progress.csv rows) of a drive none of whose windows is usable."""
     skipped = sum(reason[int(r)].startswith("skipped") for r in rows)
     drive_row = (
@@ -205,7 +217,7 @@ def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, dr
         + [""] * 6
         + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
         + ["", "", "", "", "", "no_usable_window"]
-        + ([""] if with_truth else [])
+        + [""] * extra  # m3_true, the occupant's columns
     )
     progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
     return drive_row, progress_rows
@@ -273,8 +285,9 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label
     return drive_row, progress_rows, (m3, low, high)
 
 
-def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names):
-    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found. Returns
+def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names, seat=None):
+    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found; with
+    ``seat`` (a SeatLaw) each row ends with the occupant's columns. Returns
     (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per segment)."""
     combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
     local = list(range(good.size))  # positions in `good`, time order
@@ -297,6 +310,8 @@ def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, name
         if true is not None:
             true_m3 = float((K3 / true[good[seg], 1]).mean())
             row.append(_fmt(true_m3))
+        if seat is not None:
+            row += _occupant_cells(seat, K3, m3, low, high)
         drive_rows.append(row)
         progress_rows += progress_part
         masses.append((m3, low, high, true_m3))
@@ -311,9 +326,11 @@ def aggregate_drives(
     run_dir: Path,
     names: Sequence[str],
     param_names: Sequence[str] = ("p1", "p2"),
+    seat=None,
 ) -> dict:
     """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
-    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...).
+    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...);
+    seat: the seat file's law (estimation/calibration.SeatLaw) or None: drives.csv's occupant_mass columns.
     Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
     K3 = float(cfg.K3)
     windows = _Windows(columns["status"], drive)
@@ -334,12 +351,13 @@ def aggregate_drives(
                 f"drive {name}: every one of its {rows.size} window(s) was rejected "
                 f"({', '.join(sorted({reason[int(r)] for r in rows}))}); no estimate"
             )
-            drive_row, progress_part = _no_estimate(name, rows, reason, overlapping, drive, true is not None)
+            extra = int(true is not None) + (3 if seat is not None else 0)
+            drive_row, progress_part = _no_estimate(name, rows, reason, overlapping, drive, extra)
             drive_rows.append(drive_row)
             progress_rows += progress_part
             continue
         rows_of_drive, progress_part, masses = _combine_drive(
-            name, rows, good, reason, columns, drive, K3, names, param_names
+            name, rows, good, reason, columns, drive, K3, names, param_names, seat
         )
         drive_rows += rows_of_drive
         progress_rows += progress_part
@@ -349,7 +367,9 @@ def aggregate_drives(
             covered.append(low <= true_m3 <= high)
         if cfg.plots and number < drive.plots:
             pictures.append(_plot_drive(run_dir, name, progress_rows, drive))
-    header = DRIVES_HEADER + (["m3_true"] if true is not None else [])
+    header = (
+        DRIVES_HEADER + (["m3_true"] if true is not None else []) + (list(SEAT_COLUMNS) if seat is not None else [])
+    )
     atomic_write_csv(run_dir / "drives.csv", header, drive_rows)
     atomic_write_csv(run_dir / "drive_progress.csv", PROGRESS_HEADER, progress_rows)
     if cfg.tensorboard and pictures:
