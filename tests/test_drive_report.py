@@ -70,9 +70,12 @@ def _columns(masses, rel_sd, rng, status=None):
     status = np.full(n, int(SolverStatus.CONVERGED)) if status is None else np.asarray(status)
     p2_low, p2_high = theta[:, 1] - 1.96 * sd[:, 1], theta[:, 1] + 1.96 * sd[:, 1]
     return {
-        "drive_theta": torch.from_numpy(theta),
-        "drive_cov": torch.from_numpy(cov),
-        "drive_model_cov": torch.from_numpy(cov),
+        "drive_cand_theta": torch.from_numpy(theta)[:, None],
+        "drive_cand_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_model_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_status": torch.from_numpy(status).long()[:, None],
+        "drive_cand_fits": torch.from_numpy(status != int(SolverStatus.MISFIT))[:, None],
+        "drive_cand_logz": torch.zeros(n, 1, dtype=torch.float64),
         "drive_model": torch.zeros(n, dtype=torch.long),
         "status": torch.from_numpy(status).long(),
         "m3_low": torch.from_numpy(K3 / p2_high),
@@ -126,20 +129,93 @@ def test_drives_csv_segments_rejections_and_progress(tmp_path, capsys):
     assert "drive/drive_A" in events.Tags()["images"]
 
 
-def test_windows_of_different_models_combine_the_static_mass(tmp_path):
-    """Windows that chose different occupant models: m3 per window (σ from its interval) is combined."""
-    rng = np.random.default_rng(1)
-    columns = _columns([75.0] * 6, 0.02, rng)
-    columns["drive_model"] = torch.tensor([0, 1, 0, 1, 1, 0])
+def _selection_columns(rng, n=8, mass=75.0):
+    """Windows of an occupant-model selection over rigid, body1, rigid+delay (θ = p1, p2, r1, k1, c1, tau):
+    each candidate's estimate around the truth with its own covariance, evidences drawn so that the windows'
+    own choices are mixed."""
+    names = ["rigid", "body1", "rigid+delay"]
+    p = np.array([615.0 / mass, K3 / mass, 0.5, 900.0, 30.0, 0.0])
+    theta = np.full((n, 3, 6), np.nan)
+    cov = np.full((n, 3, 6, 6), np.nan)
+    for c, present in enumerate(([0, 1], [0, 1, 2, 3, 4], [0, 1, 5])):
+        for w in range(n):
+            a = rng.standard_normal((len(present), len(present)))
+            block = a @ a.T + len(present) * np.eye(len(present))
+            block *= np.outer(0.02 * np.abs(p[present]) + 1e-3, 0.02 * np.abs(p[present]) + 1e-3)
+            theta[w, c, present] = p[present] + np.linalg.cholesky(block) @ rng.standard_normal(len(present))
+            cov[w, c][np.ix_(present, present)] = block
+    logz = rng.normal(0.0, 2.0, (n, 3))
+    status = np.zeros((n, 3), dtype=np.int64)
+    return names, {
+        "drive_cand_theta": torch.from_numpy(theta),
+        "drive_cand_cov": torch.from_numpy(cov),
+        "drive_cand_model_cov": torch.from_numpy(cov),
+        "drive_cand_status": torch.from_numpy(status),
+        "drive_cand_fits": torch.ones(n, 3, dtype=torch.bool),
+        "drive_cand_logz": torch.from_numpy(logz),
+        "drive_model": torch.from_numpy(logz.argmax(1)),
+        "status": torch.zeros(n, dtype=torch.long),
+        "m3_low": torch.full((n,), mass * 0.9, dtype=torch.float64),
+        "m3_high": torch.full((n,), mass * 1.1, dtype=torch.float64),
+    }
+
+
+def _information_mean(theta, cov):
+    """Σ Λ_w θ_w / Σ Λ_w written out with numpy (the combination's definition)."""
+    precision = [np.linalg.inv(c) for c in cov]
+    return np.linalg.solve(sum(precision), sum(P @ t for P, t in zip(precision, theta)))
+
+
+@pytest.mark.parametrize("rigid_wins", [True, False])
+def test_a_drive_pools_its_windows_under_the_model_of_most_summed_evidence(tmp_path, rigid_wins):
+    """The drive's model is the one with the most evidence summed over its windows (a model's delay variant
+    counts for it: rigid+delay is rigid with the window's own delay), its prior counted once per drive; every
+    window is then combined under that model, also those whose own choice was another. body1 leads or trails
+    the better rigid variant by 1 nat in 6 windows and leads by 2 in the other 2, its prior 0.2 nats above
+    rigid's: summed, body1 - rigid = ∓6 + 4 - 7 x 0.2."""
+    rng = np.random.default_rng(5)
+    names, columns = _selection_columns(rng)
+    logz = columns["drive_cand_logz"]
+    best_rigid = torch.maximum(logz[:, 0], logz[:, 2])
+    logz[:, 1] = best_rigid + (-1.0 if rigid_wins else 1.0)
+    logz[::4, 1] = best_rigid[::4] + 2.0  # two windows on their own prefer body1 either way
+    columns["drive_model"] = logz.argmax(1)
+    log_prior = {"rigid": -0.2, "body1": 0.0}
+    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",))
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    params = ("p1", "p2", "r1", "k1", "c1", "tau")
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, names, params, log_prior)
+    (row,) = _rows(tmp_path / "drives.csv")
+    if rigid_wins:  # per window the rigid variant (with or without its delay) of the higher evidence
+        pick, keep = [0 if logz[w, 0] >= logz[w, 2] else 2 for w in range(8)], [0, 1]  # τ: each window's own
+    else:
+        pick, keep = [1] * 8, [0, 1, 2, 3, 4]
+    assert rigid_wins == (2 in pick or 0 in pick)
+    theta = [columns["drive_cand_theta"][w, c, keep].numpy() for w, c in enumerate(pick)]
+    cov = [columns["drive_cand_cov"][w, c][keep][:, keep].numpy() for w, c in enumerate(pick)]
+    expected = K3 / _information_mean(theta, cov)[1]
+    assert row["model"] == ("rigid" if rigid_wins else "body1")
+    assert float(row["m3"]) == pytest.approx(expected, rel=1e-10)
+    assert row["windows_used"] == "8" and "body1:" in row["windows_models"]
+    assert float(row["model_margin"]) == pytest.approx(abs((-6.0 if rigid_wins else 6.0) + 4.0 - 7 * 0.2))
+
+
+def test_a_window_the_drives_model_did_not_fit_is_rejected(tmp_path):
+    """A window where the drive's model ended misfit is not combined (counted as rejected, with the reason),
+    even when another model fitted it and won there."""
+    rng = np.random.default_rng(6)
+    names, columns = _selection_columns(rng, n=6)
+    columns["drive_cand_logz"][:, 1] = -50.0  # body1 loses everywhere: the drive is rigid
+    columns["drive_cand_fits"][2, [0, 2]] = False  # window 2: neither rigid variant fits
+    columns["drive_cand_status"][2, [0, 2]] = int(SolverStatus.MISFIT)
+    columns["drive_cand_logz"][2, 1] = 10.0
     plan = _plan([0] * 6, [5.0 * k for k in range(6)], ["D"])
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
-    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["body1", "body2"])
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, names, ("p1", "p2", "r1", "k1", "c1", "tau"), None)
     (row,) = _rows(tmp_path / "drives.csv")
-    assert row["model"] == "mixed(body1:3;body2:3)"
-    m3 = K3 / columns["drive_theta"][:, 1].numpy()
-    sd = (columns["m3_high"] - columns["m3_low"]).numpy() / 3.919927969080108
-    expected = np.sum(m3 / sd**2) / np.sum(1 / sd**2)
-    assert float(row["m3"]) == pytest.approx(expected, rel=1e-12)
+    assert (row["model"], row["windows_used"], row["windows_rejected"]) == ("rigid", "5", "1")
+    used = [r["used"] for r in _rows(tmp_path / "drive_progress.csv")]
+    assert used[2] == "rejected:misfit" and used.count("used") == 5
 
 
 def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
@@ -149,8 +225,10 @@ def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
     status = [0, int(WindowStatus.NO_SIGNAL), 0, 0, int(SolverStatus.MISFIT), 0]
     status += [int(WindowStatus.CLIPPED), int(WindowStatus.NO_SIGNAL)]
     columns = _columns([70.0] * 6 + [90.0] * 2, 0.01, rng, status)
-    for key in ("drive_theta", "drive_cov", "drive_model_cov", "m3_low", "m3_high"):
+    for key in ("drive_cand_theta", "drive_cand_cov", "drive_cand_model_cov", "m3_low", "m3_high"):
         columns[key][[1, 6, 7]] = math.nan  # as drive_skipped_columns / skipped_tables write them
+    columns["drive_cand_fits"][[1, 6, 7]] = False
+    columns["drive_cand_logz"][[1, 6, 7]] = -math.inf
     plan = _plan([0] * 6 + [1] * 2, [5.0 * k for k in range(6)] + [0.0, 5.0], ["A", "B"])
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"])

@@ -81,6 +81,8 @@ DRIVES_HEADER = [
     "windows_overlapping",
     "windows_skipped",
     "model",
+    "model_margin",
+    "windows_models",
     "chi2",
     "dof",
     "chi2_per_dof",
@@ -133,39 +135,116 @@ def _usable(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
     return present[:, 1] & usable_windows(torch.where(present, theta, torch.zeros_like(theta)), patched)
 
 
-def _mass_form(columns: Mapping, rows: np.ndarray, K3: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per window the static mass and its variance from the reported 95 % interval (module docstring)."""
-    p2 = columns["drive_theta"][rows, 1]
-    m3 = K3 / p2
-    low, high = columns["m3_low"][rows], columns["m3_high"][rows]
-    sd = (high - low) / 3.919927969080108
-    return m3[:, None], (sd**2)[:, None, None]
+def _families(names: Sequence[str]) -> list[str]:
+    """The occupant models a drive can be pooled under: the candidates without their delay variants (a delay
+    is each window's own, drive.per_window), in the candidates' order."""
+    return list(dict.fromkeys(n.split("+")[0] for n in names))
 
 
-def _drive_gaussians(columns: Mapping, rows: np.ndarray, drive: DrivePlan, K3: float, names: Sequence[str]):
-    """(combiner, index of p2 or of the mass, K3 or None) for the usable windows ``rows`` of one drive:
-    the parameters every window estimated and none keeps for itself (drive.per_window), or the mass."""
-    models = columns["drive_model"][rows]
-    theta, cov = columns["drive_theta"][rows], columns["drive_cov"][rows]
-    weight_cov = columns["drive_model_cov"][rows] if drive.weights == "model" else None
-    shared = torch.tensor([n not in drive.per_window for n in names[: theta.shape[1]]], dtype=torch.bool)
-    finite = _present(theta, cov).all(0) & shared
-    same = bool((models == models[0]).all()) and bool(finite[1])
-    if same:
-        keep = finite.nonzero().squeeze(1)
-        index = int((keep == 1).nonzero()[0])  # p2 within the shared parameters
-        sub_w = None if weight_cov is None else weight_cov[:, keep][:, :, keep]
-        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], sub_w, drive.scale)
-        return combiner, index, K3
-    m3, var = _mass_form(columns, rows, K3)
-    return InformationCombiner(m3, var, None, drive.scale), 0, None
+def _log_prior(log_prior: Mapping[str, float] | None, family: str) -> float:
+    return float((log_prior or {}).get(family, 0.0))
+
+
+def drive_model(logz: torch.Tensor, fits: torch.Tensor, chosen: torch.Tensor, names: Sequence[str], log_prior=None):
+    """The occupant model of one drive, by its windows' summed evidence (module docstring).
+
+    logz [W, C] (−inf: not fitted), fits [W, C] (neither misfit nor diverged), chosen [W] (each window's own
+    choice, index into names) of the drive's windows. Returns (family, variant [W] — per window the index into
+    names of that family's variant with the highest evidence among those that fit, −1 if none does —, the
+    evidence margin over the runner-up [nats], the windows' own choices as a label)."""
+    families = _families(names)
+    member = torch.tensor([[n.split("+")[0] == f for n in names] for f in families])  # [F, C]
+    masked = torch.where(member[None], logz[:, None, :], torch.full_like(logz[:, None, :], -math.inf))  # [W, F, C]
+    best = masked.max(2).values  # [W, F]: each family's evidence in each window (its better variant)
+    common = torch.isfinite(best).all(1)
+    if bool(common.any()) and len(families) > 1:
+        # one model prior per drive, not one per window: the occupant is the same in every window
+        prior = torch.tensor([_log_prior(log_prior, f) for f in families], dtype=torch.float64)
+        score = (best[common] - prior).sum(0) + prior
+        order = torch.argsort(score, descending=True)
+        family, margin = families[int(order[0])], float(score[order[0]] - score[order[1]])
+    else:  # nothing to compare on: the family most windows chose
+        votes = torch.bincount(
+            torch.tensor([families.index(names[int(c)].split("+")[0]) for c in chosen]), minlength=len(families)
+        )
+        family, margin = families[int(votes.argmax())], math.nan
+    f = families.index(family)
+    eligible = member[f][None] & fits & torch.isfinite(logz)
+    scored = torch.where(eligible, logz, torch.full_like(logz, -math.inf))
+    variant = torch.where(eligible.any(1), scored.argmax(1), torch.full((logz.shape[0],), -1, dtype=torch.long))
+    return family, variant, margin, _label(chosen, names)
 
 
 def _label(models: torch.Tensor, names: Sequence[str]) -> str:
     counts = {names[int(k)]: int(c) for k, c in zip(*torch.unique(models, return_counts=True))}
-    if len(counts) == 1:
-        return next(iter(counts))
-    return "mixed(" + ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) + ")"
+    return ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+class _DriveView:
+    """One drive's windows under its occupant model: per row (of the whole file) the chosen variant's θ [P],
+    covariances [P, P], status and whether it can be combined."""
+
+    def __init__(self, columns: Mapping, rows: np.ndarray, drive: DrivePlan, names, log_prior, windows):
+        fitted = rows[~windows.kept_out[rows].numpy()]
+        self.family, variant, self.margin, self.own = "", torch.zeros(0, dtype=torch.long), math.nan, ""
+        self.variant = {}
+        if fitted.size:
+            self.family, variant, self.margin, self.own = drive_model(
+                columns["drive_cand_logz"][fitted],
+                columns["drive_cand_fits"][fitted],
+                columns["drive_model"][fitted],
+                names,
+                log_prior,
+            )
+            self.variant = {int(r): int(v) for r, v in zip(fitted, variant)}
+        n_p = columns["drive_cand_theta"].shape[2]
+        self.theta = {}
+        self.cov = {}
+        self.weight_cov = {}
+        self.status_ok = {}
+        self.status = {}
+        allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
+        members = [j for j, n in enumerate(names) if n.split("+")[0] == self.family]
+        for r in rows:
+            v = self.variant.get(int(r), -1)
+            if v < 0:  # no variant of the drive's model fitted: the status of its best one says why
+                if int(r) in self.variant:
+                    best = max(members, key=lambda j: float(columns["drive_cand_logz"][r, j]))
+                    self.status[int(r)] = int(columns["drive_cand_status"][r, best])
+                continue
+            self.theta[int(r)] = columns["drive_cand_theta"][r, v]
+            self.cov[int(r)] = columns["drive_cand_cov"][r, v]
+            self.weight_cov[int(r)] = columns["drive_cand_model_cov"][r, v]
+            self.status_ok[int(r)] = int(columns["drive_cand_status"][r, v]) in allowed
+            self.status[int(r)] = int(columns["drive_cand_status"][r, v])
+        self.n_params = n_p
+
+    def usable(self, rows: np.ndarray, weights: str) -> np.ndarray:
+        """[len(rows)] bool: the drive's model fitted the window (not misfit, not diverged), its status is one
+        drive.statuses combines, p2 estimated and the estimated parameters' covariance positive definite."""
+        ok = np.zeros(rows.size, dtype=bool)
+        have = [i for i, r in enumerate(rows) if int(r) in self.theta and self.status_ok[int(r)]]
+        if not have:
+            return ok
+        theta = torch.stack([self.theta[int(rows[i])] for i in have])
+        good = _usable(theta, torch.stack([self.cov[int(rows[i])] for i in have]))
+        if weights == "model":
+            good &= _usable(theta, torch.stack([self.weight_cov[int(rows[i])] for i in have]))
+        ok[np.asarray(have)[good.numpy()]] = True
+        return ok
+
+    def gaussians(self, rows: np.ndarray, drive: DrivePlan, param_names: Sequence[str]):
+        """(combiner, index of p2 within the combined parameters) for the usable windows ``rows``: the parameters
+        every window estimated under the drive's model, less those each window keeps (drive.per_window)."""
+        theta = torch.stack([self.theta[int(r)] for r in rows])
+        cov = torch.stack([self.cov[int(r)] for r in rows])
+        shared = torch.tensor([n not in drive.per_window for n in param_names[: theta.shape[1]]], dtype=torch.bool)
+        keep = (_present(theta, cov).all(0) & shared).nonzero().squeeze(1)
+        index = int((keep == 1).nonzero()[0])  # p2 within the shared parameters
+        weight = None
+        if drive.weights == "model":
+            weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
+        return InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale), index
 
 
 class _Windows:
@@ -179,21 +258,22 @@ class _Windows:
         self.kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
 
 
-def _window_reasons(rows: np.ndarray, usable: torch.Tensor, windows: _Windows, drive: DrivePlan):
-    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows."""
-    status = windows.status
-    good = rows[usable[rows].numpy()]
+def _window_reasons(rows: np.ndarray, usable: np.ndarray, windows: _Windows, view: _DriveView, drive: DrivePlan):
+    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows;
+    usable [len(rows)]: whether the drive's model can combine each (_DriveView.usable)."""
+    good = rows[usable]
     keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
     overlapping = set(good[[not k for k in keep]].tolist())
     good = good[keep]
-    reason = {
-        int(r): ("used" if r in set(good.tolist()) else "overlapping" if r in overlapping else "rejected") for r in rows
-    }
+    used = set(good.tolist())
+    reason = {int(r): ("used" if r in used else "overlapping" if r in overlapping else "rejected") for r in rows}
     for r in rows:
-        if reason[int(r)] == "rejected" and bool(windows.kept_out[r]):  # not fitted: no information in it
-            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
-        elif reason[int(r)] == "rejected" and not bool(windows.ok_status[r]):
-            reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
+        if reason[int(r)] != "rejected":
+            continue
+        if bool(windows.kept_out[r]):  # not fitted: no information in it
+            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(windows.status[r])]}"
+        else:  # the drive's model did not fit it (misfit, diverged) or ended with a status not combined
+            reason[int(r)] = f"rejected:{STATUS_LABELS.get(view.status.get(int(r), -1), 'no_fit')}"
     return good, overlapping, reason
 
 
@@ -204,14 +284,14 @@ def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, dr
         [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
         + [""] * 6
         + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
-        + ["", "", "", "", "", "no_usable_window"]
+        + ["", "", "", "", "", "", "", "no_usable_window"]
         + ([""] if with_truth else [])
     )
     progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
     return drive_row, progress_rows
 
 
-def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive: DrivePlan):
+def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view: _DriveView, drive: DrivePlan):
     """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
     ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
     seg_start = float(drive.t_start[good[seg[0]]])
@@ -241,7 +321,9 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label
         sum(c == "outlier" for c in counts),
         sum(c == "overlapping" for c in counts),
         sum(c.startswith("skipped") for c in counts),
-        label,
+        view.family,
+        _fmt(view.margin),
+        view.own,
         _fmt(final.chi2),
         final.dof,
         _fmt(final.chi2_per_dof),
@@ -273,25 +355,24 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label
     return drive_row, progress_rows, (m3, low, high)
 
 
-def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names):
-    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found. Returns
-    (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per segment)."""
-    combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
+def _combine_drive(name, rows, good, reason, view: _DriveView, drive: DrivePlan, K3, param_names, true):
+    """One drive's usable windows ``good`` combined under its model: outliers marked in ``reason``, segments
+    found. Returns (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per
+    segment)."""
+    combiner, index = view.gaussians(good, drive, param_names)
     local = list(range(good.size))  # positions in `good`, time order
     outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
     for o in outliers:
         reason[int(good[o])] = "outlier"
     kept = [i for i in local if i not in set(outliers)]
     segments = segment(combiner, kept, drive.min_windows, drive.alpha)
-    label = _label(columns["drive_model"][good], names)
     bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
     starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
-    true = columns.get("true")
     drive_rows, progress_rows, masses = [], [], []
     for k, seg in enumerate(segments):
         in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
         row, progress_part, (m3, low, high) = _segment_rows(
-            name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive
+            name, k, seg, in_seg, good, reason, combiner, index, K3, view, drive
         )
         true_m3 = None
         if true is not None:
@@ -311,15 +392,14 @@ def aggregate_drives(
     run_dir: Path,
     names: Sequence[str],
     param_names: Sequence[str] = ("p1", "p2"),
+    log_prior: Mapping[str, float] | None = None,
 ) -> dict:
     """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
-    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...).
+    names: the occupant models a window may report (drive_cand_*'s candidates); param_names: the parameters'
+    layout (p1, p2, ...); log_prior: each occupant model's log prior probability (the selection's model_prior).
     Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
     K3 = float(cfg.K3)
     windows = _Windows(columns["status"], drive)
-    usable = _usable(columns["drive_theta"], columns["drive_cov"]) & windows.ok_status
-    if drive.weights == "model":
-        usable &= _usable(columns["drive_theta"], columns["drive_model_cov"])
     true = columns.get("true")
     drive_rows, progress_rows, pictures, notes = [], [], [], []
     errors, covered = [], []
@@ -328,7 +408,8 @@ def aggregate_drives(
         rows = np.flatnonzero(drive.profile_id == pid)
         rows = rows[np.argsort(drive.t_start[rows], kind="stable")]
         name = drive.names[pid] if drive.names else str(int(pid))
-        good, overlapping, reason = _window_reasons(rows, usable, windows, drive)
+        view = _DriveView(columns, rows, drive, names, log_prior, windows)
+        good, overlapping, reason = _window_reasons(rows, view.usable(rows, drive.weights), windows, view, drive)
         if good.size == 0:
             notes.append(
                 f"drive {name}: every one of its {rows.size} window(s) was rejected "
@@ -339,7 +420,7 @@ def aggregate_drives(
             progress_rows += progress_part
             continue
         rows_of_drive, progress_part, masses = _combine_drive(
-            name, rows, good, reason, columns, drive, K3, names, param_names
+            name, rows, good, reason, view, drive, K3, param_names, true
         )
         drive_rows += rows_of_drive
         progress_rows += progress_part
