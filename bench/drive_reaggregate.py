@@ -48,6 +48,7 @@ def main(argv=None) -> None:
     ap.add_argument("--split", default="test")
     ap.add_argument("--set", nargs="*", default=[], help="drive settings: key=value (YAML values)")
     ap.add_argument("--K3", type=float, default=98935.0)
+    ap.add_argument("--prior-per-window", action="store_true", help="the model prior as each window counts it")
     args = ap.parse_args(argv)
     config = yaml.safe_load((REPO / "configs" / "estimate.yaml").read_text())
     settings = dict(config["drive"])
@@ -85,6 +86,8 @@ def main(argv=None) -> None:
     bodies = [n for n in names_m if "+" not in n and n != "rigid"]
     log_prior = {"rigid": float(np.log(rigid_prior))} if bodies else {"rigid": 0.0}
     log_prior.update({b: float(np.log((1 - rigid_prior) / len(bodies))) for b in bodies})
+    if args.prior_per_window:
+        log_prior = None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for stale in ("drives.csv", "drive_progress.csv"):

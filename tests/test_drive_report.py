@@ -338,3 +338,63 @@ def test_foreign_drives_agree_with_dop853():
         )
         ref = (A[3:5] @ sol.y + np.outer(B[3:5, 0], u[::10])).T
         assert np.abs(ref - accel[i, ::10]).max() <= 5e-7 * np.abs(ref).max()
+
+
+def test_windows_with_and_without_their_own_delay_combine_as_the_joint_fit(tmp_path):
+    """A drive whose windows chose rigid and rigid+delay (τ each window's own) is one rigid drive: its m3 and
+    σ equal the joint least-squares fit of all windows at once — (p1, p2) shared, each window its own initial
+    state and, where it has one, its own delay column — solved directly as one problem (the independent fact;
+    a linear model, so the Gaussian combination is exact)."""
+    g = torch.Generator().manual_seed(11)
+    truth = torch.tensor([615.0 / 80.0, K3 / 80.0], dtype=torch.float64)
+    n_w, rows, n_state = 6, 60, 3
+    windows = []
+    for w in range(n_w):
+        A = torch.randn(rows, 2, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.01], dtype=torch.float64)
+        own = n_state + (1 if w >= 3 else 0)  # windows 3..5 carry their own delay column
+        B = torch.randn(rows, own, generator=g, dtype=torch.float64)
+        y = A @ truth + B @ torch.randn(own, generator=g, dtype=torch.float64)
+        y = y + 0.05 * torch.randn(rows, generator=g, dtype=torch.float64)
+        windows.append((A, B, y))
+    theta = torch.full((n_w, 2, 3), math.nan, dtype=torch.float64)  # candidates rigid, rigid+delay; p1, p2, tau
+    cov = torch.full((n_w, 2, 3, 3), math.nan, dtype=torch.float64)
+    for w, (A, B, y) in enumerate(windows):
+        J = torch.cat([A, B], 1)
+        c = torch.linalg.inv(J.T @ J)  # unit noise variance: the weights are relative, as are the answers
+        est = c @ J.T @ y
+        if w < 3:
+            theta[w, 0, :2], cov[w, 0, :2, :2] = est[:2], c[:2, :2]
+        else:  # the delay: the last own column, kept with the parameters as the selection reports it
+            keep = [0, 1, J.shape[1] - 1]
+            theta[w, 1], cov[w, 1] = est[keep], c[keep][:, keep]
+    logz = torch.tensor([[0.0, -math.inf]] * 3 + [[-5.0, 0.0]] * 3, dtype=torch.float64)
+    columns = {
+        "drive_cand_theta": theta,
+        "drive_cand_cov": cov,
+        "drive_cand_model_cov": cov.clone(),
+        "drive_cand_status": torch.zeros(n_w, 2, dtype=torch.long),
+        "drive_cand_fits": torch.isfinite(logz),
+        "drive_cand_logz": logz,
+        "drive_model": logz.argmax(1),
+        "status": torch.zeros(n_w, dtype=torch.long),
+        "m3_low": torch.full((n_w,), 70.0, dtype=torch.float64),
+        "m3_high": torch.full((n_w,), 90.0, dtype=torch.float64),
+    }
+    plan = _plan([0] * n_w, [5.0 * k for k in range(n_w)], ["D"], scale="none")
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid", "rigid+delay"], ("p1", "p2", "tau"))
+    (row,) = _rows(tmp_path / "drives.csv")
+    # the joint problem: columns (p1, p2) shared, then each window's own block
+    widths = [B.shape[1] for _, B, _ in windows]
+    J = torch.zeros(n_w * rows, 2 + sum(widths), dtype=torch.float64)
+    col = 2
+    for w, (A, B, _) in enumerate(windows):
+        J[w * rows : (w + 1) * rows, :2] = A
+        J[w * rows : (w + 1) * rows, col : col + widths[w]] = B
+        col += widths[w]
+    y = torch.cat([w[2] for w in windows])
+    cov_joint = torch.linalg.inv(J.T @ J)
+    p2, sd_p2 = float((cov_joint @ J.T @ y)[1]), float(cov_joint[1, 1].sqrt())
+    assert (row["model"], row["windows_used"], row["windows_models"]) == ("rigid", "6", "rigid:3;rigid+delay:3")
+    assert float(row["m3"]) == pytest.approx(K3 / p2, rel=1e-9)
+    assert float(row["m3_std"]) == pytest.approx(K3 / p2**2 * sd_p2, rel=1e-7)

@@ -61,8 +61,8 @@ def _count(settings, key: str, low: int) -> int:
 def _names(settings, key: str) -> tuple[str, ...]:
     value = settings.get(key, ["tau"])
     value = [] if value is None else [value] if isinstance(value, str) else list(value)
-    if any(str(v) in ("p1", "p2") for v in value):
-        raise ConfigError(f"drive.{key}={value}: p1 and p2 (the occupant) are what the windows share")
+    if any(str(v) == "p2" for v in value):
+        raise ConfigError(f"drive.{key}={value}: p2 (the occupant's static mass) is what the windows share")
     return tuple(str(v) for v in value)
 
 

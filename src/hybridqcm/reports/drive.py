@@ -145,24 +145,42 @@ def _log_prior(log_prior: Mapping[str, float] | None, family: str) -> float:
     return float((log_prior or {}).get(family, 0.0))
 
 
-def drive_model(logz: torch.Tensor, fits: torch.Tensor, chosen: torch.Tensor, names: Sequence[str], log_prior=None):
+def drive_model(
+    logz: torch.Tensor,
+    fits: torch.Tensor,
+    chosen: torch.Tensor,
+    names: Sequence[str],
+    log_prior=None,
+    settled: torch.Tensor | None = None,
+):
     """The occupant model of one drive, by its windows' summed evidence (module docstring).
 
     logz [W, C] (−inf: not fitted), fits [W, C] (neither misfit nor diverged), chosen [W] (each window's own
-    choice, index into names) of the drive's windows. Returns (family, variant [W] — per window the index into
-    names of that family's variant with the highest evidence among those that fit, −1 if none does —, the
-    evidence margin over the runner-up [nats], the windows' own choices as a label)."""
+    choice, index into names) of the drive's windows, settled [W, C] (the fit ended with a status the drive
+    combines; default: all): only fits that fit and settled weigh (a Laplace evidence away from an optimum is
+    no evidence: one max_iterations fit 110 nats above the rest decided a drive). Returns (family, variant [W]
+    — per window the index into names of that family's variant with the highest evidence among those that
+    fit, −1 if none does —, the evidence margin over the runner-up [nats], the windows' own choices as a
+    label)."""
     families = _families(names)
     member = torch.tensor([[n.split("+")[0] == f for n in names] for f in families])  # [F, C]
-    masked = torch.where(member[None], logz[:, None, :], torch.full_like(logz[:, None, :], -math.inf))  # [W, F, C]
+    weighs = fits & (torch.ones_like(fits) if settled is None else settled)
+    evidence = torch.where(weighs, logz, torch.full_like(logz, -math.inf))
+    masked = torch.where(member[None], evidence[:, None, :], torch.full_like(logz[:, None, :], -math.inf))
     best = masked.max(2).values  # [W, F]: each family's evidence in each window (its better variant)
-    common = torch.isfinite(best).all(1)
-    if bool(common.any()) and len(families) > 1:
+    # a model that fits and settles in fewer than half the windows cannot carry the drive (a person's
+    # two-mode fit that ran out of iterations in 10 of 12 windows won one drive by 0.2 nats on the other 2)
+    carries = torch.isfinite(best).sum(0) * 2 >= best.shape[0]
+    carries = carries if bool(carries.any()) else torch.ones_like(carries)
+    common = torch.isfinite(best[:, carries]).all(1)
+    if bool(common.any()) and int(carries.sum()) > 1:
         # one model prior per drive, not one per window: the occupant is the same in every window
         prior = torch.tensor([_log_prior(log_prior, f) for f in families], dtype=torch.float64)
-        score = (best[common] - prior).sum(0) + prior
+        score = torch.where(carries, (best[common] - prior).nan_to_num(0.0, 0.0, 0.0).sum(0) + prior, -math.inf)
         order = torch.argsort(score, descending=True)
         family, margin = families[int(order[0])], float(score[order[0]] - score[order[1]])
+    elif int(carries.sum()) == 1:
+        family, margin = families[int(carries.nonzero()[0])], math.inf
     else:  # nothing to compare on: the family most windows chose
         votes = torch.bincount(
             torch.tensor([families.index(names[int(c)].split("+")[0]) for c in chosen]), minlength=len(families)
@@ -170,6 +188,8 @@ def drive_model(logz: torch.Tensor, fits: torch.Tensor, chosen: torch.Tensor, na
         family, margin = families[int(votes.argmax())], math.nan
     f = families.index(family)
     eligible = member[f][None] & fits & torch.isfinite(logz)
+    preferred = eligible & weighs  # a settled variant before one that ran out of iterations
+    eligible = torch.where(preferred.any(1, keepdim=True), preferred, eligible)
     scored = torch.where(eligible, logz, torch.full_like(logz, -math.inf))
     variant = torch.where(eligible.any(1), scored.argmax(1), torch.full((logz.shape[0],), -1, dtype=torch.long))
     return family, variant, margin, _label(chosen, names)
@@ -189,12 +209,14 @@ class _DriveView:
         self.family, variant, self.margin, self.own = "", torch.zeros(0, dtype=torch.long), math.nan, ""
         self.variant = {}
         if fitted.size:
+            allowed = torch.tensor(sorted(k for k, v in STATUS_LABELS.items() if v in drive.statuses))
             self.family, variant, self.margin, self.own = drive_model(
                 columns["drive_cand_logz"][fitted],
                 columns["drive_cand_fits"][fitted],
                 columns["drive_model"][fitted],
                 names,
                 log_prior,
+                torch.isin(columns["drive_cand_status"][fitted], allowed),
             )
             self.variant = {int(r): int(v) for r, v in zip(fitted, variant)}
         n_p = columns["drive_cand_theta"].shape[2]
