@@ -37,10 +37,13 @@ def main(argv=None) -> None:
     ap.add_argument("whole", help="foreign_sim drives --whole output (whole.h5)")
     ap.add_argument("--noise", type=float, default=0.05)
     ap.add_argument("--delay-unknown", action="store_true", help="the channel delay estimated too")
+    ap.add_argument("--n", type=int, help="the first n drives only (those a run estimated)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     crb = _crb()
     accel, h, truth = crb.read_file(Path(args.whole))
+    if args.n:
+        accel, truth = accel[: args.n], crb._first(truth, args.n)
     n_rec, steps = accel.shape[:2]
     # each drive's bound under the model an estimator has to fit (occupant_crb.bounds: rigid for a rigid
     # occupant, body1 at the true constants for a body1 person, body1 fitted to a body2 person)

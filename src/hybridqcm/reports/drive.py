@@ -12,7 +12,8 @@ Outputs in the run folder:
 
     drives.csv          one row per drive segment: drive, segment, start_s, end_s, m3, m3_std, m3_low,
                         m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
-                        windows_outliers, windows_overlapping, windows_skipped, model, chi2, dof,
+                        windows_outliers, windows_overlapping, windows_skipped, model, model_margin,
+                        windows_models, chi2, dof,
                         chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
                         [, m3_true when the file has params]
                         windows_skipped: windows kept from the fit for want of information (no_signal: the
@@ -24,16 +25,25 @@ Outputs in the run folder:
                         driving time t_s since the segment's start
     plots/drive_*.png   mass and 95 % band against driving time (also in TensorBoard, tb/, tag drive/...)
 
-What is combined: θ = the chosen occupant model's parameters (p1, p2, body modes where fitted) when every
-used window of the drive chose the same model, less those each window keeps for itself (drive.per_window,
-default the channel delay τ: with two loggers it drifts with their clocks, so it is marginalised like the
-initial state); m3 = K3/p2 with its interval mapped from p2's.
-Where the windows chose different models (a person fitted with body1 here and body2 there) their
-parameters mean different things, and the static mass m3 alone is combined: per window m3 with the
-standard deviation of its reported 95 % interval, (m3_high − m3_low)/3.92 (an occupant-model selection's
-interval holds every candidate the data cannot tell apart). Overlapping windows (stride < window) share
-samples, so their errors are correlated: only a non-overlapping subset is used (the first window, then
-each next one starting at or after the end of the last one used); the others are counted.
+What is combined: every window under ONE occupant model per drive. An occupant-model selection fits every
+candidate to every window (rigid, body1, body2, and the winner again with the channel delay τ); a model's
+delay variant is that model with the window's own τ. The drive's model is the one with the most evidence
+summed over its windows (each window's Laplace evidence of the model's better variant; the windows are
+independent given the model), its prior probability counted once per drive rather than once per window, over
+the windows where every model in the race fitted and settled (neither misfit nor diverged, a status in
+drive.statuses: a Laplace evidence away from an optimum is no evidence); a model that fits and settles in
+fewer than half the drive's windows is not in the race. Every window is then combined under that model, also
+one whose own choice was another: θ = the model's parameters (p1, p2, body modes) less those each window
+keeps for itself (drive.per_window, default τ: with two loggers it drifts with their clocks, so it is
+marginalised like the initial state), from that model's better-settled variant in the window; a window the
+drive's model did not fit is rejected (drive_progress.csv says why). m3 = K3/p2 with its interval mapped
+from p2's. drives.csv's `model` is the drive's model, `model_margin` its evidence over the runner-up [nats]
+and `windows_models` the windows' own choices. (Before, windows whose own choices differed — one rigid+delay
+window among rigid ones, a person's body1 and body2 windows — were combined in m3 alone with the σ of each
+window's joined interval, and a window whose interval reached infinity made that combination singular.)
+Overlapping windows (stride < window) share samples, so their errors are correlated: only a non-overlapping
+subset is used (the first window, then each next one starting at or after the end of the last one used); the
+others are counted.
 """
 
 from __future__ import annotations
@@ -49,15 +59,14 @@ from hybridqcm.atomic import atomic_write_csv
 from hybridqcm.console import print_table
 from hybridqcm.estimation.drive import (
     Gaussian,
-    InformationCombiner,
     isolated_outliers,
     non_overlapping,
     progress,
     segment,
     static_mass,
     time_to_precision,
-    usable_windows,
 )
+from hybridqcm.estimation.drive_model import DriveView
 from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import STATUS_LABELS
 from hybridqcm.estimation.tables import ALL_STATUS_LABELS
@@ -119,156 +128,6 @@ def _time(x: float) -> str:
     return _fmt(round(float(x), 6))
 
 
-def _present(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """[W, P] bool: the parameters a window estimated (finite, variance > 0): not the ones its occupant model
-    lacks (NaN in a model selection's common layout) nor the known ones (variance 0)."""
-    var = cov.diagonal(dim1=1, dim2=2)
-    return torch.isfinite(theta) & torch.isfinite(var) & (var > 0)
-
-
-def _usable(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """[W] bool: p2 estimated and the estimated parameters' covariance positive definite."""
-    present = _present(theta, cov)
-    mask = present.unsqueeze(2) & present.unsqueeze(1)
-    eye = torch.eye(theta.shape[1], dtype=cov.dtype).expand_as(cov)
-    patched = torch.where(mask, cov, torch.where(eye.bool(), eye, torch.zeros_like(cov)))
-    return present[:, 1] & usable_windows(torch.where(present, theta, torch.zeros_like(theta)), patched)
-
-
-def _families(names: Sequence[str]) -> list[str]:
-    """The occupant models a drive can be pooled under: the candidates without their delay variants (a delay
-    is each window's own, drive.per_window), in the candidates' order."""
-    return list(dict.fromkeys(n.split("+")[0] for n in names))
-
-
-def _log_prior(log_prior: Mapping[str, float] | None, family: str) -> float:
-    return float((log_prior or {}).get(family, 0.0))
-
-
-def drive_model(
-    logz: torch.Tensor,
-    fits: torch.Tensor,
-    chosen: torch.Tensor,
-    names: Sequence[str],
-    log_prior=None,
-    settled: torch.Tensor | None = None,
-):
-    """The occupant model of one drive, by its windows' summed evidence (module docstring).
-
-    logz [W, C] (−inf: not fitted), fits [W, C] (neither misfit nor diverged), chosen [W] (each window's own
-    choice, index into names) of the drive's windows, settled [W, C] (the fit ended with a status the drive
-    combines; default: all): only fits that fit and settled weigh (a Laplace evidence away from an optimum is
-    no evidence: one max_iterations fit 110 nats above the rest decided a drive). Returns (family, variant [W]
-    — per window the index into names of that family's variant with the highest evidence among those that
-    fit, −1 if none does —, the evidence margin over the runner-up [nats], the windows' own choices as a
-    label)."""
-    families = _families(names)
-    member = torch.tensor([[n.split("+")[0] == f for n in names] for f in families])  # [F, C]
-    weighs = fits & (torch.ones_like(fits) if settled is None else settled)
-    evidence = torch.where(weighs, logz, torch.full_like(logz, -math.inf))
-    masked = torch.where(member[None], evidence[:, None, :], torch.full_like(logz[:, None, :], -math.inf))
-    best = masked.max(2).values  # [W, F]: each family's evidence in each window (its better variant)
-    # a model that fits and settles in fewer than half the windows cannot carry the drive (a person's
-    # two-mode fit that ran out of iterations in 10 of 12 windows won one drive by 0.2 nats on the other 2)
-    carries = torch.isfinite(best).sum(0) * 2 >= best.shape[0]
-    carries = carries if bool(carries.any()) else torch.ones_like(carries)
-    common = torch.isfinite(best[:, carries]).all(1)
-    if bool(common.any()) and int(carries.sum()) > 1:
-        # one model prior per drive, not one per window: the occupant is the same in every window
-        prior = torch.tensor([_log_prior(log_prior, f) for f in families], dtype=torch.float64)
-        score = torch.where(carries, (best[common] - prior).nan_to_num(0.0, 0.0, 0.0).sum(0) + prior, -math.inf)
-        order = torch.argsort(score, descending=True)
-        family, margin = families[int(order[0])], float(score[order[0]] - score[order[1]])
-    elif int(carries.sum()) == 1:
-        family, margin = families[int(carries.nonzero()[0])], math.inf
-    else:  # nothing to compare on: the family most windows chose
-        votes = torch.bincount(
-            torch.tensor([families.index(names[int(c)].split("+")[0]) for c in chosen]), minlength=len(families)
-        )
-        family, margin = families[int(votes.argmax())], math.nan
-    f = families.index(family)
-    eligible = member[f][None] & fits & torch.isfinite(logz)
-    preferred = eligible & weighs  # a settled variant before one that ran out of iterations
-    eligible = torch.where(preferred.any(1, keepdim=True), preferred, eligible)
-    scored = torch.where(eligible, logz, torch.full_like(logz, -math.inf))
-    variant = torch.where(eligible.any(1), scored.argmax(1), torch.full((logz.shape[0],), -1, dtype=torch.long))
-    return family, variant, margin, _label(chosen, names)
-
-
-def _label(models: torch.Tensor, names: Sequence[str]) -> str:
-    counts = {names[int(k)]: int(c) for k, c in zip(*torch.unique(models, return_counts=True))}
-    return ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
-
-
-class _DriveView:
-    """One drive's windows under its occupant model: per row (of the whole file) the chosen variant's θ [P],
-    covariances [P, P], status and whether it can be combined."""
-
-    def __init__(self, columns: Mapping, rows: np.ndarray, drive: DrivePlan, names, log_prior, windows):
-        fitted = rows[~windows.kept_out[rows].numpy()]
-        self.family, variant, self.margin, self.own = "", torch.zeros(0, dtype=torch.long), math.nan, ""
-        self.variant = {}
-        if fitted.size:
-            allowed = torch.tensor(sorted(k for k, v in STATUS_LABELS.items() if v in drive.statuses))
-            self.family, variant, self.margin, self.own = drive_model(
-                columns["drive_cand_logz"][fitted],
-                columns["drive_cand_fits"][fitted],
-                columns["drive_model"][fitted],
-                names,
-                log_prior,
-                torch.isin(columns["drive_cand_status"][fitted], allowed),
-            )
-            self.variant = {int(r): int(v) for r, v in zip(fitted, variant)}
-        n_p = columns["drive_cand_theta"].shape[2]
-        self.theta = {}
-        self.cov = {}
-        self.weight_cov = {}
-        self.status_ok = {}
-        self.status = {}
-        allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
-        members = [j for j, n in enumerate(names) if n.split("+")[0] == self.family]
-        for r in rows:
-            v = self.variant.get(int(r), -1)
-            if v < 0:  # no variant of the drive's model fitted: the status of its best one says why
-                if int(r) in self.variant:
-                    best = max(members, key=lambda j: float(columns["drive_cand_logz"][r, j]))
-                    self.status[int(r)] = int(columns["drive_cand_status"][r, best])
-                continue
-            self.theta[int(r)] = columns["drive_cand_theta"][r, v]
-            self.cov[int(r)] = columns["drive_cand_cov"][r, v]
-            self.weight_cov[int(r)] = columns["drive_cand_model_cov"][r, v]
-            self.status_ok[int(r)] = int(columns["drive_cand_status"][r, v]) in allowed
-            self.status[int(r)] = int(columns["drive_cand_status"][r, v])
-        self.n_params = n_p
-
-    def usable(self, rows: np.ndarray, weights: str) -> np.ndarray:
-        """[len(rows)] bool: the drive's model fitted the window (not misfit, not diverged), its status is one
-        drive.statuses combines, p2 estimated and the estimated parameters' covariance positive definite."""
-        ok = np.zeros(rows.size, dtype=bool)
-        have = [i for i, r in enumerate(rows) if int(r) in self.theta and self.status_ok[int(r)]]
-        if not have:
-            return ok
-        theta = torch.stack([self.theta[int(rows[i])] for i in have])
-        good = _usable(theta, torch.stack([self.cov[int(rows[i])] for i in have]))
-        if weights == "model":
-            good &= _usable(theta, torch.stack([self.weight_cov[int(rows[i])] for i in have]))
-        ok[np.asarray(have)[good.numpy()]] = True
-        return ok
-
-    def gaussians(self, rows: np.ndarray, drive: DrivePlan, param_names: Sequence[str]):
-        """(combiner, index of p2 within the combined parameters) for the usable windows ``rows``: the parameters
-        every window estimated under the drive's model, less those each window keeps (drive.per_window)."""
-        theta = torch.stack([self.theta[int(r)] for r in rows])
-        cov = torch.stack([self.cov[int(r)] for r in rows])
-        shared = torch.tensor([n not in drive.per_window for n in param_names[: theta.shape[1]]], dtype=torch.bool)
-        keep = (_present(theta, cov).all(0) & shared).nonzero().squeeze(1)
-        index = int((keep == 1).nonzero()[0])  # p2 within the shared parameters
-        weight = None
-        if drive.weights == "model":
-            weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
-        return InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale), index
-
-
 class _Windows:
     """Every window's status code [M], whether the status is one drive.statuses combines [M] and whether
     the window was kept from the fit (no_signal, clipped) [M]."""
@@ -280,9 +139,9 @@ class _Windows:
         self.kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
 
 
-def _window_reasons(rows: np.ndarray, usable: np.ndarray, windows: _Windows, view: _DriveView, drive: DrivePlan):
+def _window_reasons(rows: np.ndarray, usable: np.ndarray, windows: _Windows, view: DriveView, drive: DrivePlan):
     """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows;
-    usable [len(rows)]: whether the drive's model can combine each (_DriveView.usable)."""
+    usable [len(rows)]: whether the drive's model can combine each (DriveView.usable)."""
     good = rows[usable]
     keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
     overlapping = set(good[[not k for k in keep]].tolist())
@@ -313,7 +172,7 @@ def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, dr
     return drive_row, progress_rows
 
 
-def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view: _DriveView, drive: DrivePlan):
+def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view: DriveView, drive: DrivePlan):
     """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
     ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
     seg_start = float(drive.t_start[good[seg[0]]])
@@ -377,7 +236,7 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view:
     return drive_row, progress_rows, (m3, low, high)
 
 
-def _combine_drive(name, rows, good, reason, view: _DriveView, drive: DrivePlan, K3, param_names, true):
+def _combine_drive(name, rows, good, reason, view: DriveView, drive: DrivePlan, K3, param_names, true):
     """One drive's usable windows ``good`` combined under its model: outliers marked in ``reason``, segments
     found. Returns (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per
     segment)."""
@@ -430,7 +289,7 @@ def aggregate_drives(
         rows = np.flatnonzero(drive.profile_id == pid)
         rows = rows[np.argsort(drive.t_start[rows], kind="stable")]
         name = drive.names[pid] if drive.names else str(int(pid))
-        view = _DriveView(columns, rows, drive, names, log_prior, windows)
+        view = DriveView(columns, rows, drive, names, log_prior, windows.kept_out)
         good, overlapping, reason = _window_reasons(rows, view.usable(rows, drive.weights), windows, view, drive)
         if good.size == 0:
             notes.append(
