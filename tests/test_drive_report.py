@@ -398,3 +398,25 @@ def test_windows_with_and_without_their_own_delay_combine_as_the_joint_fit(tmp_p
     assert (row["model"], row["windows_used"], row["windows_models"]) == ("rigid", "6", "rigid:3;rigid+delay:3")
     assert float(row["m3"]) == pytest.approx(K3 / p2, rel=1e-9)
     assert float(row["m3_std"]) == pytest.approx(K3 / p2**2 * sd_p2, rel=1e-7)
+
+
+def test_unsettled_fits_and_models_that_rarely_settle_do_not_choose_the_drives_model():
+    """drive_model: rigid leads body2 by 1 nat in each of 6 windows; one body2 fit that ran out of iterations
+    claims 100 nats more (a Laplace evidence away from an optimum): it does not weigh. Settled in 2 windows
+    of 6 only, where it leads by 5, body2 is not in the race at all."""
+    from hybridqcm.estimation.drive_model import drive_model
+
+    names = ["rigid", "body2"]
+    logz = torch.tensor([[0.0, -1.0]] * 6, dtype=torch.float64)
+    fits = torch.ones(6, 2, dtype=torch.bool)
+    settled = torch.ones(6, 2, dtype=torch.bool)
+    chosen = torch.zeros(6, dtype=torch.long)
+    logz[0, 1], settled[0, 1] = 100.0, False
+    family, variant, margin, _ = drive_model(logz, fits, chosen, names, None, settled)
+    assert family == "rigid" and margin == pytest.approx(5.0) and variant.tolist() == [0] * 6
+    family, _, _, _ = drive_model(logz, fits, chosen, names, None, torch.ones_like(settled))
+    assert family == "body2"  # the same numbers, the fit taken as settled
+    logz[:, 1], settled[:, 1] = 5.0, False
+    settled[[1, 2], 1] = True
+    family, _, margin, _ = drive_model(logz, fits, chosen, names, None, settled)
+    assert family == "rigid" and margin == math.inf

@@ -80,8 +80,8 @@ def drive_model(
         score = torch.where(carries, (best[common] - prior).nan_to_num(0.0, 0.0, 0.0).sum(0) + prior, -math.inf)
         order = torch.argsort(score, descending=True)
         family, margin = families[int(order[0])], float(score[order[0]] - score[order[1]])
-    elif int(carries.sum()) == 1:
-        family, margin = families[int(carries.nonzero()[0])], math.inf
+    elif int(carries.sum()) == 1:  # the only model that carries (inf), or the only model there is (no race)
+        family, margin = families[int(carries.nonzero()[0])], math.inf if len(families) > 1 else math.nan
     else:  # nothing to compare on: the family most windows chose
         votes = torch.bincount(
             torch.tensor([families.index(names[int(c)].split("+")[0]) for c in chosen]), minlength=len(families)
