@@ -49,6 +49,7 @@ def main(argv=None) -> None:
     ap.add_argument("--set", nargs="*", default=[], help="drive settings: key=value (YAML values)")
     ap.add_argument("--K3", type=float, default=98935.0)
     ap.add_argument("--prior-per-window", action="store_true", help="the model prior as each window counts it")
+    ap.add_argument("--model-cov", action="store_true", help="the model-based covariance as each window's own")
     args = ap.parse_args(argv)
     config = yaml.safe_load((REPO / "configs" / "estimate.yaml").read_text())
     settings = dict(config["drive"])
@@ -59,6 +60,12 @@ def main(argv=None) -> None:
     order = torch.argsort(columns["index"])
     columns = {k: v[order] for k, v in columns.items()}
     index = columns["index"].numpy()
+    if args.model_cov:
+        if "drive_cov" in columns:  # early shards: the chosen candidate's model-based covariance only
+            rows = torch.arange(len(index))
+            columns["drive_cand_model_cov"] = columns["drive_cand_cov"].clone()
+            columns["drive_cand_model_cov"][rows, columns["drive_model"]] = columns["drive_cov"]
+        columns["drive_cand_cov"] = columns["drive_cand_model_cov"]
     with h5py.File(args.data, "r") as handle:
         group = handle[args.split]
         profile_id = np.asarray(group["profile_id"][()])[index]
