@@ -5,7 +5,9 @@ the driving time after which an estimator at the bound has its 95 % interval wit
     .venv/bin/python bench/drive_crb.py data/drives/whole.h5 [--noise 0.05] [--delay-unknown]
 
 Per drive (whole.h5 holds each drive's clean a3, a2 on one clock) bench/occupant_crb.py's bound σ_M/M of the
-whole drive (rigid occupant, white noise of `noise` times each channel's RMS on both, errors in variables).
+whole drive (white noise of `noise` times each channel's RMS on both, errors in variables) under the model an
+estimator has to fit: rigid for a rigid occupant, body1 at the true constants for a one-mode person (`drives
+--occupant body1 --whole` stores the persons' truth), body1 fitted to a two-mode person.
 The information of a stationary drive grows in proportion to its duration D, so the bound after T seconds
 is σ_M/M (D/T)^½ and an estimator at the bound has its 95 % interval within ±x after T_x = D (1.96 σ_M/M / x)²
 (the bound of a short stretch computed directly from its periodogram scatters from second to second: too few
@@ -35,22 +37,27 @@ def main(argv=None) -> None:
     ap.add_argument("whole", help="foreign_sim drives --whole output (whole.h5)")
     ap.add_argument("--noise", type=float, default=0.05)
     ap.add_argument("--delay-unknown", action="store_true", help="the channel delay estimated too")
+    ap.add_argument("--n", type=int, help="the first n drives only (those a run estimated)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     crb = _crb()
     accel, h, truth = crb.read_file(Path(args.whole))
+    if args.n:
+        accel, truth = accel[: args.n], crb._first(truth, args.n)
     n_rec, steps = accel.shape[:2]
-    whole = []
-    for i in range(n_rec):
-        theta = np.array([truth["C3"][i] / truth["m3"][i], truth["K3"][i] / truth["m3"][i]])
-        a3, a2 = accel[i, :, 0], accel[i, :, 1]
-        rms3, rms2 = np.sqrt(np.mean(a3**2)), np.sqrt(np.mean(a2**2))
-        whole.append(args.noise * crb.relative_sd("rigid", theta, a2, rms3, rms2, h, args.delay_unknown))
-    whole = np.asarray(whole)
+    # each drive's bound under the model an estimator has to fit (occupant_crb.bounds: rigid for a rigid
+    # occupant, body1 at the true constants for a body1 person, body1 fitted to a body2 person)
+    per = crb.bounds(accel, h, truth)
+    which = "unknown" if args.delay_unknown else "known"
+    kinds = np.asarray(truth["occupant"]).astype(int)
+    columns = np.stack([per[f"{m}_{which}"] for m in ("rigid", "body1", "body1fit")], 1)
+    whole = args.noise * columns[np.arange(n_rec), np.minimum(kinds, 2)]
     duration = steps * h
     t5, t2 = (duration * (1.959963984540054 * whole / level) ** 2 for level in (0.05, 0.02))
+    occupants = ", ".join(f"{k} {int(np.sum(kinds == j))}" for j, k in enumerate(crb.KINDS) if np.any(kinds == j))
     numbers = {
         "drives": n_rec,
+        "occupants": occupants,
         "duration_s": steps * h,
         "noise": args.noise,
         "delay_unknown": bool(args.delay_unknown),
@@ -60,7 +67,7 @@ def main(argv=None) -> None:
         "reached_2pct_in_drive": float(np.mean(t2 <= duration)),
     }
     print(
-        f"{args.whole}: {n_rec} drives of {steps * h:g} s at {100 * args.noise:g} % noise, rigid occupant, delay "
+        f"{args.whole}: {n_rec} drives of {steps * h:g} s at {100 * args.noise:g} % noise ({occupants}), delay "
         f"{'estimated' if args.delay_unknown else 'known'}: bound E|error| {100 * numbers['mean_abs_error_bound']:.3g} %, "
         f"median time to ±5 % {numbers['median_t_to_5pct_s']:.3g} s, to ±2 % {numbers['median_t_to_2pct_s']:.3g} s "
         f"(±2 % within the drive for {100 * numbers['reached_2pct_in_drive']:.3g} %)"

@@ -905,6 +905,11 @@ def make_drives(args) -> None:
             f["test/params"] = params
             f["test/truth_m3"] = v["m3"]
             f["test/truth_K3"] = v["K3"]
+            if "occupant" in v:  # persons: what bench/occupant_crb.py needs for the body model's bound
+                f["test/truth_occupant"] = v["occupant"]
+                f["test/truth_pan"] = v["pan"]
+                f["test/truth_body"] = np.stack([v[k] for k in PERSON_COLUMNS], axis=1)
+                f["test/truth_body"].attrs["columns"] = ",".join(PERSON_COLUMNS)
         (out / "whole.partial").rename(out / "whole.h5")
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     what = "two loggers each" if two else "one clock"

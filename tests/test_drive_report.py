@@ -70,9 +70,12 @@ def _columns(masses, rel_sd, rng, status=None):
     status = np.full(n, int(SolverStatus.CONVERGED)) if status is None else np.asarray(status)
     p2_low, p2_high = theta[:, 1] - 1.96 * sd[:, 1], theta[:, 1] + 1.96 * sd[:, 1]
     return {
-        "drive_theta": torch.from_numpy(theta),
-        "drive_cov": torch.from_numpy(cov),
-        "drive_model_cov": torch.from_numpy(cov),
+        "drive_cand_theta": torch.from_numpy(theta)[:, None],
+        "drive_cand_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_model_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_status": torch.from_numpy(status).long()[:, None],
+        "drive_cand_fits": torch.from_numpy(status != int(SolverStatus.MISFIT))[:, None],
+        "drive_cand_logz": torch.zeros(n, 1, dtype=torch.float64),
         "drive_model": torch.zeros(n, dtype=torch.long),
         "status": torch.from_numpy(status).long(),
         "m3_low": torch.from_numpy(K3 / p2_high),
@@ -126,20 +129,93 @@ def test_drives_csv_segments_rejections_and_progress(tmp_path, capsys):
     assert "drive/drive_A" in events.Tags()["images"]
 
 
-def test_windows_of_different_models_combine_the_static_mass(tmp_path):
-    """Windows that chose different occupant models: m3 per window (σ from its interval) is combined."""
-    rng = np.random.default_rng(1)
-    columns = _columns([75.0] * 6, 0.02, rng)
-    columns["drive_model"] = torch.tensor([0, 1, 0, 1, 1, 0])
+def _selection_columns(rng, n=8, mass=75.0):
+    """Windows of an occupant-model selection over rigid, body1, rigid+delay (θ = p1, p2, r1, k1, c1, tau):
+    each candidate's estimate around the truth with its own covariance, evidences drawn so that the windows'
+    own choices are mixed."""
+    names = ["rigid", "body1", "rigid+delay"]
+    p = np.array([615.0 / mass, K3 / mass, 0.5, 900.0, 30.0, 0.0])
+    theta = np.full((n, 3, 6), np.nan)
+    cov = np.full((n, 3, 6, 6), np.nan)
+    for c, present in enumerate(([0, 1], [0, 1, 2, 3, 4], [0, 1, 5])):
+        for w in range(n):
+            a = rng.standard_normal((len(present), len(present)))
+            block = a @ a.T + len(present) * np.eye(len(present))
+            block *= np.outer(0.02 * np.abs(p[present]) + 1e-3, 0.02 * np.abs(p[present]) + 1e-3)
+            theta[w, c, present] = p[present] + np.linalg.cholesky(block) @ rng.standard_normal(len(present))
+            cov[w, c][np.ix_(present, present)] = block
+    logz = rng.normal(0.0, 2.0, (n, 3))
+    status = np.zeros((n, 3), dtype=np.int64)
+    return names, {
+        "drive_cand_theta": torch.from_numpy(theta),
+        "drive_cand_cov": torch.from_numpy(cov),
+        "drive_cand_model_cov": torch.from_numpy(cov),
+        "drive_cand_status": torch.from_numpy(status),
+        "drive_cand_fits": torch.ones(n, 3, dtype=torch.bool),
+        "drive_cand_logz": torch.from_numpy(logz),
+        "drive_model": torch.from_numpy(logz.argmax(1)),
+        "status": torch.zeros(n, dtype=torch.long),
+        "m3_low": torch.full((n,), mass * 0.9, dtype=torch.float64),
+        "m3_high": torch.full((n,), mass * 1.1, dtype=torch.float64),
+    }
+
+
+def _information_mean(theta, cov):
+    """Σ Λ_w θ_w / Σ Λ_w written out with numpy (the combination's definition)."""
+    precision = [np.linalg.inv(c) for c in cov]
+    return np.linalg.solve(sum(precision), sum(P @ t for P, t in zip(precision, theta)))
+
+
+@pytest.mark.parametrize("rigid_wins", [True, False])
+def test_a_drive_pools_its_windows_under_the_model_of_most_summed_evidence(tmp_path, rigid_wins):
+    """The drive's model is the one with the most evidence summed over its windows (a model's delay variant
+    counts for it: rigid+delay is rigid with the window's own delay), its prior counted once per drive; every
+    window is then combined under that model, also those whose own choice was another. body1 leads or trails
+    the better rigid variant by 1 nat in 6 windows and leads by 2 in the other 2, its prior 0.2 nats above
+    rigid's: summed, body1 - rigid = ∓6 + 4 - 7 x 0.2."""
+    rng = np.random.default_rng(5)
+    names, columns = _selection_columns(rng)
+    logz = columns["drive_cand_logz"]
+    best_rigid = torch.maximum(logz[:, 0], logz[:, 2])
+    logz[:, 1] = best_rigid + (-1.0 if rigid_wins else 1.0)
+    logz[::4, 1] = best_rigid[::4] + 2.0  # two windows on their own prefer body1 either way
+    columns["drive_model"] = logz.argmax(1)
+    log_prior = {"rigid": -0.2, "body1": 0.0}
+    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",))
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    params = ("p1", "p2", "r1", "k1", "c1", "tau")
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, names, params, log_prior)
+    (row,) = _rows(tmp_path / "drives.csv")
+    if rigid_wins:  # per window the rigid variant (with or without its delay) of the higher evidence
+        pick, keep = [0 if logz[w, 0] >= logz[w, 2] else 2 for w in range(8)], [0, 1]  # τ: each window's own
+    else:
+        pick, keep = [1] * 8, [0, 1, 2, 3, 4]
+    assert rigid_wins == (2 in pick or 0 in pick)
+    theta = [columns["drive_cand_theta"][w, c, keep].numpy() for w, c in enumerate(pick)]
+    cov = [columns["drive_cand_cov"][w, c][keep][:, keep].numpy() for w, c in enumerate(pick)]
+    expected = K3 / _information_mean(theta, cov)[1]
+    assert row["model"] == ("rigid" if rigid_wins else "body1")
+    assert float(row["m3"]) == pytest.approx(expected, rel=1e-10)
+    assert row["windows_used"] == "8" and "body1:" in row["windows_models"]
+    assert float(row["model_margin"]) == pytest.approx(abs((-6.0 if rigid_wins else 6.0) + 4.0 - 7 * 0.2))
+
+
+def test_a_window_the_drives_model_did_not_fit_is_rejected(tmp_path):
+    """A window where the drive's model ended misfit is not combined (counted as rejected, with the reason),
+    even when another model fitted it and won there."""
+    rng = np.random.default_rng(6)
+    names, columns = _selection_columns(rng, n=6)
+    columns["drive_cand_logz"][:, 1] = -50.0  # body1 loses everywhere: the drive is rigid
+    columns["drive_cand_fits"][2, [0, 2]] = False  # window 2: neither rigid variant fits
+    columns["drive_cand_status"][2, [0, 2]] = int(SolverStatus.MISFIT)
+    columns["drive_cand_logz"][2, 1] = 10.0
     plan = _plan([0] * 6, [5.0 * k for k in range(6)], ["D"])
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
-    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["body1", "body2"])
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, names, ("p1", "p2", "r1", "k1", "c1", "tau"), None)
     (row,) = _rows(tmp_path / "drives.csv")
-    assert row["model"] == "mixed(body1:3;body2:3)"
-    m3 = K3 / columns["drive_theta"][:, 1].numpy()
-    sd = (columns["m3_high"] - columns["m3_low"]).numpy() / 3.919927969080108
-    expected = np.sum(m3 / sd**2) / np.sum(1 / sd**2)
-    assert float(row["m3"]) == pytest.approx(expected, rel=1e-12)
+    assert (row["model"], row["windows_used"], row["windows_rejected"]) == ("rigid", "5", "1")
+    used = [r["used"] for r in _rows(tmp_path / "drive_progress.csv")]
+    assert used[2] == "rejected:misfit" and used.count("used") == 5
 
 
 def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
@@ -149,8 +225,10 @@ def test_windows_without_information_are_skipped_and_counted(tmp_path, capsys):
     status = [0, int(WindowStatus.NO_SIGNAL), 0, 0, int(SolverStatus.MISFIT), 0]
     status += [int(WindowStatus.CLIPPED), int(WindowStatus.NO_SIGNAL)]
     columns = _columns([70.0] * 6 + [90.0] * 2, 0.01, rng, status)
-    for key in ("drive_theta", "drive_cov", "drive_model_cov", "m3_low", "m3_high"):
+    for key in ("drive_cand_theta", "drive_cand_cov", "drive_cand_model_cov", "m3_low", "m3_high"):
         columns[key][[1, 6, 7]] = math.nan  # as drive_skipped_columns / skipped_tables write them
+    columns["drive_cand_fits"][[1, 6, 7]] = False
+    columns["drive_cand_logz"][[1, 6, 7]] = -math.inf
     plan = _plan([0] * 6 + [1] * 2, [5.0 * k for k in range(6)] + [0.0, 5.0], ["A", "B"])
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"])
@@ -260,3 +338,85 @@ def test_foreign_drives_agree_with_dop853():
         )
         ref = (A[3:5] @ sol.y + np.outer(B[3:5, 0], u[::10])).T
         assert np.abs(ref - accel[i, ::10]).max() <= 5e-7 * np.abs(ref).max()
+
+
+def test_windows_with_and_without_their_own_delay_combine_as_the_joint_fit(tmp_path):
+    """A drive whose windows chose rigid and rigid+delay (τ each window's own) is one rigid drive: its m3 and
+    σ equal the joint least-squares fit of all windows at once — (p1, p2) shared, each window its own initial
+    state and, where it has one, its own delay column — solved directly as one problem (the independent fact;
+    a linear model, so the Gaussian combination is exact)."""
+    g = torch.Generator().manual_seed(11)
+    truth = torch.tensor([615.0 / 80.0, K3 / 80.0], dtype=torch.float64)
+    n_w, rows, n_state = 6, 60, 3
+    windows = []
+    for w in range(n_w):
+        A = torch.randn(rows, 2, generator=g, dtype=torch.float64) * torch.tensor([1.0, 0.01], dtype=torch.float64)
+        own = n_state + (1 if w >= 3 else 0)  # windows 3..5 carry their own delay column
+        B = torch.randn(rows, own, generator=g, dtype=torch.float64)
+        y = A @ truth + B @ torch.randn(own, generator=g, dtype=torch.float64)
+        y = y + 0.05 * torch.randn(rows, generator=g, dtype=torch.float64)
+        windows.append((A, B, y))
+    theta = torch.full((n_w, 2, 3), math.nan, dtype=torch.float64)  # candidates rigid, rigid+delay; p1, p2, tau
+    cov = torch.full((n_w, 2, 3, 3), math.nan, dtype=torch.float64)
+    for w, (A, B, y) in enumerate(windows):
+        J = torch.cat([A, B], 1)
+        c = torch.linalg.inv(J.T @ J)  # unit noise variance: the weights are relative, as are the answers
+        est = c @ J.T @ y
+        if w < 3:
+            theta[w, 0, :2], cov[w, 0, :2, :2] = est[:2], c[:2, :2]
+        else:  # the delay: the last own column, kept with the parameters as the selection reports it
+            keep = [0, 1, J.shape[1] - 1]
+            theta[w, 1], cov[w, 1] = est[keep], c[keep][:, keep]
+    logz = torch.tensor([[0.0, -math.inf]] * 3 + [[-5.0, 0.0]] * 3, dtype=torch.float64)
+    columns = {
+        "drive_cand_theta": theta,
+        "drive_cand_cov": cov,
+        "drive_cand_model_cov": cov.clone(),
+        "drive_cand_status": torch.zeros(n_w, 2, dtype=torch.long),
+        "drive_cand_fits": torch.isfinite(logz),
+        "drive_cand_logz": logz,
+        "drive_model": logz.argmax(1),
+        "status": torch.zeros(n_w, dtype=torch.long),
+        "m3_low": torch.full((n_w,), 70.0, dtype=torch.float64),
+        "m3_high": torch.full((n_w,), 90.0, dtype=torch.float64),
+    }
+    plan = _plan([0] * n_w, [5.0 * k for k in range(n_w)], ["D"], scale="none")
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid", "rigid+delay"], ("p1", "p2", "tau"))
+    (row,) = _rows(tmp_path / "drives.csv")
+    # the joint problem: columns (p1, p2) shared, then each window's own block
+    widths = [B.shape[1] for _, B, _ in windows]
+    J = torch.zeros(n_w * rows, 2 + sum(widths), dtype=torch.float64)
+    col = 2
+    for w, (A, B, _) in enumerate(windows):
+        J[w * rows : (w + 1) * rows, :2] = A
+        J[w * rows : (w + 1) * rows, col : col + widths[w]] = B
+        col += widths[w]
+    y = torch.cat([w[2] for w in windows])
+    cov_joint = torch.linalg.inv(J.T @ J)
+    p2, sd_p2 = float((cov_joint @ J.T @ y)[1]), float(cov_joint[1, 1].sqrt())
+    assert (row["model"], row["windows_used"], row["windows_models"]) == ("rigid", "6", "rigid:3;rigid+delay:3")
+    assert float(row["m3"]) == pytest.approx(K3 / p2, rel=1e-9)
+    assert float(row["m3_std"]) == pytest.approx(K3 / p2**2 * sd_p2, rel=1e-7)
+
+
+def test_unsettled_fits_and_models_that_rarely_settle_do_not_choose_the_drives_model():
+    """drive_model: rigid leads body2 by 1 nat in each of 6 windows; one body2 fit that ran out of iterations
+    claims 100 nats more (a Laplace evidence away from an optimum): it does not weigh. Settled in 2 windows
+    of 6 only, where it leads by 5, body2 is not in the race at all."""
+    from hybridqcm.estimation.drive_model import drive_model
+
+    names = ["rigid", "body2"]
+    logz = torch.tensor([[0.0, -1.0]] * 6, dtype=torch.float64)
+    fits = torch.ones(6, 2, dtype=torch.bool)
+    settled = torch.ones(6, 2, dtype=torch.bool)
+    chosen = torch.zeros(6, dtype=torch.long)
+    logz[0, 1], settled[0, 1] = 100.0, False
+    family, variant, margin, _ = drive_model(logz, fits, chosen, names, None, settled)
+    assert family == "rigid" and margin == pytest.approx(5.0) and variant.tolist() == [0] * 6
+    family, _, _, _ = drive_model(logz, fits, chosen, names, None, torch.ones_like(settled))
+    assert family == "body2"  # the same numbers, the fit taken as settled
+    logz[:, 1], settled[:, 1] = 5.0, False
+    settled[[1, 2], 1] = True
+    family, _, margin, _ = drive_model(logz, fits, chosen, names, None, settled)
+    assert family == "rigid" and margin == math.inf

@@ -66,10 +66,14 @@ def test_drives_csv_carries_the_occupant_through_the_seat_law(tmp_path):
     cov = np.stack([np.diag(sd**2)] * (n + 4))
     p2_low, p2_high = theta[:, 1] - 1.96 * sd[1], theta[:, 1] + 1.96 * sd[1]
     status = [int(SolverStatus.CONVERGED)] * n + [int(SolverStatus.MISFIT)] * 4
-    columns = {
-        "drive_theta": torch.from_numpy(theta),
-        "drive_cov": torch.from_numpy(cov),
-        "drive_model_cov": torch.from_numpy(cov),
+    fits = np.array(status) != int(SolverStatus.MISFIT)
+    columns = {  # one candidate (rigid) per window, as drive_plan writes drive_cand_*
+        "drive_cand_theta": torch.from_numpy(theta)[:, None],
+        "drive_cand_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_model_cov": torch.from_numpy(cov)[:, None],
+        "drive_cand_status": torch.tensor(status).long()[:, None],
+        "drive_cand_fits": torch.from_numpy(fits)[:, None],
+        "drive_cand_logz": torch.zeros(n + 4, 1, dtype=torch.float64),
         "drive_model": torch.zeros(n + 4, dtype=torch.long),
         "status": torch.tensor(status),
         "m3_low": torch.from_numpy(K3 / p2_high),

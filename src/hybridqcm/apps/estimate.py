@@ -57,12 +57,15 @@ def run(cfg, run_dir: Path | None = None) -> dict:
         tables = runner.EstimateTables(
             tables.header,
             drive_columns(tables.rows, refinement, n_theta),
-            drive_skipped_columns(tables.skipped, n_theta),
+            drive_skipped_columns(tables.skipped, n_theta, len(model_names(refinement))),
         )
         names = list(refinement.response.theta_names)[:n_theta]
 
         def aggregate(columns):
-            return aggregate_drives(cfg, plan, drive, columns, run_dir, model_names(refinement), names, seat=seat)
+            prior = getattr(refinement, "log_prior", None)  # an occupant-model selection's model prior
+            return aggregate_drives(
+                cfg, plan, drive, columns, run_dir, model_names(refinement), names, prior, seat=seat
+            )
 
     solved = runner.solve(cfg, plan, run_dir, store, refinement, tables)
     if solved is None:  # not rank 0: the merge and the report are rank 0's

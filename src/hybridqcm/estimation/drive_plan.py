@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -61,8 +61,8 @@ def _count(settings, key: str, low: int) -> int:
 def _names(settings, key: str) -> tuple[str, ...]:
     value = settings.get(key, ["tau"])
     value = [] if value is None else [value] if isinstance(value, str) else list(value)
-    if any(str(v) in ("p1", "p2") for v in value):
-        raise ConfigError(f"drive.{key}={value}: p1 and p2 (the occupant) are what the windows share")
+    if any(str(v) == "p2" for v in value):
+        raise ConfigError(f"drive.{key}={value}: p2 (the occupant's static mass) is what the windows share")
     return tuple(str(v) for v in value)
 
 
@@ -132,33 +132,63 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
 
 
 def drive_columns(tables: Callable, refinement, n_params: int) -> Callable:
-    """``tables(record)`` (estimation/tables.block_tables) with each window's shared parameters added to
-    the block's columns: drive_theta [b, P], drive_cov [b, P, P] (the reported covariance's parameter block:
-    the initial state marginalised), drive_model_cov (the model-based σ̂²(JᵀJ)⁻¹ block: the robust one is
-    it rescaled per parameter) and drive_model [b] (index into :func:`model_names`)."""
+    """``tables(record)`` (estimation/tables.block_tables) with what a drive pools added to the block's columns:
+    drive_model [b] (each window's own choice, index into :func:`model_names`) and every candidate's estimate
+    (:func:`_candidate_columns`; a single model's is its own), the parameter blocks of the covariances (the
+    window's initial state marginalised)."""
     names = model_names(refinement)
 
     def with_drive(record: Mapping) -> tuple[list, list, dict]:
         rows, status_rows, columns = tables(record)
+        b = record["params"].shape[0]
+        chosen = (record.get("extra") or {}).get("occupant_model")
+        columns["drive_model"] = torch.tensor(
+            [names.index(c) for c in chosen] if chosen is not None else [0] * b, dtype=torch.long
+        )
+        columns.update(_candidate_columns(record, names, b, n_params))
+        return rows, status_rows, columns
+
+    return with_drive
+
+
+def _candidate_columns(record: Mapping, names: Sequence[str], b: int, n_params: int) -> dict:
+    """Every occupant candidate's estimate per window (an occupant-model selection's ``record["candidates"]``,
+    estimation/occupant.py), so that a drive pools its windows under one model: drive_cand_theta [b, C, P],
+    drive_cand_cov [b, C, P, P], drive_cand_status [b, C], drive_cand_fits [b, C], drive_cand_logz [b, C]
+    (the evidence, model prior included); drive_cand_cov is the reported covariance (the model-based one scaled
+    per parameter by the candidate's robust ratio, as its intervals are) and drive_cand_model_cov the model-based
+    one. A single model: its own estimate and covariances, evidence 0."""
+    cand = record.get("candidates")
+    if cand is None:
         result = record["final"]
         theta = record["params"][:, :n_params].double()
         cov = result.covariance[:, :n_params, :n_params].double()
         std = result.std[:, :n_params].double()
         model_std = result.model_std[:, :n_params].double() if result.model_std is not None else std
         ratio = torch.where((std > 0) & torch.isfinite(std), model_std / std, torch.ones_like(std))
-        columns["drive_theta"] = theta
-        columns["drive_cov"] = cov
-        columns["drive_model_cov"] = cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
-        chosen = (record.get("extra") or {}).get("occupant_model")
-        columns["drive_model"] = torch.tensor(
-            [names.index(c) for c in chosen] if chosen is not None else [0] * theta.shape[0], dtype=torch.long
-        )
-        return rows, status_rows, columns
+        return {
+            "drive_cand_theta": theta[:, None],
+            "drive_cand_cov": cov[:, None],
+            "drive_cand_model_cov": (cov * ratio.unsqueeze(2) * ratio.unsqueeze(1))[:, None],
+            "drive_cand_status": result.status.long()[:, None],
+            "drive_cand_fits": torch.ones(b, 1, dtype=torch.bool),
+            "drive_cand_logz": torch.zeros(b, 1, dtype=torch.float64),
+        }
+    extra = record.get("extra") or {}
+    logz = torch.stack([torch.as_tensor(extra[f"logz_{n}"], dtype=torch.float64) for n in names], 1)
+    model_cov = cand["covariance"][:, :, :n_params, :n_params]
+    ratio = cand["robust"][:, :, :n_params]
+    return {
+        "drive_cand_theta": cand["params"][:, :, :n_params],
+        "drive_cand_cov": model_cov * ratio.unsqueeze(3) * ratio.unsqueeze(2),
+        "drive_cand_model_cov": model_cov,
+        "drive_cand_status": cand["status"],
+        "drive_cand_fits": cand["fits"],
+        "drive_cand_logz": logz,
+    }
 
-    return with_drive
 
-
-def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
+def drive_skipped_columns(skipped_tables: Callable, n_params: int, n_models: int = 1) -> Callable:
     """``skipped_tables(index, status, true)`` (estimation/tables: windows kept from the fit, no_signal or
     clipped) with :func:`drive_columns`' columns added, NaN: a block's fitted and skipped windows merge into
     one table, and such a window is never usable."""
@@ -166,11 +196,13 @@ def drive_skipped_columns(skipped_tables: Callable, n_params: int) -> Callable:
     def with_drive(index, status, true) -> tuple[list, list, dict]:
         rows, status_rows, columns = skipped_tables(index, status, true)
         k = int(index.shape[0])
-        nan = torch.full((k, n_params, n_params), math.nan, dtype=torch.float64)
-        columns["drive_theta"] = torch.full((k, n_params), math.nan, dtype=torch.float64)
-        columns["drive_cov"] = nan
-        columns["drive_model_cov"] = nan.clone()
         columns["drive_model"] = torch.zeros(k, dtype=torch.long)
+        columns["drive_cand_theta"] = torch.full((k, n_models, n_params), math.nan, dtype=torch.float64)
+        columns["drive_cand_cov"] = torch.full((k, n_models, n_params, n_params), math.nan, dtype=torch.float64)
+        columns["drive_cand_model_cov"] = columns["drive_cand_cov"].clone()
+        columns["drive_cand_status"] = torch.zeros(k, n_models, dtype=torch.long)
+        columns["drive_cand_fits"] = torch.zeros(k, n_models, dtype=torch.bool)
+        columns["drive_cand_logz"] = torch.full((k, n_models), -math.inf, dtype=torch.float64)
         return rows, status_rows, columns
 
     return with_drive

@@ -12,7 +12,8 @@ Outputs in the run folder:
 
     drives.csv          one row per drive segment: drive, segment, start_s, end_s, m3, m3_std, m3_low,
                         m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
-                        windows_outliers, windows_overlapping, windows_skipped, model, chi2, dof,
+                        windows_outliers, windows_overlapping, windows_skipped, model, model_margin,
+                        windows_models, chi2, dof,
                         chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
                         [, m3_true when the file has params]
                         [, occupant_mass, occupant_mass_low, occupant_mass_high with a seat file:
@@ -28,16 +29,25 @@ Outputs in the run folder:
                         driving time t_s since the segment's start
     plots/drive_*.png   mass and 95 % band against driving time (also in TensorBoard, tb/, tag drive/...)
 
-What is combined: θ = the chosen occupant model's parameters (p1, p2, body modes where fitted) when every
-used window of the drive chose the same model, less those each window keeps for itself (drive.per_window,
-default the channel delay τ: with two loggers it drifts with their clocks, so it is marginalised like the
-initial state); m3 = K3/p2 with its interval mapped from p2's.
-Where the windows chose different models (a person fitted with body1 here and body2 there) their
-parameters mean different things, and the static mass m3 alone is combined: per window m3 with the
-standard deviation of its reported 95 % interval, (m3_high − m3_low)/3.92 (an occupant-model selection's
-interval holds every candidate the data cannot tell apart). Overlapping windows (stride < window) share
-samples, so their errors are correlated: only a non-overlapping subset is used (the first window, then
-each next one starting at or after the end of the last one used); the others are counted.
+What is combined: every window under ONE occupant model per drive. An occupant-model selection fits every
+candidate to every window (rigid, body1, body2, and the winner again with the channel delay τ); a model's
+delay variant is that model with the window's own τ. The drive's model is the one with the most evidence
+summed over its windows (each window's Laplace evidence of the model's better variant; the windows are
+independent given the model), its prior probability counted once per drive rather than once per window, over
+the windows where every model in the race fitted and settled (neither misfit nor diverged, a status in
+drive.statuses: a Laplace evidence away from an optimum is no evidence); a model that fits and settles in
+fewer than half the drive's windows is not in the race. Every window is then combined under that model, also
+one whose own choice was another: θ = the model's parameters (p1, p2, body modes) less those each window
+keeps for itself (drive.per_window, default τ: with two loggers it drifts with their clocks, so it is
+marginalised like the initial state), from that model's better-settled variant in the window; a window the
+drive's model did not fit is rejected (drive_progress.csv says why). m3 = K3/p2 with its interval mapped
+from p2's. drives.csv's `model` is the drive's model, `model_margin` its evidence over the runner-up [nats]
+and `windows_models` the windows' own choices. (Before, windows whose own choices differed — one rigid+delay
+window among rigid ones, a person's body1 and body2 windows — were combined in m3 alone with the σ of each
+window's joined interval, and a window whose interval reached infinity made that combination singular.)
+Overlapping windows (stride < window) share samples, so their errors are correlated: only a non-overlapping
+subset is used (the first window, then each next one starting at or after the end of the last one used); the
+others are counted.
 """
 
 from __future__ import annotations
@@ -53,15 +63,14 @@ from hybridqcm.atomic import atomic_write_csv
 from hybridqcm.console import print_table
 from hybridqcm.estimation.drive import (
     Gaussian,
-    InformationCombiner,
     isolated_outliers,
     non_overlapping,
     progress,
     segment,
     static_mass,
     time_to_precision,
-    usable_windows,
 )
+from hybridqcm.estimation.drive_model import DriveView
 from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import STATUS_LABELS
 from hybridqcm.estimation.tables import ALL_STATUS_LABELS, SEAT_COLUMNS
@@ -85,6 +94,8 @@ DRIVES_HEADER = [
     "windows_overlapping",
     "windows_skipped",
     "model",
+    "model_margin",
+    "windows_models",
     "chi2",
     "dof",
     "chi2_per_dof",
@@ -121,57 +132,6 @@ def _time(x: float) -> str:
     return _fmt(round(float(x), 6))
 
 
-def _present(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """[W, P] bool: the parameters a window estimated (finite, variance > 0): not the ones its occupant model
-    lacks (NaN in a model selection's common layout) nor the known ones (variance 0)."""
-    var = cov.diagonal(dim1=1, dim2=2)
-    return torch.isfinite(theta) & torch.isfinite(var) & (var > 0)
-
-
-def _usable(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """[W] bool: p2 estimated and the estimated parameters' covariance positive definite."""
-    present = _present(theta, cov)
-    mask = present.unsqueeze(2) & present.unsqueeze(1)
-    eye = torch.eye(theta.shape[1], dtype=cov.dtype).expand_as(cov)
-    patched = torch.where(mask, cov, torch.where(eye.bool(), eye, torch.zeros_like(cov)))
-    return present[:, 1] & usable_windows(torch.where(present, theta, torch.zeros_like(theta)), patched)
-
-
-def _mass_form(columns: Mapping, rows: np.ndarray, K3: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per window the static mass and its variance from the reported 95 % interval (module docstring)."""
-    p2 = columns["drive_theta"][rows, 1]
-    m3 = K3 / p2
-    low, high = columns["m3_low"][rows], columns["m3_high"][rows]
-    sd = (high - low) / 3.919927969080108
-    return m3[:, None], (sd**2)[:, None, None]
-
-
-def _drive_gaussians(columns: Mapping, rows: np.ndarray, drive: DrivePlan, K3: float, names: Sequence[str]):
-    """(combiner, index of p2 or of the mass, K3 or None) for the usable windows ``rows`` of one drive:
-    the parameters every window estimated and none keeps for itself (drive.per_window), or the mass."""
-    models = columns["drive_model"][rows]
-    theta, cov = columns["drive_theta"][rows], columns["drive_cov"][rows]
-    weight_cov = columns["drive_model_cov"][rows] if drive.weights == "model" else None
-    shared = torch.tensor([n not in drive.per_window for n in names[: theta.shape[1]]], dtype=torch.bool)
-    finite = _present(theta, cov).all(0) & shared
-    same = bool((models == models[0]).all()) and bool(finite[1])
-    if same:
-        keep = finite.nonzero().squeeze(1)
-        index = int((keep == 1).nonzero()[0])  # p2 within the shared parameters
-        sub_w = None if weight_cov is None else weight_cov[:, keep][:, :, keep]
-        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], sub_w, drive.scale)
-        return combiner, index, K3
-    m3, var = _mass_form(columns, rows, K3)
-    return InformationCombiner(m3, var, None, drive.scale), 0, None
-
-
-def _label(models: torch.Tensor, names: Sequence[str]) -> str:
-    counts = {names[int(k)]: int(c) for k, c in zip(*torch.unique(models, return_counts=True))}
-    if len(counts) == 1:
-        return next(iter(counts))
-    return "mixed(" + ";".join(f"{k}:{v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) + ")"
-
-
 class _Windows:
     """Every window's status code [M], whether the status is one drive.statuses combines [M] and whether
     the window was kept from the fit (no_signal, clipped) [M]."""
@@ -183,21 +143,22 @@ class _Windows:
         self.kept_out = torch.tensor([int(s) in WINDOW_STATUS_LABELS for s in status], dtype=torch.bool)
 
 
-def _window_reasons(rows: np.ndarray, usable: torch.Tensor, windows: _Windows, drive: DrivePlan):
-    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows."""
-    status = windows.status
-    good = rows[usable[rows].numpy()]
+def _window_reasons(rows: np.ndarray, usable: np.ndarray, windows: _Windows, view: DriveView, drive: DrivePlan):
+    """(used windows in time order, the overlapping ones, {row: why it was used or not}) for one drive's rows;
+    usable [len(rows)]: whether the drive's model can combine each (DriveView.usable)."""
+    good = rows[usable]
     keep = non_overlapping(drive.t_start[good].tolist(), drive.window_s)
     overlapping = set(good[[not k for k in keep]].tolist())
     good = good[keep]
-    reason = {
-        int(r): ("used" if r in set(good.tolist()) else "overlapping" if r in overlapping else "rejected") for r in rows
-    }
+    used = set(good.tolist())
+    reason = {int(r): ("used" if r in used else "overlapping" if r in overlapping else "rejected") for r in rows}
     for r in rows:
-        if reason[int(r)] == "rejected" and bool(windows.kept_out[r]):  # not fitted: no information in it
-            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(status[r])]}"
-        elif reason[int(r)] == "rejected" and not bool(windows.ok_status[r]):
-            reason[int(r)] = f"rejected:{ALL_STATUS_LABELS[int(status[r])]}"
+        if reason[int(r)] != "rejected":
+            continue
+        if bool(windows.kept_out[r]):  # not fitted: no information in it
+            reason[int(r)] = f"skipped:{ALL_STATUS_LABELS[int(windows.status[r])]}"
+        else:  # the drive's model did not fit it (misfit, diverged) or ended with a status not combined
+            reason[int(r)] = f"rejected:{STATUS_LABELS.get(view.status.get(int(r), -1), 'no_fit')}"
     return good, overlapping, reason
 
 
@@ -216,14 +177,14 @@ def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, dr
         [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
         + [""] * 6
         + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
-        + ["", "", "", "", "", "no_usable_window"]
+        + ["", "", "", "", "", "", "", "no_usable_window"]
         + [""] * extra  # m3_true, the occupant's columns
     )
     progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
     return drive_row, progress_rows
 
 
-def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive: DrivePlan):
+def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view: DriveView, drive: DrivePlan):
     """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
     ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
     seg_start = float(drive.t_start[good[seg[0]]])
@@ -253,7 +214,9 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label
         sum(c == "outlier" for c in counts),
         sum(c == "overlapping" for c in counts),
         sum(c.startswith("skipped") for c in counts),
-        label,
+        view.family,
+        _fmt(view.margin),
+        view.own,
         _fmt(final.chi2),
         final.dof,
         _fmt(final.chi2_per_dof),
@@ -285,26 +248,24 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, label
     return drive_row, progress_rows, (m3, low, high)
 
 
-def _combine_drive(name, rows, good, reason, columns, drive: DrivePlan, K3, names, param_names, seat=None):
-    """One drive's usable windows ``good`` combined: outliers marked in ``reason``, segments found; with
-    ``seat`` (a SeatLaw) each row ends with the occupant's columns. Returns
-    (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per segment)."""
-    combiner, index, k3 = _drive_gaussians(columns, good, drive, K3, param_names)
+def _combine_drive(name, rows, good, reason, view: DriveView, drive: DrivePlan, K3, param_names, true, seat=None):
+    """One drive's usable windows ``good`` combined under its model: outliers marked in ``reason``, segments
+    found. Returns (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per
+    segment)."""
+    combiner, index = view.gaussians(good, drive, param_names)
     local = list(range(good.size))  # positions in `good`, time order
     outliers = isolated_outliers(combiner, local, drive.outlier_alpha, drive.neighbours)
     for o in outliers:
         reason[int(good[o])] = "outlier"
     kept = [i for i in local if i not in set(outliers)]
     segments = segment(combiner, kept, drive.min_windows, drive.alpha)
-    label = _label(columns["drive_model"][good], names)
     bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
     starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
-    true = columns.get("true")
     drive_rows, progress_rows, masses = [], [], []
     for k, seg in enumerate(segments):
         in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
         row, progress_part, (m3, low, high) = _segment_rows(
-            name, k, seg, in_seg, good, reason, combiner, index, k3, label, drive
+            name, k, seg, in_seg, good, reason, combiner, index, K3, view, drive
         )
         true_m3 = None
         if true is not None:
@@ -326,17 +287,16 @@ def aggregate_drives(
     run_dir: Path,
     names: Sequence[str],
     param_names: Sequence[str] = ("p1", "p2"),
+    log_prior: Mapping[str, float] | None = None,
     seat=None,
 ) -> dict:
     """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
-    names: the occupant models a window may report; param_names: drive_theta's columns (p1, p2, ...);
+    names: the occupant models a window may report (drive_cand_*'s candidates); param_names: the parameters'
+    layout (p1, p2, ...); log_prior: each occupant model's log prior probability (the selection's model_prior);
     seat: the seat file's law (estimation/calibration.SeatLaw) or None: drives.csv's occupant_mass columns.
     Returns the summary entries (counts; with the file's truth the drive-level m3 error and coverage)."""
     K3 = float(cfg.K3)
     windows = _Windows(columns["status"], drive)
-    usable = _usable(columns["drive_theta"], columns["drive_cov"]) & windows.ok_status
-    if drive.weights == "model":
-        usable &= _usable(columns["drive_theta"], columns["drive_model_cov"])
     true = columns.get("true")
     drive_rows, progress_rows, pictures, notes = [], [], [], []
     errors, covered = [], []
@@ -345,7 +305,8 @@ def aggregate_drives(
         rows = np.flatnonzero(drive.profile_id == pid)
         rows = rows[np.argsort(drive.t_start[rows], kind="stable")]
         name = drive.names[pid] if drive.names else str(int(pid))
-        good, overlapping, reason = _window_reasons(rows, usable, windows, drive)
+        view = DriveView(columns, rows, drive, names, log_prior, windows.kept_out)
+        good, overlapping, reason = _window_reasons(rows, view.usable(rows, drive.weights), windows, view, drive)
         if good.size == 0:
             notes.append(
                 f"drive {name}: every one of its {rows.size} window(s) was rejected "
@@ -357,7 +318,7 @@ def aggregate_drives(
             progress_rows += progress_part
             continue
         rows_of_drive, progress_part, masses = _combine_drive(
-            name, rows, good, reason, columns, drive, K3, names, param_names, seat
+            name, rows, good, reason, view, drive, K3, param_names, true, seat
         )
         drive_rows += rows_of_drive
         progress_rows += progress_part
