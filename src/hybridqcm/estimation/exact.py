@@ -255,7 +255,8 @@ def exact_sensitivities(
     spline_degree: int = 5,
     method: str = "modal",
     held: Tensor | None = None,
-) -> Tensor:
+    defer_fallback: bool = False,
+) -> Tensor | tuple[Tensor, Tensor]:
     """Prediction and Jacobian in one forward pass.
 
     -> [b, n_steps, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
@@ -266,6 +267,9 @@ def exact_sensitivities(
     small matrix product per sample (estimation._modal; samples with nearly repeated eigenvalues
     or ill-conditioned eigenvectors go to the recursion); "recursion" runs the step recursion
     below for every sample. They agree to round-off (tests/test_exact.py). ``held`` as in exact_outputs.
+    ``defer_fallback``: return (result, rows) instead, rows [r] the samples that the modal path left to the
+    recursion, whose result rows are not valid: the caller evaluates them with fallback_sensitivities,
+    gathered over many calls (its cost is mostly per call: ~15 % of a chunk of 512 for its ~8 such samples).
     """
     if method not in METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {METHODS}")
@@ -273,7 +277,8 @@ def exact_sensitivities(
     check_held(held, inputs, hold, substeps, T)
     held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
     if method == "recursion" or T == 1:
-        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+        out = _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+        return (out, torch.zeros(0, dtype=torch.long, device=out.device)) if defer_fallback else out
     A, B, C, E = model.matrices(params)
     out, ok = modal_sensitivities(
         (A, B, C, E),
@@ -286,10 +291,11 @@ def exact_sensitivities(
         hold,
         with_x0,
     )
-    if not bool(ok.all()):
-        bad = (~ok).nonzero()[:, 0]
-        fallback = _stacked_sensitivities if bad.numel() <= _STACKED_MAX else _recursion_sensitivities
-        out[bad] = fallback(
+    bad = (~ok).nonzero()[:, 0]
+    if defer_fallback:
+        return out, bad
+    if bad.numel():
+        out[bad] = _fallback(
             model,
             params[bad],
             None if x0 is None else x0[bad],
@@ -303,6 +309,37 @@ def exact_sensitivities(
             held[..., bad],
         )
     return out
+
+
+def _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
+    """The step recursion for the samples the modal path leaves: stacked for a few, batch-innermost above."""
+    fallback = _stacked_sensitivities if params.shape[0] <= _STACKED_MAX else _recursion_sensitivities
+    return fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+
+
+@torch.no_grad()
+def fallback_sensitivities(
+    model: LinearModel,
+    params: Tensor,
+    x0: Tensor | None,
+    inputs: Tensor,
+    h: float,
+    hold: str = "spline",
+    substeps: int = 4,
+    with_x0: bool = True,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+    held: Tensor | None = None,
+) -> Tensor:
+    """exact_sensitivities by the step recursion alone (the rows that ``defer_fallback`` left), with the
+    variant for the batch size that the modal path's own fallback takes; same arguments and result."""
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    check_held(held, inputs, hold, substeps, T)
+    held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    if T == 1:
+        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+    return _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
 
 
 def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
