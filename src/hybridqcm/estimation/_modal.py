@@ -196,8 +196,11 @@ def modal_sensitivities(
     h: float,
     hold: str,
     with_x0: bool,
+    targets: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """-> (result [b, T, o, 1 + P (+ n)] as exact_sensitivities, ok [b] bool).
+    """-> (result [b, T, o, 1 + P (+ n)] as exact_sensitivities, ok [b] bool); with ``targets`` [b, T, o]
+    column 0 is the residual y - targets (they are columns of the basis with coefficient -1: the
+    subtraction costs no pass over the result).
 
     matrices A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]; derivatives dA [b, P, n, n],
     dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m] (float64); scale [b, n] the balancing
@@ -273,8 +276,11 @@ def modal_sensitivities(
         :, None
     ] * Q.conj()[..., None, None]
     n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
-    width = n_real + m + m % 2  # Z is a complex view of the buffer below: an even row width
-    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | 0)
+    n_t = 0 if targets is None else o
+    width = n_real + m + n_t + (m + n_t) % 2  # Z is a complex view of the buffer below: an even row width
+    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | targets | 0)
+    if n_t:
+        coef_all[:, n_real + m : n_real + m + o].view(batch, o, o, n_col).diagonal(dim1=1, dim2=2)[:, 0] = -1.0
     coef_all[:, :n_real].view(batch, 1 + m, 2, n_slot, 2, o, n_col).copy_(
         torch.view_as_real(coef).permute(0, 1, 2, 3, 6, 4, 5)
     )
@@ -299,7 +305,9 @@ def modal_sensitivities(
     buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)  # [k, b, (Z | w | 0)]
     buffer[:, :, :n_free] = 0
     buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
-    buffer[:, :, n_real + m :] = 0
+    if n_t:
+        buffer[:, :, n_real + m : n_real + m + o] = targets.transpose(0, 1)
+    buffer[:, :, n_real + m + n_t :] = 0
     _matmul(
         _held_rows(fine, T),
         weights.view(batch, m * (m_sub + 1), n_real - n_free),

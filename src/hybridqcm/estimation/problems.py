@@ -184,6 +184,19 @@ class ProblemEvaluation:
         self.jackknife = jackknife
         self.workers = max(1, int(workers)) if self.targets.device.type == "cpu" else 1
 
+    @property
+    def full_targets(self) -> Tensor:
+        """The targets on every output channel [batch, time, n_out] (0 on the unobserved ones, which are
+        dropped after the model's residual)."""
+        n_out = len(self.problem.model.output_names)
+        if self.targets.shape[2] == n_out:
+            return self.targets
+        if getattr(self, "_full_targets", None) is None:
+            full = self.targets.new_zeros(*self.targets.shape[:2], n_out)
+            full[:, :, self.problem.observed_index] = self.targets
+            self._full_targets = full
+        return self._full_targets
+
     def _map(self, fn: Callable, chunks: list) -> list:
         """[fn(chunk) for chunk in chunks], on ``workers`` threads when there are several chunks."""
         if self.workers == 1 or len(chunks) < 2:
@@ -217,21 +230,22 @@ class ProblemEvaluation:
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
         """
-        problem, targets, road = self.problem, self.targets, self.road
+        problem, road = self.problem, self.road
         free_cols = torch.tensor(problem.free_index) + 1  # column 0 of the tangents is the primal
         cols = torch.cat([torch.zeros(1, dtype=torch.long), free_cols])
         obs = problem.observed_index
         width = problem.n_theta + 1
+        full_targets = self.full_targets
 
         def one(chunk, fallback=False):
             model, args = problem.model, (params[chunk], road[chunk], *problem.window)
             if fallback:
                 out, redo = model.fallback_sensitivities(*args), None
-            else:
-                out, redo = model.sensitivities_deferred(*args)  # [b, T, n_out, 1 + n_theta], rows to redo
+                out[..., 0] -= full_targets[chunk]
+            else:  # [b, T, n_out, 1 + n_theta] with the residual R in column 0, and the rows to redo
+                out, redo = model.residual_sensitivities(*args, full_targets[chunk])
             if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0] : obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
-            out[..., 0] -= targets[chunk]  # residual R in column 0
             if problem.noise is not None:
                 out = problem.noise.whiten(out, params[chunk], chunk)
             elif self.weights is not None:

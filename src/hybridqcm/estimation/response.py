@@ -77,6 +77,15 @@ class ResponseModel:
         """The sensitivities of the samples that :meth:`sensitivities_deferred` left."""
         return self.sensitivities(theta, inputs, start, n_steps)
 
+    def residual_sensitivities(
+        self, theta: Tensor, inputs, start: int, n_steps: int, targets: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`sensitivities_deferred` with column 0 the residual y - ``targets`` [b, n_steps, n_out]
+        (what the solver's normal equations need; a model may subtract where it is cheapest)."""
+        out, redo = self.sensitivities_deferred(theta, inputs, start, n_steps)
+        out[..., 0] -= targets
+        return out, redo
+
 
 @dataclass(frozen=True)
 class PreparedInputs:
@@ -136,6 +145,22 @@ class EulerResponse(ResponseModel):
         return euler_sensitivities(
             theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0, with_x0=self.with_x0
         )
+
+    def residual_sensitivities(self, theta: Tensor, inputs: Tensor, start: int, n_steps: int, targets: Tensor):
+        if type(self).sensitivities is not EulerResponse.sensitivities:  # a subclass's own sensitivities
+            return super().residual_sensitivities(theta, inputs, start, n_steps, targets)
+        x0 = theta[:, 10:] if self.with_x0 else None
+        road = inputs[:, start : start + n_steps]
+        out = euler_sensitivities(
+            theta[:, :10].contiguous(),
+            road.contiguous(),
+            self.h,
+            self.scaled_road,
+            x0=x0,
+            with_x0=self.with_x0,
+            targets=targets,
+        )
+        return out, torch.zeros(0, dtype=torch.long, device=out.device)
 
 
 class ExactResponse(ResponseModel):
@@ -217,6 +242,13 @@ class ExactResponse(ResponseModel):
         if type(self).sensitivities is not ExactResponse.sensitivities:
             return self.sensitivities(theta, inputs, start, n_steps)
         return self._sensitivities(fallback_sensitivities, theta, inputs, start, n_steps)
+
+    def residual_sensitivities(self, theta: Tensor, inputs, start: int, n_steps: int, targets: Tensor):
+        if type(self).sensitivities is not ExactResponse.sensitivities:
+            return super().residual_sensitivities(theta, inputs, start, n_steps, targets)
+        return self._sensitivities(
+            exact_sensitivities, theta, inputs, start, n_steps, defer_fallback=True, targets=targets
+        )
 
     def _sensitivities(self, layer, theta: Tensor, inputs, start: int, n_steps: int | None, **options):
         params, x0 = self._split(theta)
