@@ -52,3 +52,14 @@ def torch_threads(count: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def chunk_workers(config) -> int:
+    """Threads that run a pass's chunks at once: SolverConfig.num_threads when its thread_chunks, else 1."""
+    threads = config.num_threads
+    return int(threads) if config.thread_chunks and threads and int(threads) > 1 else 1
+
+
+def op_threads(config) -> int | None:
+    """torch's intra-op threads inside a solve: one per chunk worker, else SolverConfig.num_threads."""
+    return 1 if chunk_workers(config) > 1 else config.num_threads

@@ -186,6 +186,40 @@ def _held_rows(fine: Tensor, T: int) -> Tensor:
     return fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st)).reshape(batch, T, m * (m_sub + 1))
 
 
+def _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot):
+    """The p-derivative terms of modal_sensitivities (its notation): -> d lambda / dp [b, P, K], the kept rows
+    of S_j [b, (K, P), n], beta''_j [b, K, P, m], Gam_j [b, o, P, K]."""
+    dA, dB, dC, _ = derivatives
+    batch, n_params, n = dA.shape[:3]
+    m, o = dB.shape[-1], dC.shape[2]
+    eye = torch.eye(n, dtype=torch.bool, device=dA.device)
+    shared = dA.stride(0) == 0 and dB.stride(0) == 0 and dC.stride(0) == 0  # linear model: one dA for all
+    # One product per sample with the P parameters side by side (layouts [b, row, P, col]), not one per
+    # sample and parameter: 10x fewer calls of the same small products. A real matrix times a complex one
+    # is a real product with the real and imaginary parts as adjacent columns (view_as_real).
+    if shared:
+        dAV = torch.einsum("pjs,bsl->bjpl", dA[0].to(_CDTYPE), V)  # [b, j, P, l] = (dA_p V)_jl
+    else:
+        dAV = _real_times_complex(dA.transpose(1, 2).reshape(batch, n * n_params, n), V).view(batch, n, n_params, n)
+    K = _matmul(V_inv, dAV.reshape(batch, n, n_params * n)).view(batch, n, n_params, n)  # [b, i, P, l] V^-1 dA_p V
+    dlam = torch.diagonal(K, dim1=1, dim2=3)[..., :n_slot]  # [b, P, K] d lambda / d p
+    off = eye[:, None, :]  # [i, 1, l]
+    S = -(K / diff[:, :, None].masked_fill(off, 1.0)).masked_fill(off, 0.0)  # [b, i, P, l]
+    S_kept = S[:, :n_slot].reshape(batch, n_slot * n_params, n)  # [b, (K, P), n]
+    if shared:
+        beta2 = torch.einsum("bil,plc->bipc", V_inv[:, :n_slot], dB[0].to(_CDTYPE))  # [b, K, P, m]
+        Gam = torch.einsum("pon,bnl->bopl", dC[0].to(_CDTYPE), V[:, :, :n_slot])  # [b, o, P, K]
+    else:
+        dB_rows = dB.to(_CDTYPE).transpose(1, 2).reshape(batch, n, n_params * m)
+        beta2 = _matmul(V_inv[:, :n_slot], dB_rows).view(batch, n_slot, n_params, m)
+        dC_rows = dC.transpose(1, 2).reshape(batch, o * n_params, n)
+        Gam = _real_times_complex(dC_rows, V[:, :, :n_slot]).view(batch, o, n_params, n_slot)
+    beta2 = beta2 - _matmul(S_kept, beta).view(batch, n_slot, n_params, m)  # [b, K, P, m]
+    S_cols = S[..., :n_slot].reshape(batch, n, n_params * n_slot)
+    Gam = Gam + _matmul(gamma, S_cols).view(batch, o, n_params, n_slot)  # [b, o, P, K]
+    return dlam, S_kept, beta2, Gam
+
+
 def modal_sensitivities(
     matrices: tuple[Tensor, Tensor, Tensor, Tensor],
     derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
@@ -228,30 +262,7 @@ def modal_sensitivities(
     # dC_j V (columns l), eta_j(0) = -S_j xi0
     beta = _matmul(V_inv, B.to(_CDTYPE))  # [b, n, m]
     gamma = _matmul(C.to(_CDTYPE), V)  # [b, o, n]
-    shared = dA.stride(0) == 0 and dB.stride(0) == 0 and dC.stride(0) == 0  # linear model: one dA for all
-    # One product per sample with the P parameters side by side (layouts [b, row, P, col]), not one per
-    # sample and parameter: 10x fewer calls of the same small products. A real matrix times a complex one
-    # is a real product with the real and imaginary parts as adjacent columns (view_as_real).
-    if shared:
-        dAV = torch.einsum("pjs,bsl->bjpl", dA[0].to(_CDTYPE), V)  # [b, j, P, l] = (dA_p V)_jl
-    else:
-        dAV = _real_times_complex(dA.transpose(1, 2).reshape(batch, n * n_params, n), V).view(batch, n, n_params, n)
-    K = _matmul(V_inv, dAV.reshape(batch, n, n_params * n)).view(batch, n, n_params, n)  # [b, i, P, l] V^-1 dA_p V
-    dlam = torch.diagonal(K, dim1=1, dim2=3)[..., :n_slot]  # [b, P, K] d lambda / d p
-    off = eye[:, None, :]  # [i, 1, l]
-    S = -(K / diff[:, :, None].masked_fill(off, 1.0)).masked_fill(off, 0.0)  # [b, i, P, l]
-    S_kept = S[:, :n_slot].reshape(batch, n_slot * n_params, n)  # [b, (K, P), n]
-    if shared:
-        beta2 = torch.einsum("bil,plc->bipc", V_inv[:, :n_slot], dB[0].to(_CDTYPE))  # [b, K, P, m]
-        Gam = torch.einsum("pon,bnl->bopl", dC[0].to(_CDTYPE), V[:, :, :n_slot])  # [b, o, P, K]
-    else:
-        dB_rows = dB.to(_CDTYPE).transpose(1, 2).reshape(batch, n, n_params * m)
-        beta2 = _matmul(V_inv[:, :n_slot], dB_rows).view(batch, n_slot, n_params, m)
-        dC_rows = dC.transpose(1, 2).reshape(batch, o * n_params, n)
-        Gam = _real_times_complex(dC_rows, V[:, :, :n_slot]).view(batch, o, n_params, n_slot)
-    beta2 = beta2 - _matmul(S_kept, beta).view(batch, n_slot, n_params, m)  # [b, K, P, m]
-    S_cols = S[..., :n_slot].reshape(batch, n, n_params * n_slot)
-    Gam = Gam + _matmul(gamma, S_cols).view(batch, o, n_params, n_slot)  # [b, o, P, K]
+    dlam, S_kept, beta2, Gam = _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot)
 
     # Coefficients [b, channel, kind, slot, o, col], channels (e, f) then (psi_c, chi_c): every one
     # is gamma_l R[channel, kind, l, col] plus, in the p columns of kind 0, Gam_j,l Q[channel, l]
