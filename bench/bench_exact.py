@@ -20,6 +20,15 @@ with --margin samples on each side of the window) with the Euler model and the e
 each method of the Jacobian pass (the line search's exact_outputs runs its default, method="auto",
 in both).
 
+    ... bench/bench_exact.py --gn --substeps 16 --margin 8 --baseline /tmp/old [--threads 1 2]
+
+times the same iteration with this tree's code and with the tree at --baseline (a checkout of main:
+`git worktree add /tmp/old main`, or `mkdir /tmp/old && git archive main src | tar -x -C /tmp/old`),
+imported side by side in this process (bench/_baseline.py), alternating within each repeat, at each
+--threads count (SolverConfig.num_threads): seconds old and new, new / old, the largest relative
+difference of the estimates after the iteration, and for more than one thread the speed-up of this
+tree's code over its own 1-thread time (the first --threads value).
+
     ... bench/bench_exact.py --accuracy
 
 prints instead the relative L2 error of each hold against the continuous-time response
@@ -31,7 +40,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -100,15 +111,18 @@ def _model(name: str):
     return {"quarter": QuarterCarRoad, "seat": SeatBaseExcitation, "sprung": SprungBaseExcitation}[name]()
 
 
-def gn_cases(args) -> dict:
+def gn_cases(args, package: str = "hybridqcm") -> dict:
     """The --gn setup (also bench/roofline.py's): {name: (problem, θ0)} for one GN iteration over
     args.samples x args.steps, inputs with args.margin samples on each side; "euler" from rest,
-    "exact recursion" and "exact modal" with x0 unknown (one ExactResponse shared by both)."""
-    import hybridqcm.estimation.response as response
-    from hybridqcm.estimation.problems import LeastSquaresProblem
-    from hybridqcm.physics import reference_params
-    from hybridqcm.physics.linear_models import QuarterCarRoad
-    from hybridqcm.testing import synthetic_samples
+    "exact recursion" and "exact modal" with x0 unknown (one ExactResponse shared by both).
+    ``package``: the name the code is imported under (hybridqcm_baseline for --baseline)."""
+    import importlib
+
+    response = importlib.import_module(f"{package}.estimation.response")
+    LeastSquaresProblem = importlib.import_module(f"{package}.estimation.problems").LeastSquaresProblem
+    reference_params = importlib.import_module(f"{package}.physics").reference_params
+    QuarterCarRoad = importlib.import_module(f"{package}.physics.linear_models").QuarterCarRoad
+    synthetic_samples = importlib.import_module(f"{package}.testing").synthetic_samples
 
     n, N, margin = args.samples, args.steps, args.margin
     data = synthetic_samples(n, n_steps=N + 2 * margin, seed=0)
@@ -155,12 +169,62 @@ def gauss_newton(args) -> None:
     print(f"  modal / recursion {best['exact modal'] / best['exact recursion']:.2f}")
 
 
+def gauss_newton_against(args) -> None:
+    """One GN iteration with this tree's code and the --baseline tree's, side by side (module docstring)."""
+    import functools
+    import importlib
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _baseline import NAME, load_baseline
+
+    load_baseline(args.baseline)
+    packages = {"old": NAME, "new": "hybridqcm"}
+    modules = {
+        tag: {part: importlib.import_module(f"{pkg}.estimation.{part}") for part in ("response", "exact", "solver")}
+        for tag, pkg in packages.items()
+    }
+    cases = {tag: gn_cases(args, pkg) for tag, pkg in packages.items()}
+    names = [name for name in cases["new"] if args.cases is None or name in args.cases]
+    best: dict = {}
+    estimates: dict = {}
+    for threads in args.threads:
+        for _ in range(args.repeats):
+            for name in names:
+                for tag in ("old", "new"):  # alternate, so that a change of machine load hits both alike
+                    response, exact, solver = (modules[tag][part] for part in ("response", "exact", "solver"))
+                    method = "recursion" if "recursion" in name else "modal"
+                    original = response.exact_sensitivities
+                    response.exact_sensitivities = functools.partial(exact.exact_sensitivities, method=method)
+                    try:
+                        config = solver.SolverConfig(max_iterations=1, num_threads=threads, chunk_size=args.chunk)
+                        result = solver.GaussNewton(config).solve(*cases[tag][name])
+                    finally:
+                        response.exact_sensitivities = original
+                    key = (name, threads, tag)
+                    best[key] = min(best.get(key, math.inf), result.seconds[0])
+                    estimates[key] = result.params
+    print(
+        f"one GN iteration, {args.samples} samples x N = {args.steps} (margin {args.margin}), chunk {args.chunk}, "
+        f"hold={args.hold} substeps={args.substeps}, x0 unknown (exact), best of {args.repeats}; "
+        f"old = {args.baseline}, new = this tree"
+    )
+    print("| case | threads | old s | new s | new / old | new speed-up over 1 thread | max rel. diff of estimates |")
+    print("|---|---|---|---|---|---|---|")
+    for name in names:
+        for threads in args.threads:
+            old, new = best[(name, threads, "old")], best[(name, threads, "new")]
+            a, b = estimates[(name, threads, "old")], estimates[(name, threads, "new")]
+            diff = float(((a - b).abs() / a.abs().clamp_min(1e-300)).max())
+            speedup = best[(name, args.threads[0], "new")] / new if threads != args.threads[0] else 1.0
+            print(f"| {name} | {threads} | {old:.3f} | {new:.3f} | {new / old:.2f} | {speedup:.2f} | {diff:.1e} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=17000)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--chunk", type=int, default=512)
-    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--threads", type=int, nargs="+", default=[1], help="torch threads; several with --baseline")
     parser.add_argument("--hold", default="spline")
     parser.add_argument("--substeps", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
@@ -171,7 +235,17 @@ def main() -> None:
     parser.add_argument("--model", choices=["quarter", "seat", "sprung"], default="quarter")
     parser.add_argument("--accuracy", action="store_true", help="print hold errors vs continuous time instead")
     parser.add_argument("--gn", action="store_true", help="time one Gauss-Newton iteration instead")
+    parser.add_argument(
+        "--baseline",
+        default=None,
+        help="with --gn: a tree (checkout of main) whose code is timed side by side with this tree's (docstring)",
+    )
+    parser.add_argument("--cases", nargs="+", default=None, help="with --baseline: which cases (default all)")
     args = parser.parse_args()
+    if args.gn and args.baseline:
+        gauss_newton_against(args)
+        return
+    args.threads = args.threads[0]
     torch.set_num_threads(args.threads)
     if args.accuracy:
         accuracy()

@@ -42,13 +42,14 @@ Exact outputs, recursion (exact._recursion_outputs): maps (no tangents); forcing
 Exact outputs, modal (exact_outputs for b <= 160 samples, _modal.modal_outputs): eigen-decomposition
     ≈ 25 n³ (real nonsymmetric, with vectors; Golub & Van Loan's estimate), complex inverse 8 n³
     (these two are LAPACK calls, estimated, not checked by tests/test_roofline.py), gamma, xi0, beta of
-    the kept modes 8 (o n K + K n + K n m), the hold's weights ≈ 200 K + 44 (M+1) K, forcing [T, m(M+1)] @ [m(M+1), 2K(1+m)]: 2 T m (M+1) 2K(1+m); recursion (T-1) 8 K (1+m);
+    the kept modes 8 (o n K + K n + K n m), the hold's weights ≈ 200 K + 44 (M+1) K, forcing of the psi
+    channels [T, m(M+1)] @ [m(M+1), 2Km]: 2 T m (M+1) 2Km (e has none); recursion (T-1) 8 K (1+m);
     final [T, 2K(1+m) + m + m%2] @ [., o]: 2 T (2K(1+m) + m + m%2) o.
 Exact sensitivities, modal (_modal.modal_sensitivities, the default): eigen-decomposition and inverse as
     above; V^-1 dA_j V 16 P n³ (two complex products); beta, gamma, xi0, beta''_j, Gam_j and their
     Sylvester corrections 8 (n² m + o n² + n² + P K n + 2 P K n m + 2 P o n K); S_j 11 P n² (complex
     division); the hold's weights as above; coefficients 6 (1+m) 2 K o W + 6 P o K (1+m);
-    forcing [T, m(M+1)] @ [m(M+1), 8K]: 2 T m (M+1) 8K; recursion (T-1) 20 K (1+m);
+    forcing of the (psi, chi) channels [T, m(M+1)] @ [m(M+1), 4Km]: 2 T m (M+1) 4Km; recursion (T-1) 20 K (1+m);
     final [T, 8K + m + m%2] @ [., o W]: 2 T (8K + m + m%2) o W. Samples the modal path leaves to the
     recursion (ok False) are counted again at the recursion's cost.
 Exact sensitivities, recursion (exact._recursion_sensitivities): maps with tangents; forcing and states
@@ -147,7 +148,8 @@ def exact_outputs_flops(method: str, steps, substeps, squarings=0, K=N_STATE, n=
         )
     basis = 2 * K * (1 + m)
     setup = _eig_flops(n) + 8 * (o * n * K + K * n + K * n * m) + _hold_weights_flops(K, M)
-    return setup + 2 * T * m * (M + 1) * basis + (T - 1) * 8 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o
+    forcing = 2 * T * m * (M + 1) * 2 * K * m  # the psi channels' columns alone (e has no forcing)
+    return setup + forcing + (T - 1) * 8 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o
 
 
 def exact_sensitivities_flops(
@@ -159,7 +161,7 @@ def exact_sensitivities_flops(
         primal = exact_outputs_flops("recursion", T, M, 0, n=n, m=m, o=o) - van_loan_flops(M, 0, False)
         per_step = 2 * n * P * (2 * n + (M + 1) * m) + 2 * n * o * P + 2 * o * n * n
         return van_loan_flops(M, squarings, True) + primal + (T - 1) * per_step + T * 2 * o * P * (n + m)
-    basis = 8 * K
+    basis = 4 * K * (1 + m)
     products = 16 * P * n**3 + 8 * (n * n * m + o * n * n + n * n + P * K * n + 2 * P * K * n * m + 2 * P * o * n * K)
     setup = (
         _eig_flops(n)
@@ -169,7 +171,8 @@ def exact_sensitivities_flops(
         + 6 * (1 + m) * 2 * K * o * W
         + 6 * P * o * K * (1 + m)
     )
-    return setup + 2 * T * m * (M + 1) * basis + (T - 1) * 20 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o * W
+    forcing = 2 * T * m * (M + 1) * 4 * K * m  # the (psi, chi) channels' columns alone
+    return setup + forcing + (T - 1) * 20 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o * W
 
 
 def jacobian_bytes(kind: str, steps, width, substeps=1, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT, P=N_PARAMS) -> int:

@@ -14,7 +14,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
-from hybridqcm.estimation import _expm, _modal, exact, hold, problems
+from hybridqcm.estimation import _expm, _modal, exact, hold
 from hybridqcm.estimation.hold import held_input
 from hybridqcm.estimation.problems import LeastSquaresProblem, ProblemEvaluation
 from hybridqcm.estimation.sensitivity import euler_accelerations, euler_sensitivities
@@ -107,12 +107,11 @@ def test_euler_recursion_flops_match_the_dispatched_ops(roofline, with_x0):
 
 
 def test_gram_flops_match_the_normal_equations(roofline, monkeypatch):
-    """The Gram of (R | J) as the solver forms it (its numpy product routed through torch.bmm)."""
+    """The Gram of (R | J) as the solver forms it (_blas.gram_matrix: one torch.matmul)."""
     b, T = 4, 6
     data = synthetic_samples(b, n_steps=T, seed=3)
     problem = LeastSquaresProblem(data["accel"].to(torch.float64), data["road"].to(torch.float64), 0.01)
     evaluation = ProblemEvaluation(problem, chunk_size=b)
-    monkeypatch.setattr(problems, "batched_matmul", torch.matmul)
     flop_counter = FlopCounterMode(display=False)
     with flop_counter:
         evaluation.data_normal_equations(data["params"].to(torch.float64), torch.arange(b))

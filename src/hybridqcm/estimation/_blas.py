@@ -32,6 +32,14 @@ def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
     return out
 
 
+def gram_matrix(a: Tensor) -> Tensor:
+    """aᵀa [b, w, w] of a [b, r, w] (per sample). torch.matmul of the transposed view (one batched
+    GEMM with a transposed operand) is 3x faster than numpy's per-sample calls at w = 11-18, r = 300,
+    512 samples, 1 thread (Euler 0.9-1.3 vs 2.9-3.5 ms, exact 2.9-3.5 vs 9.2-10.2 ms; copying the
+    transpose for torch.bmm: 9-28 ms)."""
+    return torch.matmul(a.transpose(1, 2), a)
+
+
 @contextmanager
 def torch_threads(count: int | None) -> Iterator[None]:
     """torch's intra-op threads set to ``count`` (None or 0: unchanged) inside the block. The solver's
@@ -44,3 +52,14 @@ def torch_threads(count: int | None) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(before)
+
+
+def chunk_workers(config) -> int:
+    """Threads that run a pass's chunks at once: SolverConfig.num_threads when its thread_chunks, else 1."""
+    threads = config.num_threads
+    return int(threads) if config.thread_chunks and threads and int(threads) > 1 else 1
+
+
+def op_threads(config) -> int | None:
+    """torch's intra-op threads inside a solve: one per chunk worker, else SolverConfig.num_threads."""
+    return 1 if chunk_workers(config) > 1 else config.num_threads

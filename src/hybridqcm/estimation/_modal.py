@@ -108,6 +108,14 @@ def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor,
     return ell, dell
 
 
+def _real_times_complex(real: Tensor, cplx: Tensor) -> Tensor:
+    """real [b, r, s] @ cplx [b, s, c] -> complex [b, r, c], as one real product with the real and
+    imaginary parts of each column of ``cplx`` side by side (half the flops of a complex product)."""
+    batch, s, c = cplx.shape
+    pairs = torch.view_as_real(cplx.contiguous()).view(batch, s, 2 * c)
+    return torch.view_as_complex(_matmul(real.contiguous(), pairs).view(batch, real.shape[1], c, 2))
+
+
 def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """torch.linalg.eig of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]). LAPACK's QR iteration
     can fail to converge on a trial step's ill-conditioned matrix, and torch raises for the whole batch
@@ -178,6 +186,40 @@ def _held_rows(fine: Tensor, T: int) -> Tensor:
     return fine.as_strided((batch, T, m, m_sub + 1), (sb, m_sub * st, sc, st)).reshape(batch, T, m * (m_sub + 1))
 
 
+def _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot):
+    """The p-derivative terms of modal_sensitivities (its notation): -> d lambda / dp [b, P, K], the kept rows
+    of S_j [b, (K, P), n], beta''_j [b, K, P, m], Gam_j [b, o, P, K]."""
+    dA, dB, dC, _ = derivatives
+    batch, n_params, n = dA.shape[:3]
+    m, o = dB.shape[-1], dC.shape[2]
+    eye = torch.eye(n, dtype=torch.bool, device=dA.device)
+    shared = dA.stride(0) == 0 and dB.stride(0) == 0 and dC.stride(0) == 0  # linear model: one dA for all
+    # One product per sample with the P parameters side by side (layouts [b, row, P, col]), not one per
+    # sample and parameter: 10x fewer calls of the same small products. A real matrix times a complex one
+    # is a real product with the real and imaginary parts as adjacent columns (view_as_real).
+    if shared:
+        dAV = torch.einsum("pjs,bsl->bjpl", dA[0].to(_CDTYPE), V)  # [b, j, P, l] = (dA_p V)_jl
+    else:
+        dAV = _real_times_complex(dA.transpose(1, 2).reshape(batch, n * n_params, n), V).view(batch, n, n_params, n)
+    K = _matmul(V_inv, dAV.reshape(batch, n, n_params * n)).view(batch, n, n_params, n)  # [b, i, P, l] V^-1 dA_p V
+    dlam = torch.diagonal(K, dim1=1, dim2=3)[..., :n_slot]  # [b, P, K] d lambda / d p
+    off = eye[:, None, :]  # [i, 1, l]
+    S = -(K / diff[:, :, None].masked_fill(off, 1.0)).masked_fill(off, 0.0)  # [b, i, P, l]
+    S_kept = S[:, :n_slot].reshape(batch, n_slot * n_params, n)  # [b, (K, P), n]
+    if shared:
+        beta2 = torch.einsum("bil,plc->bipc", V_inv[:, :n_slot], dB[0].to(_CDTYPE))  # [b, K, P, m]
+        Gam = torch.einsum("pon,bnl->bopl", dC[0].to(_CDTYPE), V[:, :, :n_slot])  # [b, o, P, K]
+    else:
+        dB_rows = dB.to(_CDTYPE).transpose(1, 2).reshape(batch, n, n_params * m)
+        beta2 = _matmul(V_inv[:, :n_slot], dB_rows).view(batch, n_slot, n_params, m)
+        dC_rows = dC.transpose(1, 2).reshape(batch, o * n_params, n)
+        Gam = _real_times_complex(dC_rows, V[:, :, :n_slot]).view(batch, o, n_params, n_slot)
+    beta2 = beta2 - _matmul(S_kept, beta).view(batch, n_slot, n_params, m)  # [b, K, P, m]
+    S_cols = S[..., :n_slot].reshape(batch, n, n_params * n_slot)
+    Gam = Gam + _matmul(gamma, S_cols).view(batch, o, n_params, n_slot)  # [b, o, P, K]
+    return dlam, S_kept, beta2, Gam
+
+
 def modal_sensitivities(
     matrices: tuple[Tensor, Tensor, Tensor, Tensor],
     derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
@@ -188,8 +230,11 @@ def modal_sensitivities(
     h: float,
     hold: str,
     with_x0: bool,
+    targets: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """-> (result [b, T, o, 1 + P (+ n)] as exact_sensitivities, ok [b] bool).
+    """-> (result [b, T, o, 1 + P (+ n)] as exact_sensitivities, ok [b] bool); with ``targets`` [b, T, o]
+    column 0 is the residual y - targets (they are columns of the basis with coefficient -1: the
+    subtraction costs no pass over the result).
 
     matrices A [b, n, n], B [b, n, m], C [b, o, n], E [b, o, m]; derivatives dA [b, P, n, n],
     dB [b, P, n, m], dC [b, P, o, n], dE [b, P, o, m] (float64); scale [b, n] the balancing
@@ -217,23 +262,7 @@ def modal_sensitivities(
     # dC_j V (columns l), eta_j(0) = -S_j xi0
     beta = _matmul(V_inv, B.to(_CDTYPE))  # [b, n, m]
     gamma = _matmul(C.to(_CDTYPE), V)  # [b, o, n]
-    shared = dA.stride(0) == 0 and dB.stride(0) == 0 and dC.stride(0) == 0  # linear model: one dA for all
-    if shared:
-        dAV = torch.einsum("pil,bls->bpis", dA[0].to(_CDTYPE), V)
-    else:
-        dAV = _matmul(dA.to(_CDTYPE), V[:, None])
-    K = _matmul(V_inv[:, None], dAV)  # [b, P, n, n] = V^-1 dA_j V
-    dlam = torch.diagonal(K, dim1=-2, dim2=-1)[..., :n_slot]  # [b, P, K] d lambda / d p
-    S = -(K / diff[:, None].masked_fill(eye, 1.0)).masked_fill(eye, 0.0)
-    S_kept = S[:, :, :n_slot]  # [b, P, K, n]
-    if shared:
-        beta2 = torch.einsum("bil,plc->bpic", V_inv[:, :n_slot], dB[0].to(_CDTYPE))
-        Gam = torch.einsum("pon,bnl->bpol", dC[0].to(_CDTYPE), V[:, :, :n_slot])
-    else:
-        beta2 = _matmul(V_inv[:, None, :n_slot], dB.to(_CDTYPE))
-        Gam = _matmul(dC.to(_CDTYPE), V[:, None, :, :n_slot])
-    beta2 = beta2 - _matmul(S_kept, beta[:, None])  # [b, P, K, m]
-    Gam = Gam + _matmul(gamma[:, None], S[..., :n_slot])  # [b, P, o, K]
+    dlam, S_kept, beta2, Gam = _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot)
 
     # Coefficients [b, channel, kind, slot, o, col], channels (e, f) then (psi_c, chi_c): every one
     # is gamma_l R[channel, kind, l, col] plus, in the p columns of kind 0, Gam_j,l Q[channel, l]
@@ -245,21 +274,24 @@ def modal_sensitivities(
     if x0 is not None:
         xi0 = _matmul(V_inv, x0.to(_CDTYPE)[..., None])  # [b, n, 1]
         R[:, 0, 0, :, 0] = Q[:, 0] = xi0[:, :n_slot, 0]
-        R[:, 0, 0, :, 1 : 1 + n_params] = -_matmul(S_kept, xi0[:, None])[..., 0].transpose(1, 2)
+        R[:, 0, 0, :, 1 : 1 + n_params] = -_matmul(S_kept, xi0).view(batch, n_slot, n_params)
         R[:, 0, 1, :, 1 : 1 + n_params] = (dlam * xi0[:, None, :n_slot, 0]).transpose(1, 2)
     if with_x0:
         R[:, 0, 0, :, 1 + n_params :] = V_inv[:, :n_slot]
     R[:, 1:, 0, :, 0] = Q[:, 1:] = beta_t
-    R[:, 1:, 0, :, 1 : 1 + n_params] = beta2.permute(0, 3, 2, 1)
+    R[:, 1:, 0, :, 1 : 1 + n_params] = beta2.permute(0, 3, 1, 2)
     R[:, 1:, 1, :, 1 : 1 + n_params] = dlam.transpose(1, 2)[:, None] * beta_t[..., None]
     g = gamma[:, :, :n_slot].conj().transpose(1, 2) * omega[:, :, None]  # [b, K, o]
     coef = g[:, None, None, :, :, None] * R.conj()[:, :, :, :, None, :]  # [b, 1 + m, 2, K, o, col]
-    coef[:, :, 0, :, :, 1 : 1 + n_params] += (Gam.conj() * omega[:, None, None, :]).permute(0, 3, 2, 1)[
+    coef[:, :, 0, :, :, 1 : 1 + n_params] += (Gam.conj() * omega[:, None, None, :]).permute(0, 3, 1, 2)[
         :, None
     ] * Q.conj()[..., None, None]
     n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
-    width = n_real + m + m % 2  # Z is a complex view of the buffer below: an even row width
-    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | 0)
+    n_t = 0 if targets is None else o
+    width = n_real + m + n_t + (m + n_t) % 2  # Z is a complex view of the buffer below: an even row width
+    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | targets | 0)
+    if n_t:
+        coef_all[:, n_real + m : n_real + m + o].view(batch, o, o, n_col).diagonal(dim1=1, dim2=2)[:, 0] = -1.0
     coef_all[:, :n_real].view(batch, 1 + m, 2, n_slot, 2, o, n_col).copy_(
         torch.view_as_real(coef).permute(0, 1, 2, 3, 6, 4, 5)
     )
@@ -276,14 +308,21 @@ def modal_sensitivities(
     # time-first buffer, and the final product reads the buffer batch first as it is; the input
     # samples w are columns of the same buffer (padded to an even width: Z is a complex view).
     ell, dell = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
-    weights = torch.zeros(batch, m, m_sub + 1, 1 + m, 2, n_slot, 2, dtype=torch.float64, device=dev)
-    for c in range(m):  # [b, (c, j), (channel, kind, slot, re/im)]
-        weights[:, c, :, 1 + c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
+    # channel 0 has no forcing: the product fills the columns of the channels 1 + c alone
+    n_free = 4 * n_slot  # columns of channel 0
+    weights = torch.zeros(batch, m, m_sub + 1, m, 2, n_slot, 2, dtype=torch.float64, device=dev)
+    for c in range(m):  # [b, (c, j), (channel - 1, kind, slot, re/im)]
+        weights[:, c, :, c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
     buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)  # [k, b, (Z | w | 0)]
+    buffer[:, :, :n_free] = 0
     buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
-    buffer[:, :, n_real + m :] = 0
+    if n_t:
+        buffer[:, :, n_real + m : n_real + m + o] = targets.transpose(0, 1)
+    buffer[:, :, n_real + m + n_t :] = 0
     _matmul(
-        _held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1)
+        _held_rows(fine, T),
+        weights.view(batch, m * (m_sub + 1), n_real - n_free),
+        out=buffer[:, :, n_free:n_real].transpose(0, 1),
     )
     Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, 1 + m, 2, n_slot, 2))
     Z[0] = 0
@@ -340,14 +379,18 @@ def modal_outputs(
     # psi by the recursion of modal_sensitivities (without chi), e = mu^k by the same recursion
     # started at 1 without forcing; the buffer [T, b, (Z | w | 0)] as there
     ell, _ = _hold_weights(lam_s, h, hold, m_sub)  # [M + 1, b, K]
-    weights = torch.zeros(batch, m, m_sub + 1, n_ch, n_slot, 2, dtype=torch.float64, device=dev)
-    for c in range(m):  # [b, (c, j), (channel, slot, re/im)]
-        weights[:, c, :, 1 + c - first] = torch.view_as_real(ell).transpose(0, 1)
+    n_free = 2 * n_slot * (1 - first)  # columns of e (no forcing), left out of the product
+    weights = torch.zeros(batch, m, m_sub + 1, m, n_slot, 2, dtype=torch.float64, device=dev)
+    for c in range(m):  # [b, (c, j), (channel psi_c, slot, re/im)]
+        weights[:, c, :, c] = torch.view_as_real(ell).transpose(0, 1)
     buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)
+    buffer[:, :, :n_free] = 0
     buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
     buffer[:, :, n_real + m :] = 0
     _matmul(
-        _held_rows(fine, T), weights.view(batch, m * (m_sub + 1), n_real), out=buffer[:, :, :n_real].transpose(0, 1)
+        _held_rows(fine, T),
+        weights.view(batch, m * (m_sub + 1), n_real - n_free),
+        out=buffer[:, :, n_free:n_real].transpose(0, 1),
     )
     Z = torch.view_as_complex(buffer[:, :, :n_real].view(T, batch, n_ch, n_slot, 2))
     Z[0] = 0

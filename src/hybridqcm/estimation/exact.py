@@ -255,7 +255,9 @@ def exact_sensitivities(
     spline_degree: int = 5,
     method: str = "modal",
     held: Tensor | None = None,
-) -> Tensor:
+    defer_fallback: bool = False,
+    targets: Tensor | None = None,
+) -> Tensor | tuple[Tensor, Tensor]:
     """Prediction and Jacobian in one forward pass.
 
     -> [b, n_steps, o, 1 + P (+ n if with_x0)]: [..., 0] the prediction, [..., 1 + j] = dy/dp_j,
@@ -266,6 +268,11 @@ def exact_sensitivities(
     small matrix product per sample (estimation._modal; samples with nearly repeated eigenvalues
     or ill-conditioned eigenvectors go to the recursion); "recursion" runs the step recursion
     below for every sample. They agree to round-off (tests/test_exact.py). ``held`` as in exact_outputs.
+    ``defer_fallback``: return (result, rows) instead, rows [r] the samples that the modal path left to the
+    recursion, whose result rows are not valid: the caller evaluates them with fallback_sensitivities,
+    gathered over many calls (its cost is mostly per call: ~15 % of a chunk of 512 for its ~8 such samples).
+    ``targets`` [b, n_steps, o]: column 0 is the residual y - targets instead of y (the modal path
+    subtracts them inside its final product, which saves a pass over the result).
     """
     if method not in METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {METHODS}")
@@ -273,7 +280,10 @@ def exact_sensitivities(
     check_held(held, inputs, hold, substeps, T)
     held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
     if method == "recursion" or T == 1:
-        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+        out = _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+        if targets is not None:
+            out[..., 0] -= targets
+        return (out, torch.zeros(0, dtype=torch.long, device=out.device)) if defer_fallback else out
     A, B, C, E = model.matrices(params)
     out, ok = modal_sensitivities(
         (A, B, C, E),
@@ -285,11 +295,13 @@ def exact_sensitivities(
         h,
         hold,
         with_x0,
+        None if targets is None else targets.to(_DTYPE),
     )
-    if not bool(ok.all()):
-        bad = (~ok).nonzero()[:, 0]
-        fallback = _stacked_sensitivities if bad.numel() <= _STACKED_MAX else _recursion_sensitivities
-        out[bad] = fallback(
+    bad = (~ok).nonzero()[:, 0]
+    if defer_fallback:
+        return out, bad
+    if bad.numel():
+        fixed = _fallback(
             model,
             params[bad],
             None if x0 is None else x0[bad],
@@ -302,7 +314,41 @@ def exact_sensitivities(
             T,
             held[..., bad],
         )
+        if targets is not None:
+            fixed[..., 0] -= targets[bad]
+        out[bad] = fixed
     return out
+
+
+def _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
+    """The step recursion for the samples the modal path leaves: stacked for a few, batch-innermost above."""
+    fallback = _stacked_sensitivities if params.shape[0] <= _STACKED_MAX else _recursion_sensitivities
+    return fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+
+
+@torch.no_grad()
+def fallback_sensitivities(
+    model: LinearModel,
+    params: Tensor,
+    x0: Tensor | None,
+    inputs: Tensor,
+    h: float,
+    hold: str = "spline",
+    substeps: int = 4,
+    with_x0: bool = True,
+    start: int = 0,
+    n_steps: int | None = None,
+    spline_degree: int = 5,
+    held: Tensor | None = None,
+) -> Tensor:
+    """exact_sensitivities by the step recursion alone (the rows that ``defer_fallback`` left), with the
+    variant for the batch size that the modal path's own fallback takes; same arguments and result."""
+    params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
+    check_held(held, inputs, hold, substeps, T)
+    held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    if T == 1:
+        return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
+    return _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
 
 
 def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:

@@ -5,13 +5,14 @@ equations F = JᵀJ, JᵀR with the Gaussian prior's terms (SPEC §8)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ._blas import batched_matmul
+from ._blas import gram_matrix
 from .noise import SpectralNoise
 from .response import EulerResponse, PreparedInputs, ResponseModel
 from .uncertainty import score_groups
@@ -162,9 +163,16 @@ class ProblemEvaluation:
     """A problem as one solve evaluates it, repeatedly: the observed targets [batch, time, n_obs] in float64
     (the layout the recursion writes, so residuals need no permute), the window's inputs prepared once
     (``road``; the exact model holds them), the observed channels' weights [batch, n_obs] or None,
-    ``chunk_size`` samples per Jacobian pass, and whether the score groups are the jackknife's."""
+    ``chunk_size`` samples per Jacobian pass, and whether the score groups are the jackknife's.
 
-    def __init__(self, problem: LeastSquaresProblem, chunk_size: int, jackknife: bool = False):
+    ``workers`` > 1: the chunks of a pass run on that many threads at once (CPU tensors only; the
+    caller sets torch's intra-op threads to 1). The chunks are independent and their results are
+    joined in order, so the numbers are those of one thread, bit for bit; torch's ops and numpy's
+    products release the GIL, which is what makes this the way to use a second core for the many
+    small per-chunk operations (each op on two intra-op threads waits for the second one more than
+    it gains; docs/measurements/roofline.md)."""
+
+    def __init__(self, problem: LeastSquaresProblem, chunk_size: int, jackknife: bool = False, workers: int = 1):
         dtype = torch.float64
         obs = problem.observed_index
         self.problem = problem
@@ -174,6 +182,27 @@ class ProblemEvaluation:
         self.weights = None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
         self.chunk_size = chunk_size
         self.jackknife = jackknife
+        self.workers = max(1, int(workers)) if self.targets.device.type == "cpu" else 1
+
+    @property
+    def full_targets(self) -> Tensor:
+        """The targets on every output channel [batch, time, n_out] (0 on the unobserved ones, which are
+        dropped after the model's residual)."""
+        n_out = len(self.problem.model.output_names)
+        if self.targets.shape[2] == n_out:
+            return self.targets
+        if getattr(self, "_full_targets", None) is None:
+            full = self.targets.new_zeros(*self.targets.shape[:2], n_out)
+            full[:, :, self.problem.observed_index] = self.targets
+            self._full_targets = full
+        return self._full_targets
+
+    def _map(self, fn: Callable, chunks: list) -> list:
+        """[fn(chunk) for chunk in chunks], on ``workers`` threads when there are several chunks."""
+        if self.workers == 1 or len(chunks) < 2:
+            return [fn(chunk) for chunk in chunks]
+        with ThreadPoolExecutor(min(self.workers, len(chunks))) as pool:
+            return list(pool.map(fn, chunks))
 
     def prior_terms(self, free_params: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
         """Precision λ [b, n_free] and deviation θ − μ [b, n_free] of the prior at ``free_params``."""
@@ -201,47 +230,68 @@ class ProblemEvaluation:
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
         """
-        problem, targets, road = self.problem, self.targets, self.road
+        problem, road = self.problem, self.road
         free_cols = torch.tensor(problem.free_index) + 1  # column 0 of the tangents is the primal
         cols = torch.cat([torch.zeros(1, dtype=torch.long), free_cols])
         obs = problem.observed_index
         width = problem.n_theta + 1
-        fishers, grads, losses, meats, dofs = [], [], [], [], []
-        n_groups = 0
-        for chunk in index.split(self.chunk_size):
-            out = problem.model.sensitivities(params[chunk], road[chunk], *problem.window)  # [b, T, n_out, 1 + n_theta]
+        full_targets = self.full_targets
+
+        def one(chunk, fallback=False):
+            model, args = problem.model, (params[chunk], road[chunk], *problem.window)
+            if fallback:
+                out, redo = model.fallback_sensitivities(*args), None
+                out[..., 0] -= full_targets[chunk]
+            else:  # [b, T, n_out, 1 + n_theta] with the residual R in column 0, and the rows to redo
+                out, redo = model.residual_sensitivities(*args, full_targets[chunk])
             if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0] : obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
-            out[..., 0] -= targets[chunk]  # residual R in column 0
             if problem.noise is not None:
                 out = problem.noise.whiten(out, params[chunk], chunk)
             elif self.weights is not None:
                 out *= self.weights[chunk][:, None, :, None]
             b = chunk.numel()
             augmented = out.view(b, -1, width) if out.is_contiguous() else out.reshape(b, -1, width)
-            # [b, width, width]; numpy's per-sample BLAS: torch.bmm is 1.7x slower at width 18 (exact model)
-            gram = batched_matmul(augmented.transpose(1, 2), augmented)
+            gram = gram_matrix(augmented)  # [b, width, width]
             if len(cols) < width:
                 gram = gram[:, cols][:, :, cols]
-            losses.append(0.5 * gram[:, 0, 0])
-            grads.append(gram[:, 1:, 0])
-            fishers.append(gram[:, 1:, 1:])
+            scores = None
             if band is not None:
-                meat, n_groups, dof = score_groups(out[..., cols], band, problem.noise is not None, self.jackknife)
-                meats.append(meat)
-                dofs.append(dof)
+                scores = score_groups(out[..., cols], band, problem.noise is not None, self.jackknife)
+            return gram, scores, redo
+
+        chunks = list(index.split(self.chunk_size))
+        parts = self._map(one, chunks)
+        # the samples each chunk left to the model's fallback, by position in ``index``: one pass for all
+        starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
+        redo = torch.cat(
+            [start + part[2].to(index.device) for start, part in zip(starts, parts)]
+            + [torch.zeros(0, dtype=torch.long, device=index.device)]
+        )
+        if redo.numel():
+            fixes = self._map(lambda chunk: one(chunk, fallback=True), list(index[redo].split(self.chunk_size)))
+            parts.append((torch.cat([fix[0] for fix in fixes]), _cat_scores([fix[1] for fix in fixes]), None))
+        gram = torch.cat([part[0] for part in parts[: len(chunks)]])
+        scores = _cat_scores([part[1] for part in parts[: len(chunks)]])
+        if redo.numel():
+            redo = redo.to(gram.device)
+            gram[redo] = parts[-1][0]
+            if scores is not None:
+                scores[0][redo] = parts[-1][1][0]
+                if scores[2] is not None:
+                    scores[2][redo] = parts[-1][1][2]
+        fisher, gradient, loss = gram[:, 1:, 1:].contiguous(), gram[:, 1:, 0].contiguous(), 0.5 * gram[:, 0, 0]
         if band is not None:
-            dof = None if dofs[0] is None else torch.cat(dofs)
-            return torch.cat(fishers), torch.cat(grads), torch.cat(losses), torch.cat(meats), (n_groups, dof)
-        return torch.cat(fishers), torch.cat(grads), torch.cat(losses)
+            meat, n_groups, dof = scores
+            return fisher, gradient, loss, meat, (n_groups, dof)
+        return fisher, gradient, loss
 
     def loss_at(self, trial_params, index) -> Tensor:
         """The loss [b] at θ ``trial_params`` [b, n_theta] of the samples ``index`` (inf where not finite)."""
         problem, targets, road = self.problem, self.targets, self.road
         obs = problem.observed_index
-        losses = []
-        for start in range(0, index.numel(), self.chunk_size * 2):
-            sl = slice(start, start + self.chunk_size * 2)
+
+        def one(sl):
             chunk = index[sl]
             accel = problem.model.outputs(trial_params[sl], road[chunk], *problem.window)
             residual = accel[:, :, obs] - targets[chunk]
@@ -250,9 +300,20 @@ class ProblemEvaluation:
             elif self.weights is not None:
                 residual = residual * self.weights[chunk][:, None, :]
             loss = 0.5 * residual.square().sum((1, 2))
-            losses.append(torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf)))
+            return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
+
+        step = self.chunk_size * 2
+        losses = self._map(one, [slice(start, start + step) for start in range(0, index.numel(), step)])
         loss = torch.cat(losses)
         if problem.prior_mean is not None:
             precision, deviation = self.prior_terms(trial_params[:, torch.tensor(problem.free_index)], index)
             loss = loss + 0.5 * (precision * deviation.square()).sum(1)
         return loss
+
+
+def _cat_scores(scores: list) -> tuple | None:
+    """score_groups' (meat, n_groups, dof or None) of several chunks joined; None without scores."""
+    if not scores or scores[0] is None:
+        return None
+    dof = None if scores[0][2] is None else torch.cat([part[2] for part in scores])
+    return torch.cat([part[0] for part in scores]), scores[-1][1], dof

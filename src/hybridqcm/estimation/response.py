@@ -28,7 +28,7 @@ from torch import Tensor
 from hybridqcm.physics.linear_models import LinearModel, QuarterCarRoad, SeatBaseExcitation, SprungBaseExcitation
 from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
 
-from .exact import exact_outputs, exact_sensitivities
+from .exact import exact_outputs, exact_sensitivities, fallback_sensitivities
 from .hold import HOLDS, held_input
 from .sensitivity import euler_accelerations, euler_sensitivities
 
@@ -64,6 +64,27 @@ class ResponseModel:
     def sensitivities(self, theta: Tensor, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor:
         """[b, n_steps, n_out, 1 + n_theta] for the same samples."""
         raise NotImplementedError
+
+    def sensitivities_deferred(
+        self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """(sensitivities, rows [r]): the rows of the samples left to :meth:`fallback_sensitivities` (their
+        result rows not valid), so that a pass over many chunks evaluates them in one call. Default: none."""
+        out = self.sensitivities(theta, inputs, start, n_steps)
+        return out, torch.zeros(0, dtype=torch.long, device=out.device)
+
+    def fallback_sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
+        """The sensitivities of the samples that :meth:`sensitivities_deferred` left."""
+        return self.sensitivities(theta, inputs, start, n_steps)
+
+    def residual_sensitivities(
+        self, theta: Tensor, inputs, start: int, n_steps: int, targets: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`sensitivities_deferred` with column 0 the residual y - ``targets`` [b, n_steps, n_out]
+        (what the solver's normal equations need; a model may subtract where it is cheapest)."""
+        out, redo = self.sensitivities_deferred(theta, inputs, start, n_steps)
+        out[..., 0] -= targets
+        return out, redo
 
 
 @dataclass(frozen=True)
@@ -124,6 +145,22 @@ class EulerResponse(ResponseModel):
         return euler_sensitivities(
             theta[:, :10].contiguous(), road.contiguous(), self.h, self.scaled_road, x0=x0, with_x0=self.with_x0
         )
+
+    def residual_sensitivities(self, theta: Tensor, inputs: Tensor, start: int, n_steps: int, targets: Tensor):
+        if type(self).sensitivities is not EulerResponse.sensitivities:  # a subclass's own sensitivities
+            return super().residual_sensitivities(theta, inputs, start, n_steps, targets)
+        x0 = theta[:, 10:] if self.with_x0 else None
+        road = inputs[:, start : start + n_steps]
+        out = euler_sensitivities(
+            theta[:, :10].contiguous(),
+            road.contiguous(),
+            self.h,
+            self.scaled_road,
+            x0=x0,
+            with_x0=self.with_x0,
+            targets=targets,
+        )
+        return out, torch.zeros(0, dtype=torch.long, device=out.device)
 
 
 class ExactResponse(ResponseModel):
@@ -194,9 +231,29 @@ class ExactResponse(ResponseModel):
         )
 
     def sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
+        return self._sensitivities(exact_sensitivities, theta, inputs, start, n_steps)
+
+    def sensitivities_deferred(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None):
+        if type(self).sensitivities is not ExactResponse.sensitivities:  # a subclass's own sensitivities
+            return super().sensitivities_deferred(theta, inputs, start, n_steps)
+        return self._sensitivities(exact_sensitivities, theta, inputs, start, n_steps, defer_fallback=True)
+
+    def fallback_sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
+        if type(self).sensitivities is not ExactResponse.sensitivities:
+            return self.sensitivities(theta, inputs, start, n_steps)
+        return self._sensitivities(fallback_sensitivities, theta, inputs, start, n_steps)
+
+    def residual_sensitivities(self, theta: Tensor, inputs, start: int, n_steps: int, targets: Tensor):
+        if type(self).sensitivities is not ExactResponse.sensitivities:
+            return super().residual_sensitivities(theta, inputs, start, n_steps, targets)
+        return self._sensitivities(
+            exact_sensitivities, theta, inputs, start, n_steps, defer_fallback=True, targets=targets
+        )
+
+    def _sensitivities(self, layer, theta: Tensor, inputs, start: int, n_steps: int | None, **options):
         params, x0 = self._split(theta)
         samples, window = self._unpack(inputs, start, n_steps)
-        return exact_sensitivities(
+        return layer(
             self.model,
             params,
             x0,
@@ -207,6 +264,7 @@ class ExactResponse(ResponseModel):
             with_x0=self.with_x0,
             spline_degree=self.spline_degree,
             **window,
+            **options,
         )
 
     @staticmethod

@@ -85,16 +85,23 @@ def euler_accelerations(
 
 @torch.no_grad()
 def euler_sensitivities(
-    params: Tensor, road: Tensor, h: float, scaled_road: bool = False, x0: Tensor | None = None, with_x0: bool = False
+    params: Tensor,
+    road: Tensor,
+    h: float,
+    scaled_road: bool = False,
+    x0: Tensor | None = None,
+    with_x0: bool = False,
+    targets: Tensor | None = None,
 ) -> Tensor:
     """Accelerations and their derivatives w.r.t. all 10 parameters (and x0) in one forward pass.
 
     Returns ``[batch, time, 3, 11]`` (``[batch, time, 3, 17]`` with ``with_x0``): [..., 0] the
     accelerations, [..., j] = ∂a/∂p_j (j = 1..10), [..., 10 + i] = ∂a/∂x0_i (i = 1..6).
     Viewed as [batch, time*3, width] it is the Jacobian with the prediction as an extra first
-    column, which is how the solver forms JᵀJ, JᵀR and RᵀR with a single bmm.
+    column, which is how the solver forms JᵀJ, JᵀR and RᵀR with a single bmm. ``targets`` [batch, time, 3]:
+    column 0 is the residual a - targets instead (subtracted per step while the block is in cache).
     """
-    return _recursion(params, road, h, scaled_road, with_tangents=True, x0=x0, with_x0=with_x0)
+    return _recursion(params, road, h, scaled_road, with_tangents=True, x0=x0, with_x0=with_x0, targets=targets)
 
 
 def accelerations_and_jacobian(
@@ -113,8 +120,9 @@ def _recursion(
     with_tangents: bool,
     x0: Tensor | None = None,
     with_x0: bool = False,
+    targets: Tensor | None = None,
 ) -> Tensor:
-    """The Euler recursion on the augmented state; returns [batch, time, 3, width]."""
+    """The Euler recursion on the augmented state; returns [batch, time, 3, width] (column 0 less ``targets``)."""
     _check_inputs(params, road)
     dtype, device = params.dtype, params.device
     batch, n_steps = road.shape
@@ -125,6 +133,7 @@ def _recursion(
     row_sum = _row_sum_matrix(dtype, device)  # [3, 10]
     weights = params.t().contiguous().unsqueeze(1)  # [10, 1, batch]
     road_t = road.to(dtype).t().contiguous()  # [time, batch]
+    targets_t = None if targets is None else targets.to(dtype).permute(1, 2, 0).contiguous()  # [time, 3, batch]
 
     # Augmented state (v3, v2, v1, q3, q2, q1, u) x (primal, tangents) x batch: [7, width, batch].
     # Batch innermost keeps every slice below contiguous (strided column access was 10x slower).
@@ -154,9 +163,11 @@ def _recursion(
         torch.mm(row_sum, flat_weighted, out=flat_accel)
         if scaled_road:
             accel_k[2, 0] += road_t[k]
-        out[:, k].copy_(accel_k.permute(2, 0, 1))
         vel.add_(accel_k, alpha=h)
         disp.add_(vel, alpha=h)
+        if targets_t is not None:  # the residual, on the [3, batch] primal rows while they are in cache
+            accel_k[:, 0].sub_(targets_t[k])
+        out[:, k].copy_(accel_k.permute(2, 0, 1))
     return out
 
 

@@ -29,7 +29,7 @@ from enum import IntEnum
 import torch
 from torch import Tensor
 
-from ._blas import torch_threads
+from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
 from .problems import LeastSquaresProblem, ProblemEvaluation
 from .uncertainty import final_uncertainty, unevaluated_uncertainty
@@ -81,6 +81,7 @@ class SolverConfig:
     # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
     # 2-core machine each op waited milliseconds for the second thread (measured). None: leave as is.
     num_threads: int | None = 1
+    thread_chunks: bool = True  # num_threads > 1: chunks on that many threads, ops on one (_blas.chunk_workers)
     # How a step is applied (with column scaling all three give the same direction):
     #   "unconstrained": p <- p - αδ; iterates may leave p > 0 on the way, a final estimate
     #                    with any p_j <= 0 gets status DIVERGED (default: see docs/design/estimation.md,
@@ -219,8 +220,8 @@ class NonlinearLeastSquares(ABC):
         """The loss every sample's solve minimises at θ ``params`` [batch, n_theta]: ½ Σ r² of the weighted or
         noise-whitened residual plus the prior's ½ Σ λ (θ − μ)² [batch] (inf where not finite). What a
         profile likelihood or a model comparison reads after the solve (SolverResult.loss is the data part)."""
-        with torch_threads(self.config.num_threads), torch.no_grad():
-            evaluation = ProblemEvaluation(problem, self.config.chunk_size)
+        with torch_threads(op_threads(self.config)), torch.no_grad():
+            evaluation = ProblemEvaluation(problem, self.config.chunk_size, workers=chunk_workers(self.config))
             index = torch.arange(params.shape[0])
             return evaluation.loss_at(params.detach().to(torch.float64), index)
 
@@ -229,7 +230,7 @@ class NonlinearLeastSquares(ABC):
         self, problem: LeastSquaresProblem, initial_params: Tensor, callback: IterationCallback | None = None
     ) -> SolverResult:
         """Minimise every sample's loss from ``initial_params`` = θ0 [batch, n_theta] (known entries kept)."""
-        with torch_threads(self.config.num_threads), torch.no_grad():
+        with torch_threads(op_threads(self.config)), torch.no_grad():
             return self._solve(problem, initial_params, callback)
 
     def _solve(self, problem, initial_params, callback):
@@ -267,7 +268,8 @@ class NonlinearLeastSquares(ABC):
         # Which free entries are physical parameters (> 0, steps judged relative to them); the
         # others (initial states) have any sign.
         self._positive = problem.model.positive[free]
-        evaluation = ProblemEvaluation(problem, self.config.chunk_size, self.config.covariance.endswith("jackknife"))
+        jackknife = self.config.covariance.endswith("jackknife")
+        evaluation = ProblemEvaluation(problem, self.config.chunk_size, jackknife, chunk_workers(self.config))
         targets, weights = evaluation.targets, evaluation.weights
         if problem.noise is not None:  # the targets as the loss sees them (at the start's p)
             weighted_targets = problem.noise.whiten_residual(targets, params, torch.arange(batch))

@@ -1,0 +1,126 @@
+"""ProblemEvaluation's passes (estimation/problems.py): the normal equations against the Gram of the
+explicitly formed (R | J), with the chunks on several threads, the modal path's fallback samples
+gathered over the chunks of a pass, and the residual subtracted inside the models."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from hybridqcm.estimation.exact import exact_sensitivities, fallback_sensitivities
+from hybridqcm.estimation.problems import LeastSquaresProblem, ProblemEvaluation
+from hybridqcm.estimation.response import ExactResponse
+from hybridqcm.estimation.sensitivity import euler_sensitivities
+from hybridqcm.physics import reference_params
+from hybridqcm.physics.linear_models import QuarterCarRoad, SeatBaseExcitation
+from hybridqcm.testing import synthetic_samples
+
+F64 = torch.float64
+
+
+def _seat_problem(batch: int = 24, observed=(True,)):
+    """Seat models damped near critically every fourth sample (double eigenvalue: the modal path hands
+    them to the recursion), the others well apart; x0 unknown, a margin of 8 samples."""
+    g = torch.Generator().manual_seed(5)
+    p2 = 100.0 + 400.0 * torch.rand(batch, generator=g, dtype=F64)
+    zeta = torch.where(torch.arange(batch) % 4 == 0, 1.0, 0.2 + 0.3 * torch.rand(batch, generator=g, dtype=F64))
+    theta = torch.cat([torch.stack([2 * zeta * p2.sqrt(), p2], 1), 0.01 * torch.randn(batch, 2, generator=g)], 1)
+    inputs = torch.randn(batch, 116, 1, generator=g, dtype=F64)
+    targets = torch.randn(batch, 100, 1, generator=g, dtype=F64)
+    model = ExactResponse(SeatBaseExcitation(), 0.01, "spline", 4, initial_state="unknown")
+    return LeastSquaresProblem(targets, inputs, 0.01, model=model, input_offset=8, observed=observed), theta
+
+
+def _explicit_normal_equations(problem: LeastSquaresProblem, theta):
+    """F, JᵀR, L from (R | J) formed with the step recursion (an independent code path)."""
+    model = problem.model
+    out = exact_sensitivities(
+        model.model, theta[:, : model.n_params], theta[:, model.n_params :], problem.inputs, 0.01, "spline", 4,
+        start=8, n_steps=100, method="recursion",
+    )  # fmt: skip
+    obs = problem.observed_index
+    out = out[:, :, obs]
+    out[..., 0] -= problem.targets[:, :, obs]
+    a = out.reshape(out.shape[0], -1, out.shape[-1])
+    gram = a.transpose(1, 2) @ a
+    return gram[:, 1:, 1:], gram[:, 1:, 0], 0.5 * gram[:, 0, 0]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_normal_equations_with_fallback_samples_match_the_explicit_gram(workers):
+    problem, theta = _seat_problem()
+    evaluation = ProblemEvaluation(problem, chunk_size=5, workers=workers)  # chunks of 5: fallback rows in several
+    index = torch.arange(theta.shape[0])
+    _, redo = problem.model.sensitivities_deferred(theta, evaluation.road[index], *problem.window)
+    assert redo.numel() >= 4  # the critically damped samples are left to the fallback
+    fisher, gradient, loss = evaluation.normal_equations(theta, index)
+    expected = _explicit_normal_equations(problem, theta)
+    for got, want in zip((fisher, gradient, loss), expected):
+        scale = want.abs().reshape(want.shape[0], -1).amax(1).clamp_min(1e-300)
+        assert float(((got - want).abs().reshape(want.shape[0], -1).amax(1) / scale).max()) < 1e-9
+
+
+def test_threads_give_the_numbers_of_one_thread_bit_for_bit():
+    problem, theta = _seat_problem(40)
+    index = torch.arange(40).flip(0)[::2]  # an unordered subset, as the solver's active samples
+    one = ProblemEvaluation(problem, chunk_size=4).data_normal_equations(theta, index, band=3)
+    two = ProblemEvaluation(problem, chunk_size=4, workers=2).data_normal_equations(theta, index, band=3)
+    for a, b in zip(one[:4], two[:4]):
+        assert torch.equal(a, b)
+    assert one[4][0] == two[4][0]
+    trial = theta * 1.01
+    loss_one = ProblemEvaluation(problem, chunk_size=2).loss_at(trial[index], index)
+    loss_two = ProblemEvaluation(problem, chunk_size=2, workers=2).loss_at(trial[index], index)
+    assert torch.equal(loss_one, loss_two)
+
+
+def test_deferred_fallback_rows_are_those_fallback_sensitivities_gives():
+    problem, theta = _seat_problem()
+    model = problem.model
+    args = (model.model, theta[:, :2], theta[:, 2:], problem.inputs, 0.01, "spline", 4)
+    full = exact_sensitivities(*args, start=8, n_steps=100)
+    deferred, rows = exact_sensitivities(*args, start=8, n_steps=100, defer_fallback=True)
+    keep = torch.ones(theta.shape[0], dtype=torch.bool)
+    keep[rows] = False
+    assert torch.equal(deferred[keep], full[keep])
+    fixed = fallback_sensitivities(
+        model.model, theta[rows, :2], theta[rows, 2:], problem.inputs[rows], 0.01, "spline", 4, start=8, n_steps=100
+    )
+    assert torch.equal(fixed, full[rows])
+
+
+def test_residual_is_subtracted_inside_the_models():
+    """Exact (modal and recursion) and Euler: column 0 with ``targets`` is the prediction less them."""
+    problem, theta = _seat_problem()
+    args = (problem.model.model, theta[:, :2], theta[:, 2:], problem.inputs, 0.01, "spline", 4)
+    for method in ("modal", "recursion"):
+        plain = exact_sensitivities(*args, start=8, n_steps=100, method=method)
+        residual = exact_sensitivities(*args, start=8, n_steps=100, method=method, targets=problem.targets)
+        assert torch.equal(residual[..., 1:], plain[..., 1:])
+        want = plain[..., 0] - problem.targets
+        assert float((residual[..., 0] - want).abs().max()) <= 1e-12 * float(want.abs().max())
+    data = synthetic_samples(6, n_steps=50, seed=2)
+    params, road, accel = data["params"].to(F64), data["road"].to(F64), data["accel"].to(F64)
+    plain = euler_sensitivities(params, road, 0.01)
+    residual = euler_sensitivities(params, road, 0.01, targets=accel)
+    assert torch.equal(residual[..., 1:], plain[..., 1:]) and torch.equal(residual[..., 0], plain[..., 0] - accel)
+
+
+def test_unobserved_channels_take_no_part_in_the_residual():
+    """Quarter car with a2 unobserved: the normal equations equal those of the problem built from the two
+    observed channels' explicit residual (the full-width targets carry zeros on a2)."""
+    data = synthetic_samples(5, n_steps=60, seed=4)
+    theta = torch.cat([reference_params().expand(5, 10).to(F64), torch.zeros(5, 6, dtype=F64)], 1)
+    model = ExactResponse(QuarterCarRoad(), 0.01, "spline", 4, initial_state="unknown")
+    problem = LeastSquaresProblem(
+        data["accel"][:, 5:55].to(F64), data["road"].to(F64), 0.01, model=model, input_offset=5,
+        observed=(True, False, True),
+    )  # fmt: skip
+    fisher, gradient, loss = ProblemEvaluation(problem, chunk_size=2).normal_equations(theta, torch.arange(5))
+    out = model.sensitivities(theta, data["road"].to(F64)[..., None], 5, 50)[:, :, [0, 2]]
+    out[..., 0] -= problem.targets[:, :, [0, 2]]
+    a = out.reshape(5, -1, 17)
+    gram = a.transpose(1, 2) @ a
+    assert torch.allclose(fisher, gram[:, 1:, 1:], rtol=1e-12, atol=0)
+    assert torch.allclose(gradient, gram[:, 1:, 0], rtol=1e-10, atol=1e-12 * float(gradient.abs().max()))
+    assert torch.allclose(loss, 0.5 * gram[:, 0, 0], rtol=1e-12, atol=0)
