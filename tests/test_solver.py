@@ -295,7 +295,7 @@ def test_gaussian_prior_is_the_closed_form_map_on_a_linear_problem():
 
 def _armijo_search(phi, loss0, slope, last=30):
     """Drive _next_exponent on a 1-D loss φ(α) (α = 2^-e): the accepted e and the number of trials."""
-    from hybridqcm.estimation.solver import _next_exponent
+    from hybridqcm.estimation.line_search import _next_exponent
 
     failed, passed, e, trials = -1, last + 1, 0, 0
     while 0 <= e <= last:
