@@ -154,7 +154,7 @@ def _refinement(
             x0_start=plan["x0_start"],
             param_prior=param_prior,
         ),
-        noise=NoiseWeighting(mode=reweight, leverage=noise_leverage),
+        noise=NoiseWeighting(mode=reweight, leverage=noise_leverage, band_cap=noise_leverage),
         restarts=Restarts(
             count=int(cfg.restarts.count) if restarts else 0,
             threshold=threshold,
