@@ -125,7 +125,8 @@ def _refinement(
     cfg, plan, response, known_mask, param_prior, restart_center, noise_leverage: bool = False, restarts: bool = True
 ) -> BlockRefinement:
     """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings
-    (``noise_leverage``: the noise variances corrected for the fit's leverage, the occupant models';
+    (``noise_leverage``: the noise variances corrected for the fit's leverage and the input's bounded by its
+    upper-band power, the occupant models';
     ``restarts`` false: a single attempt, the occupant selection's candidates, restarted only where chosen)."""
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
