@@ -128,7 +128,8 @@ def _refinement(
     cfg, plan, response, known_mask, param_prior, restart_center, noise_leverage: bool = False, restarts: bool = True
 ) -> BlockRefinement:
     """One GaussNewtonRefinement of ``response`` with the run's stages, weighting and multi-start settings
-    (``noise_leverage``: the noise variances corrected for the fit's leverage, the occupant models';
+    (``noise_leverage``: the noise variances corrected for the fit's leverage and, on the seat, the input's
+    bounded by its upper-band power, the occupant models';
     ``restarts`` false: a single attempt, the occupant selection's candidates, restarted only where chosen)."""
     stages = [
         GaussNewtonStage(s["name"], build_solver(s["method"], **s["settings"]), s["channels"], s["n_steps"], s["guard"])
@@ -157,7 +158,10 @@ def _refinement(
             x0_start=plan["x0_start"],
             param_prior=param_prior,
         ),
-        noise=NoiseWeighting(mode=reweight, leverage=noise_leverage),
+        # the input noise's band bound: measured on the seat (a2 in) only; the sprung model's a1 is not measured with it
+        noise=NoiseWeighting(
+            mode=reweight, leverage=noise_leverage, band_cap=noise_leverage and plan["base_excitation"] == "seat"
+        ),
         restarts=Restarts(
             count=int(cfg.restarts.count) if restarts else 0,
             threshold=threshold,

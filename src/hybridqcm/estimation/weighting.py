@@ -50,6 +50,13 @@ class NoiseWeighting:
     interpolation error (NoiseFit.noise_model), and the sensor-noise floor of NoiseFit.noise_floor.
     leverage: the noise variances fitted to a residual at the fit are short by the fit's leverage, most
     where the input's noise shows (estimate_variances): the restricted fit corrects it.
+    band_cap: a measured input's noise variance is at most its own power in the upper half of the spectrum
+    (input_band_power): white sensor noise fills that band, anything else there (vibration) only adds, so
+    the bound holds for any recording and needs no model. The Whittle fit reads the input's noise from the
+    residual's excess where |H| is large — the resonance, exactly where a fit in a wrong basin leaves its
+    misfit — and there gave 2–5 times the true variance; with it the errors-in-variables cost, whose
+    per-frequency weight 1 / (v_out + |H|² v_in) then undercounts the resonance, prefers that wrong basin
+    (docs/measurements/persons.md).
     """
 
     mode: bool | str = False
@@ -62,6 +69,7 @@ class NoiseWeighting:
     # so the spectral noise model is white output noise per channel only; the base-excitation models'
     # errors-in-variables term is for a *measured* driving channel.
     input_noise: bool = True
+    band_cap: bool = False
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -72,6 +80,7 @@ class NoiseWeighting:
             raise ValueError(f"noise_refits must be >= 0, got {self.refits!r}")
         self.refits = int(self.refits)
         self.leverage = bool(self.leverage)
+        self.band_cap = bool(self.band_cap)
         self.ml_guard = None if self.ml_guard is None else float(self.ml_guard)
         self.min_input_noise = float(self.min_input_noise)
 
@@ -165,6 +174,8 @@ class NoiseFit:
         samples = road.samples if isinstance(road, PreparedInputs) else road
         window = samples[:, offset : offset + targets.shape[1]]
         input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]
+        if self.settings.band_cap:
+            v_in = torch.minimum(v_in, input_band_power(window if window.ndim == 3 else window[..., None]))
         negligible = (v_in < self.settings.min_input_noise**2 * input_power).all(1)
         v_out = torch.where(negligible[:, None], v_alone, v_out)
         v_in = torch.where(negligible[:, None], torch.zeros_like(v_in), v_in)
@@ -187,6 +198,17 @@ class NoiseFit:
             )
         ratio = loss / (0.5 * sum(problem.observed) * (n_steps - 1))
         return (ratio > 1.0 / _NOISE_CONSISTENCY) & (ratio < _NOISE_CONSISTENCY)
+
+
+def input_band_power(signal: Tensor) -> Tensor:
+    """[b, m] the mean power per sample of ``signal`` [b, T, m] in the upper half of its spectrum (a quarter of
+    the sampling rate to Nyquist; Hann taper, so that the band's lower content does not leak in): the white
+    noise variance where the band holds noise only, an upper bound of it otherwise (NoiseWeighting.band_cap);
+    from one 512-sample window it scatters by about ±15 % (10th to 90th percentile) around its expectation."""
+    taper = torch.hann_window(signal.shape[1], periodic=False, dtype=torch.float64)
+    x = signal.double() - signal.double().mean(1, keepdim=True)
+    spectrum = torch.fft.rfft(x * taper[None, :, None], dim=1).abs().square()  # [b, K, m]
+    return spectrum[:, spectrum.shape[1] // 2 :].mean(1) / taper.square().sum()
 
 
 def profiled_score(residual: Tensor, problem: LeastSquaresProblem, params: Tensor) -> Tensor:
