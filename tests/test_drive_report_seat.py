@@ -17,9 +17,9 @@ import torch
 from omegaconf import OmegaConf
 
 from hybridqcm.estimation.calibration import SeatLaw, seat_document
-from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import SolverStatus
 from hybridqcm.reports.drive import aggregate_drives
+from test_drive_report import _plan  # the drive settings of the drive tests
 
 K3 = 98935.0  # the reference seat's: drives.csv's m3 = K3 / p2
 K3_REF, E, PAN = 1.04e5, 0.4, 8.0  # the foam seat's law (not the simulators' defaults)
@@ -33,24 +33,6 @@ def _closed_form_occupant(p2, k3_ref=K3_REF, e=E, pan=PAN):
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if k3_ref * (mid / 80) ** e / mid > p2 else (lo, mid)
     return math.sqrt(lo * hi) - pan
-
-
-def _plan(profile_id, t_start):
-    return DrivePlan(
-        statuses=("converged",),
-        weights="reported",
-        scale="birge",
-        alpha=0.01,
-        min_windows=2,
-        outlier_alpha=0.001,
-        neighbours=2,
-        plots=0,
-        per_window=("tau",),
-        profile_id=np.asarray(profile_id),
-        t_start=np.asarray(t_start, dtype=float),
-        names=("A", "B"),
-        window_s=5.0,
-    )
 
 
 def test_drives_csv_carries_the_occupant_through_the_seat_law(tmp_path):
@@ -81,7 +63,7 @@ def test_drives_csv_carries_the_occupant_through_the_seat_law(tmp_path):
     }
     cal_sd = np.array([800.0, 0.02, 1.0])
     seat = SeatLaw(K3_REF, E, PAN, np.diag(cal_sd**2), loads=[0.0, 40.0, 80.0, 120.0])
-    plan = _plan([0] * n + [1] * 4, [5.0 * k for k in range(n)] + [5.0 * k for k in range(4)])
+    plan = _plan([0] * n + [1] * 4, [5.0 * k for k in range(n)] + [5.0 * k for k in range(4)], ("A", "B"), plots=0)
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid"], seat=seat)
     with open(tmp_path / "drives.csv", newline="") as handle:
