@@ -233,18 +233,23 @@ class ExactResponse(ResponseModel):
     def sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         return self._sensitivities(exact_sensitivities, theta, inputs, start, n_steps)
 
+    def _own_sensitivities(self) -> bool:
+        """A subclass with sensitivities of its own (e.g. a delay): the deferred and residual forms below
+        would bypass them, so the base class's generic forms over its sensitivities are used instead."""
+        return type(self).sensitivities is not ExactResponse.sensitivities
+
     def sensitivities_deferred(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None):
-        if type(self).sensitivities is not ExactResponse.sensitivities:  # a subclass's own sensitivities
+        if self._own_sensitivities():
             return super().sensitivities_deferred(theta, inputs, start, n_steps)
         return self._sensitivities(exact_sensitivities, theta, inputs, start, n_steps, defer_fallback=True)
 
     def fallback_sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
-        if type(self).sensitivities is not ExactResponse.sensitivities:
+        if self._own_sensitivities():
             return self.sensitivities(theta, inputs, start, n_steps)
         return self._sensitivities(fallback_sensitivities, theta, inputs, start, n_steps)
 
     def residual_sensitivities(self, theta: Tensor, inputs, start: int, n_steps: int, targets: Tensor):
-        if type(self).sensitivities is not ExactResponse.sensitivities:
+        if self._own_sensitivities():
             return super().residual_sensitivities(theta, inputs, start, n_steps, targets)
         return self._sensitivities(
             exact_sensitivities, theta, inputs, start, n_steps, defer_fallback=True, targets=targets

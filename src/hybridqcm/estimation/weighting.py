@@ -173,9 +173,10 @@ class NoiseFit:
         # (docs/design/noise_and_intervals.md). Such samples get the output-noise model.
         samples = road.samples if isinstance(road, PreparedInputs) else road
         window = samples[:, offset : offset + targets.shape[1]]
-        input_power = (window if window.ndim == 3 else window[..., None]).square().mean(1)  # [b, m]
+        channels = window if window.ndim == 3 else window[..., None]  # [b, T, m]
+        input_power = channels.square().mean(1)  # [b, m]
         if self.settings.band_cap:
-            v_in = torch.minimum(v_in, input_band_power(window if window.ndim == 3 else window[..., None]))
+            v_in = torch.minimum(v_in, input_band_power(channels))
         negligible = (v_in < self.settings.min_input_noise**2 * input_power).all(1)
         v_out = torch.where(negligible[:, None], v_alone, v_out)
         v_in = torch.where(negligible[:, None], torch.zeros_like(v_in), v_in)
