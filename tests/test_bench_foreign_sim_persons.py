@@ -203,3 +203,21 @@ def test_score_counts_the_wrong_converged_answers(tmp_path):
     assert out["occupant_model"] == {"body1": 2, "body2": 1, "rigid": 1}
     assert out["by_true_occupant"]["body1"]["n"] == 2
     assert abs(out["delay"]["mean_abs_ms"] - 1.4) < 1e-9 and out["delay"]["within_1ms"] == 0.5  # 0, 0.8, 1.6, 3.2 ms
+
+
+def test_honesty_bound_is_the_monte_carlo_count():
+    """The honesty bound (occupant_crb.dishonest_at_bound) against errors drawn at each recording's sd and
+    counted as bench/foreign_sim.py's score counts them (more than 10 % off, truth outside est ± z sd); and
+    its limits: all of the 5 % misses when every sd exceeds 0.1/1.96, none when every sd is tiny."""
+    rng = np.random.default_rng(11)
+    x = rng.uniform(0.01, 0.09, 400)  # relative sd of the static mass per recording
+    draws = rng.standard_normal((4000, x.size)) * x
+    for coverage, z in ((0.95, 1.959963984540054), (0.98, 2.3263478740408408)):
+        counted = np.mean((np.abs(draws) > 0.10) & (np.abs(draws) > z * x))
+        bound = crb.dishonest_at_bound(x, coverage)
+        assert abs(counted - bound) < 4 * np.sqrt(bound / draws.size) + 1e-4, (coverage, counted, bound)
+    assert abs(crb.dishonest_at_bound(np.full(10, 0.2), 0.95) - 0.05) < 1e-12
+    assert crb.dishonest_at_bound(np.full(10, 0.005), 0.95) < 1e-80
+    needed = crb.coverage_for_honesty(x, 0.01)
+    assert 0.95 < needed < 1.0
+    assert crb.dishonest_at_bound(x, needed) <= 0.01 < crb.dishonest_at_bound(x, needed - 1e-4)
