@@ -221,3 +221,23 @@ def test_honesty_bound_is_the_monte_carlo_count():
     needed = crb.coverage_for_honesty(x, 0.01)
     assert 0.95 < needed < 1.0
     assert crb.dishonest_at_bound(x, needed) <= 0.01 < crb.dishonest_at_bound(x, needed - 1e-4)
+
+
+def test_the_persons_table_shows_the_honesty_bound_of_each_row(tmp_path, monkeypatch):
+    """bench/persons_table.py's dishonest cell carries the honesty bound at the row's coverage: each recording at
+    its own occupant's bound (the model the file's JSON has a number for), scaled to the file's noise, the
+    run's first n recordings only; noise-free rows have none."""
+    table = _load("persons_table")
+    monkeypatch.setattr(table, "DATA", tmp_path)
+    rel = {
+        "rigid_unknown": [0.2, None, None, 3.0],
+        "body1_unknown": [None, 1.2, 0.9, None],
+        "body2_unknown": [None] * 4,
+    }
+    (tmp_path / "crb_mixed_n5.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
+    x = np.array([0.2, 1.2, 0.9]) * 0.05  # the first three recordings, each its own occupant's
+    assert table._honesty_bound("mixed_n5", 3, 0.97) == crb.dishonest_at_bound(x, 0.97)
+    cell = table._dishonest("mixed_n5", {"n": 3, "coverage": 0.97, "dishonest": 0.01})
+    assert cell == f"1.00 % ({100 * crb.dishonest_at_bound(x, 0.97):.2f} %)"
+    (tmp_path / "crb_mixed_n0.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
+    assert table._honesty_bound("mixed_n0", 3, 0.97) is None
