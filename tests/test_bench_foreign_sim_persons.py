@@ -203,3 +203,41 @@ def test_score_counts_the_wrong_converged_answers(tmp_path):
     assert out["occupant_model"] == {"body1": 2, "body2": 1, "rigid": 1}
     assert out["by_true_occupant"]["body1"]["n"] == 2
     assert abs(out["delay"]["mean_abs_ms"] - 1.4) < 1e-9 and out["delay"]["within_1ms"] == 0.5  # 0, 0.8, 1.6, 3.2 ms
+
+
+def test_honesty_bound_is_the_monte_carlo_count():
+    """The honesty bound (occupant_crb.dishonest_at_bound) against errors drawn at each recording's sd and
+    counted as bench/foreign_sim.py's score counts them (more than 10 % off, truth outside est ± z sd); and
+    its limits: all of the 5 % misses when every sd exceeds 0.1/1.96, none when every sd is tiny."""
+    rng = np.random.default_rng(11)
+    x = rng.uniform(0.01, 0.09, 400)  # relative sd of the static mass per recording
+    draws = rng.standard_normal((4000, x.size)) * x
+    for coverage, z in ((0.95, 1.959963984540054), (0.98, 2.3263478740408408)):
+        counted = np.mean((np.abs(draws) > 0.10) & (np.abs(draws) > z * x))
+        bound = crb.dishonest_at_bound(x, coverage)
+        assert abs(counted - bound) < 4 * np.sqrt(bound / draws.size) + 1e-4, (coverage, counted, bound)
+    assert abs(crb.dishonest_at_bound(np.full(10, 0.2), 0.95) - 0.05) < 1e-12
+    assert crb.dishonest_at_bound(np.full(10, 0.005), 0.95) < 1e-80
+    needed = crb.coverage_for_honesty(x, 0.01)
+    assert 0.95 < needed < 1.0
+    assert crb.dishonest_at_bound(x, needed) <= 0.01 < crb.dishonest_at_bound(x, needed - 1e-4)
+
+
+def test_the_persons_table_shows_the_honesty_bound_of_each_row(tmp_path, monkeypatch):
+    """bench/persons_table.py's dishonest cell carries the honesty bound at the row's coverage: each recording at
+    its own occupant's bound (the model the file's JSON has a number for), scaled to the file's noise, the
+    run's first n recordings only; noise-free rows have none."""
+    table = _load("persons_table")
+    monkeypatch.setattr(table, "DATA", tmp_path)
+    rel = {
+        "rigid_unknown": [0.2, None, None, 3.0],
+        "body1_unknown": [None, 1.2, 0.9, None],
+        "body2_unknown": [None] * 4,
+    }
+    (tmp_path / "crb_mixed_n5.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
+    x = np.array([0.2, 1.2, 0.9]) * 0.05  # the first three recordings, each its own occupant's
+    assert table._honesty_bound("mixed_n5", 3, 0.97) == crb.dishonest_at_bound(x, 0.97)
+    cell = table._dishonest("mixed_n5", {"n": 3, "coverage": 0.97, "dishonest": 0.01})
+    assert cell == f"1.00 % ({100 * crb.dishonest_at_bound(x, 0.97):.2f} %)"
+    (tmp_path / "crb_mixed_n0.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
+    assert table._honesty_bound("mixed_n0", 3, 0.97) is None
