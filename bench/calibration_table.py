@@ -107,6 +107,8 @@ def _repeats(args, out: Path, tag: str, k: int, noise: float, sim: list, run_dir
 
 
 def _print_repeats(results) -> None:
+    if not any("repeats" in r for r in results):
+        return
     print(
         "\n| noise | calibration draw | law chosen | K3_ref, e, pan | mean error | excess over uncalibrated | coverage |"
     )
