@@ -93,9 +93,10 @@ def test_auto_chooses_the_proportional_law_on_a_linear_seat_with_its_closed_form
             assert seat.K3_ref == pytest.approx(closed, rel=1e-9)
             assert seat.exponent == 0.0 and seat.pan_mass == 0.0 and seat.free == ["K3_ref"]
             assert np.all(seat.covariance[1:] == 0) and np.all(seat.covariance[:, 1:] == 0)
-            # its variance: the one-parameter law's (Σ w²)⁻¹ K3² at the residuals' scale
+            # its variance: the one-parameter law's (Σ w²)⁻¹ K3², widened by the Birge factor
             chi2 = np.sum(w2 * (np.log(p2 * loads) - math.log(closed)) ** 2)
-            assert seat.covariance[0, 0] == pytest.approx(closed**2 / np.sum(w2) * chi2 / (loads.size - 1), rel=1e-6)
+            birge = max(1.0, chi2 / (loads.size - 1))
+            assert seat.covariance[0, 0] == pytest.approx(closed**2 / np.sum(w2) * birge, rel=1e-6)
         assert [row["law"] for row in result["selection"]] == list(NESTED)
     assert chosen.count("proportional") >= 30  # the F-test's level 5 %: ~2 draws in 40 pick a larger law
 
@@ -118,18 +119,23 @@ def test_a_law_without_a_pan_on_an_empty_seat_is_one_line():
     assert "\n" not in str(error.value)
 
 
-def test_the_covariance_takes_the_residuals_scale_when_the_stated_sigma_is_too_wide():
-    """Recordings that state σ twice their true scatter: the covariance still matches the spread of repeated
-    calibrations (scaled by χ²/dof, not held at the stated σ)."""
+@pytest.mark.parametrize("stated", [0.5, 2.0])
+def test_the_covariance_is_widened_where_the_stated_sigma_is_too_narrow_and_kept_where_too_wide(stated):
+    """Recordings stating σ at half (twice) their true scatter: the Birge factor widens the covariance to the
+    spread of repeated calibrations (keeps the stated one, twice the spread: never narrowed)."""
     _, p2 = _p(LOADS)
     rng = np.random.default_rng(8)
-    fits, reported = [], []
+    fits, reported, dofs = [], [], []
     for _ in range(200):
         noisy = p2 * np.exp(0.01 * rng.standard_normal(p2.size))
-        seat = fit_seat_law(LOADS, noisy, 0.02 * noisy, law="power")["law"]
+        seat = fit_seat_law(LOADS, noisy, 0.01 * stated * noisy, law="power")["law"]
         fits.append([seat.K3_ref, seat.exponent, seat.pan_mass])
         reported.append(np.sqrt(np.diag(seat.covariance)))
-    assert np.allclose(np.median(reported, axis=0), np.std(fits, axis=0), rtol=0.25)
+        dofs.append(seat.dof)
+    expected = np.std(fits, axis=0) * max(1.0, stated)
+    assert np.allclose(np.median(reported, axis=0), expected, rtol=0.25)
+    # Student-t only where the scale was estimated (χ²/dof > 1: at half the σ all but ~1 % of the draws)
+    assert dofs.count(LOADS.size - 3) >= 190 if stated < 1 else set(dofs) == {None}
 
 
 def test_the_occupant_bound_through_the_law_matches_finite_differences():

@@ -19,10 +19,12 @@ held at 0, down to K3 alone, the reference seat's form) the simplest whose misfi
 loads determine does not beat by the nested F-test at level alpha (a seat driven empty keeps its pan: its
 spring carries nothing else); the fit reports every candidate's χ² and p-value and which it chose.
 ``law="power"`` / ``"linear"`` / ... fit that one. The covariance is the chosen law's Gauss-Newton
-(JᵀWJ)⁻¹ over its free parameters (0 for the held ones) times the residuals' own scale χ²/dof (the
-recordings' σ may be stated too wide or too narrow), so an occupant's interval adds the calibration's
-part with the Student-t quantile at that dof. With m_pan fixed, C3's law is a weighted linear fit of ln p1
-in ln M.
+(JᵀWJ)⁻¹ over its free parameters (0 for the held ones) widened by the Birge factor max(1, χ²/dof) where
+the recordings scatter more than their σ say; then the scale is an estimate and an occupant's interval adds
+the calibration's part with the Student-t quantile at that dof. Not narrowed where they scatter less: the
+road-free fits state σ too wide at heavy loads and too narrow at light ones (one-window errors heavy-tailed
+there), and χ²/dof, dominated by the heavy loads, then understates the pan's and exponent's errors (measured:
+docs/measurements/calibration.md). With m_pan fixed, C3's law is a weighted linear fit of ln p1 in ln M.
 
 An estimate inverts the law at each recording's p2: M solves p2 = K3(M)/M, in closed form for the power law,
 
@@ -87,7 +89,7 @@ class SeatLaw:
     C3_ref: float | None = None
     c3_exponent: float | None = None
     loads: list = field(default_factory=list)  # the calibration's distinct loads [kg]
-    dof: int | None = None  # the calibration's degrees of freedom (its scale estimated): Student-t intervals
+    dof: int | None = None  # the calibration's dof where its scale was estimated (Birge > 1): Student-t intervals
 
     @property
     def free(self) -> list[str]:
@@ -126,8 +128,8 @@ class SeatLaw:
     def occupant_interval(self, p2, p2_low, p2_high, z: float = 1.96):
         """(occupant [kg], low, high) from p2 and its interval [p2_low, p2_high] (the data's) and the law's
         covariance (the calibration's), joined in quadrature on each side. p2_low <= 0: high = inf. The
-        calibration's half-width is its standard deviation times the Student-t quantile at its dof (its
-        covariance carries the residuals' own scale, an estimate), the normal's z without a dof."""
+        calibration's half-width is its standard deviation times the Student-t quantile at its dof (where its
+        covariance carries the residuals' scale, an estimate), the normal's z without a dof."""
         occ = self.occupant_mass(p2)
         cal = self.calibration_quantile(z) * self.calibration_std(p2)
         low_data = occ - self.occupant_mass(p2_high)
@@ -302,7 +304,7 @@ def fit_seat_law(
     free = np.array(NESTED[chosen])
     theta, chi2 = fits[chosen]
     dof = loads.size - int(free.sum())
-    scale = chi2 / dof if dof > 0 else 1.0  # the residuals' own scale: σ stated too wide or too narrow alike
+    scale = max(1.0, chi2 / dof) if dof > 0 else 1.0  # the Birge factor (module docstring: never below 1)
     _, J = _model(theta, loads)
     Jw = J[:, free] * w[:, None]
     cov_theta = np.zeros((3, 3))
@@ -311,7 +313,7 @@ def fit_seat_law(
     T = np.diag([K3_ref, 1.0, 1.0])  # d(K3_ref, e, m) / d(ln K3_ref, e, m)
     seat = SeatLaw(
         K3_ref, float(theta[1]), float(theta[2]), T @ cov_theta @ T, law=chosen, loads=distinct.tolist(),
-        dof=dof if dof > 0 else None,
+        dof=dof if scale > 1.0 else None,  # the scale estimated from the residuals: Student-t
     )  # fmt: skip
     if p1 is not None:
         seat.C3_ref, seat.c3_exponent = _fit_c3(loads + seat.pan_mass, np.asarray(p1, float), p1_std, rel_floor)
