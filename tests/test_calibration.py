@@ -383,3 +383,19 @@ def test_known_p3_p5_from_the_reference_on_a_calibrated_seat_are_warned_with_the
     assert "warning: known ['p3', 'p5'] are held" in capsys.readouterr().out
     cfg.known_source = "file"
     assert _held_seat_parameters(cfg, seat, occupant) is None
+
+
+def test_a_chosen_law_round_trips_and_a_file_whose_held_parameters_are_not_0_is_refused(tmp_path):
+    cov = np.zeros((3, 3))
+    cov[0, 0] = 300.0**2
+    seat = SeatLaw(K3, 0.0, 0.0, cov, law="proportional", loads=[30.0, 150.0], dof=39)
+    path = tmp_path / "seat.json"
+    path.write_text(seat_document(seat, {}))
+    back = load_seat(path)
+    assert (back.law, back.free, back.dof, back.K3_ref) == ("proportional", ["K3_ref"], 39, K3)
+    assert float(back.occupant_mass(K3 / 70.0)) == pytest.approx(70.0)
+    bad = tmp_path / "bad.json"
+    bad.write_text(seat_document(SeatLaw(K3, 0.0, 4.0, cov, law="proportional", loads=[30.0, 150.0]), {}))
+    with pytest.raises(SeatFileError, match="holds \\['exponent', 'pan_mass'\\] at 0") as error:
+        load_seat(bad)
+    assert "\n" not in str(error.value)
