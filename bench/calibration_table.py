@@ -1,7 +1,7 @@
 """Seat calibration measured (issue 31): calibrate on ballast drives, estimate unknown occupants, score both.
 
     PYTHONPATH=src .venv/bin/python bench/calibration_table.py --out outputs/calibration_table [--cal 40 --unknown 40
-        --noise 0 0.05 --loads 0 40 80 120 --exponent 0.5 --pan 12 --law power --persons 40]
+        --noise 0 0.05 --loads 0 40 80 120 --exponent 0.5 --pan 12 --law auto --persons 40 --repeats 8]
 
 Per noise level: bench/foreign_sim.py make writes the calibration file (--known-loads cycled over --cal drives)
 and a file of --unknown rigid occupants (30-150 kg) on the same foam seat (other seeds); qcm-calibrate fits the
