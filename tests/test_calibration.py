@@ -13,10 +13,13 @@ import h5py
 import numpy as np
 import pytest
 import scipy.optimize
+import scipy.stats
 
 from conftest import make_foreign
 from hybridqcm.errors import DatasetError
 from hybridqcm.estimation.calibration import (
+    NESTED,
+    PARAMETERS,
     CalibrationError,
     SeatFileError,
     SeatLaw,
@@ -70,6 +73,94 @@ def test_the_linear_law_needs_two_loads_and_the_power_law_three():
     assert seat.pan_mass == pytest.approx(PAN, abs=1e-6)
     with pytest.raises(CalibrationError, match="2 distinct loads"):
         fit_seat_law(loads, p2, 1e-12 * p2, law="power")
+
+
+def test_auto_chooses_the_proportional_law_on_a_linear_seat_with_its_closed_form_k3():
+    """A linear seat without a pan (p2 = K3 / L) at 1 % noise: law=auto keeps K3 alone in most draws, and then
+    K3 is the weighted mean of ln(p2 L) (the closed-form least squares of the one-parameter law)."""
+    loads = np.repeat([30.0, 60.0, 100.0, 150.0], 10)
+    rng = np.random.default_rng(11)
+    chosen = []
+    for _ in range(40):
+        rel = 0.01 * (1 + rng.random(loads.size))  # each recording its own stated σ
+        p2 = K3 / loads * np.exp(rel * rng.standard_normal(loads.size))
+        result = fit_seat_law(loads, p2, rel * p2)
+        seat = result["law"]
+        chosen.append(seat.law)
+        if seat.law == "proportional":
+            w2 = 1 / rel**2
+            closed = math.exp(np.sum(w2 * np.log(p2 * loads)) / np.sum(w2))
+            assert seat.K3_ref == pytest.approx(closed, rel=1e-9)
+            assert seat.exponent == 0.0 and seat.pan_mass == 0.0 and seat.free == ["K3_ref"]
+            assert np.all(seat.covariance[1:] == 0) and np.all(seat.covariance[:, 1:] == 0)
+            # its variance: the one-parameter law's (Σ w²)⁻¹ K3², widened by the Birge factor
+            chi2 = np.sum(w2 * (np.log(p2 * loads) - math.log(closed)) ** 2)
+            birge = max(1.0, chi2 / (loads.size - 1))
+            assert seat.covariance[0, 0] == pytest.approx(closed**2 / np.sum(w2) * birge, rel=1e-6)
+        assert [row["law"] for row in result["selection"]] == list(NESTED)
+    assert chosen.count("proportional") >= 30  # the F-test's level 5 %: ~2 draws in 40 pick a larger law
+
+
+def test_auto_keeps_the_full_law_on_a_foam_seat_with_a_pan():
+    p1, p2 = _p(LOADS)
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        noisy = p2 * np.exp(0.01 * rng.standard_normal(p2.size))
+        result = fit_seat_law(LOADS, noisy, 0.01 * noisy, p1=p1)
+        assert result["law"].law == "power" and result["law"].free == list(PARAMETERS)
+        assert [row["law"] for row in result["selection"]] == ["power", "linear"]  # driven empty: a pan
+        assert result["selection"][1]["p_value"] < 1e-6
+
+
+def test_a_law_without_a_pan_on_an_empty_seat_is_one_line():
+    _, p2 = _p(LOADS)
+    with pytest.raises(CalibrationError, match="driven empty") as error:
+        fit_seat_law(LOADS, p2, 0.01 * p2, law="proportional")
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("stated", [0.5, 2.0])
+def test_the_covariance_is_widened_where_the_stated_sigma_is_too_narrow_and_kept_where_too_wide(stated):
+    """Recordings stating σ at half (twice) their true scatter: the Birge factor widens the covariance to the
+    spread of repeated calibrations (keeps the stated one, twice the spread: never narrowed)."""
+    _, p2 = _p(LOADS)
+    rng = np.random.default_rng(8)
+    fits, reported, dofs = [], [], []
+    for _ in range(200):
+        noisy = p2 * np.exp(0.01 * rng.standard_normal(p2.size))
+        seat = fit_seat_law(LOADS, noisy, 0.01 * stated * noisy, law="power")["law"]
+        fits.append([seat.K3_ref, seat.exponent, seat.pan_mass])
+        reported.append(np.sqrt(np.diag(seat.covariance)))
+        dofs.append(seat.dof)
+    expected = np.std(fits, axis=0) * max(1.0, stated)
+    assert np.allclose(np.median(reported, axis=0), expected, rtol=0.25)
+    # Student-t only where the scale was estimated (χ²/dof > 1: at half the σ all but ~1 % of the draws)
+    assert dofs.count(LOADS.size - 3) >= 190 if stated < 1 else set(dofs) == {None}
+
+
+def test_the_occupant_bound_through_the_law_matches_finite_differences():
+    """occupant_relative_sd: σ(ln p2) through occupant(p2) = M(p2) - pan against a central difference in ln p2,
+    and with the calibration's covariance the two joined in quadrature."""
+    cov = np.diag([300.0**2, 0.01**2, 0.5**2])
+    seat = SeatLaw(K3, E, PAN, cov, loads=[0.0, 120.0])
+    for M in (20.0, 61.0, 140.0):
+        p2, sd = seat.k3(M) / M, 0.013
+        step = 1e-6
+        slope = (seat.occupant_mass(p2 * math.exp(step)) - seat.occupant_mass(p2 * math.exp(-step))) / (2 * step)
+        occ = float(seat.occupant_mass(p2))
+        data = abs(float(slope)) * sd / occ
+        assert float(seat.occupant_relative_sd(p2, sd, calibration=False)) == pytest.approx(data, rel=1e-6)
+        both = math.hypot(data, float(seat.calibration_std(p2)) / occ)
+        assert float(seat.occupant_relative_sd(p2, sd)) == pytest.approx(both, rel=1e-6)
+
+
+def test_the_calibrations_interval_uses_the_student_t_quantile_at_its_dof():
+    seat = SeatLaw(K3, E, PAN, np.diag([300.0**2, 0.01**2, 0.5**2]), loads=[0.0, 120.0], dof=4)
+    assert seat.calibration_quantile() == pytest.approx(scipy.stats.t.ppf(scipy.stats.norm.cdf(1.96), 4))
+    occ, low, high = seat.occupant_interval(np.array([1000.0]), np.array([1000.0]), np.array([1000.0]))
+    assert float((occ - low)[0]) == pytest.approx(seat.calibration_quantile() * float(seat.calibration_std(1000.0)))
+    seat.dof = None
+    assert seat.calibration_quantile() == 1.96
 
 
 @pytest.mark.parametrize(
@@ -273,3 +364,38 @@ def test_calibrate_refuses_an_existing_output_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match="exists; choose another name or pass overwrite=true"):
         run_calibration(cfg, fit=lambda *_: pytest.fail("fitted despite the refused output"))
     assert (tmp_path / "seat.json").read_text() == "the user's"
+
+
+def test_known_p3_p5_from_the_reference_on_a_calibrated_seat_are_warned_with_the_k3_ratio(capsys):
+    """exp7/8/10 hold p3 = C3/m2, p5 = K3/m2 at the reference vehicle's: on a seat whose K3 grows with the load
+    the warning names how far K3(M) lies from the reference K3 over the occupants (the law at M = occ + pan)."""
+    from omegaconf import OmegaConf
+
+    from hybridqcm.reports.estimate import _held_seat_parameters
+
+    seat = SeatLaw(K3, E, PAN, np.zeros((3, 3)), loads=[0.0, 120.0])
+    occupant = np.array([30.0, 70.0, 140.0])
+    cfg = OmegaConf.create({"known": ["p3", "p5"], "known_source": "reference", "K3": 98935.0})
+    held = _held_seat_parameters(cfg, seat, occupant)
+    ratio = K3 * ((occupant + PAN) / 80) ** E / 98935.0
+    assert held["parameters"] == ["p3", "p5"]
+    assert held["k3_ratio_min"] == pytest.approx(ratio.min()) and held["k3_ratio_max"] == pytest.approx(ratio.max())
+    assert "warning: known ['p3', 'p5'] are held" in capsys.readouterr().out
+    cfg.known_source = "file"
+    assert _held_seat_parameters(cfg, seat, occupant) is None
+
+
+def test_a_chosen_law_round_trips_and_a_file_whose_held_parameters_are_not_0_is_refused(tmp_path):
+    cov = np.zeros((3, 3))
+    cov[0, 0] = 300.0**2
+    seat = SeatLaw(K3, 0.0, 0.0, cov, law="proportional", loads=[30.0, 150.0], dof=39)
+    path = tmp_path / "seat.json"
+    path.write_text(seat_document(seat, {}))
+    back = load_seat(path)
+    assert (back.law, back.free, back.dof, back.K3_ref) == ("proportional", ["K3_ref"], 39, K3)
+    assert float(back.occupant_mass(K3 / 70.0)) == pytest.approx(70.0)
+    bad = tmp_path / "bad.json"
+    bad.write_text(seat_document(SeatLaw(K3, 0.0, 4.0, cov, law="proportional", loads=[30.0, 150.0]), {}))
+    with pytest.raises(SeatFileError, match="holds \\['exponent', 'pan_mass'\\] at 0") as error:
+        load_seat(bad)
+    assert "\n" not in str(error.value)

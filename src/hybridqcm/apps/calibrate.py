@@ -1,6 +1,7 @@
 """qcm-calibrate: the mass scale of a real seat from drives with known loads (issue 31).
 
-    qcm-calibrate data.path=data/calibration.h5 output=seat.json [law=linear n_samples=40 fit='[sensor=additive]']
+    qcm-calibrate data.path=data/calibration.h5 output=seat.json [law=auto n_samples=40 fit='[sensor=additive]']
+        (law: auto | power | linear | power_without_pan | proportional; configs/calibrate.yaml)
     qcm-estimate experiment=occupant_roadfree data.path=FILE seat_file=seat.json    (then: occupant_mass)
 
 Each recording's (p1, p2) comes from qcm-estimate's road-free seat model, rigid occupant, one clock, run in

@@ -106,6 +106,7 @@ def run_calibration(cfg, fit: Callable[..., list[dict]], run_dir: Path | None = 
         p1_std=value["std_p1"][used],
         law=str(cfg.law),
         rel_floor=float(cfg.rel_floor),
+        alpha=float(cfg.get("alpha", 0.05)),
     )
     seat = result["law"]
     per_load = []
@@ -125,7 +126,14 @@ def run_calibration(cfg, fit: Callable[..., list[dict]], run_dir: Path | None = 
     std = np.sqrt(np.diag(seat.covariance))
     extra = {
         "standard_deviation": dict(zip(("K3_ref", "exponent", "pan_mass"), std.tolist())),
-        "fit": {"chi2": result["chi2"], "dof": result["dof"], "birge": result["birge"], "per_load": per_load},
+        "fit": {
+            "chi2": result["chi2"],
+            "dof": result["dof"],
+            "scale": result["scale"],
+            "law_asked": str(cfg.law),
+            "selection": result["selection"],
+            "per_load": per_load,
+        },
         "recordings": {"total": int(len(rows)), "used": int(used.sum()), "statuses": list(cfg.statuses)},
         "source": {"data": str(path.resolve()), "split": split},
     }
@@ -155,12 +163,17 @@ def _no_none_numbers(tree):
 def _print_table(seat: SeatLaw, per_load: list, result: dict, output: Path) -> None:
     std = np.sqrt(np.diag(seat.covariance))
     print(f"seat law ({seat.law}): K3(M) = K3_ref (M / {seat.reference_load:g} kg)^e, M = load + pan")
+    for row in result["selection"]:
+        p = "reference" if row["p_value"] == 1.0 else ("—" if row["p_value"] is None else f"p = {row['p_value']:.3g}")
+        mark = "  <- chosen" if row["chosen"] else ""
+        print(f"  candidate {row['law']:18s} fits {', '.join(row['free']):28s} chi2 {row['chi2']:9.3g} ({p}){mark}")
+    held = "held at 0"
     print(f"  K3_ref   = {seat.K3_ref:12.1f} ± {std[0]:.1f} N/m")
-    print(f"  e        = {seat.exponent:12.4f} ± {std[1]:.4f}")
-    print(f"  pan mass = {seat.pan_mass:12.3f} ± {std[2]:.3f} kg")
+    print(f"  e        = {seat.exponent:12.4f} " + (f"± {std[1]:.4f}" if "exponent" in seat.free else held))
+    print(f"  pan mass = {seat.pan_mass:12.3f} " + (f"± {std[2]:.3f} kg" if "pan_mass" in seat.free else held))
     if seat.C3_ref is not None:
         print(f"  C3(M)    = {seat.C3_ref:.1f} (M / {seat.reference_load:g} kg)^{seat.c3_exponent:.4f} Ns/m")
-    print(f"  chi2 / dof = {result['chi2']:.3g} / {result['dof']} (Birge factor {result['birge']:.3g})")
+    print(f"  chi2 / dof = {result['chi2']:.3g} / {result['dof']} (the covariance's scale {result['scale']:.3g})")
     print(f"  {'load kg':>8} {'used':>5} {'mean err kg':>12} {'rms err kg':>11} {'leave-out err kg':>17}")
     for row in per_load:
 

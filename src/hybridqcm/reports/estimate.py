@@ -361,8 +361,10 @@ def _mass_scale(cfg, seat, run_dir: Path) -> dict:
             f"{min(seat.loads):g}..{max(seat.loads):g} kg (the seat law extrapolated; calibrate with heavier or "
             f"lighter loads)"
         )
+    held = _held_seat_parameters(cfg, seat, occupant[fitted])
     return {
         "calibrated": True,
+        "held_at_reference": held,
         "seat_file": str(cfg.seat_file),
         "law": seat.law,
         "K3_ref": seat.K3_ref,
@@ -371,6 +373,25 @@ def _mass_scale(cfg, seat, run_dir: Path) -> dict:
         "loads_kg": seat.loads,
         "extrapolated": outside,
     }
+
+
+def _held_seat_parameters(cfg, seat, occupant) -> dict | None:
+    """p3 = C3/m2 and p5 = K3/m2 held known from the reference vehicle (known_source=reference, exp7/8/10) on a
+    calibrated seat: the seat's K3 at the occupant's load is K3(M) = K3_ref (M/80)^e, not the vehicle config's K3,
+    and the fit does not correct them; warned in one line with how far off K3 is over the occupants
+    (docs/design/calibration.md)."""
+    names = [name for name in ("p3", "p5") if name in list(cfg.get("known") or [])]
+    if not names or cfg.get("known_source") != "reference" or occupant.size == 0:
+        return None
+    ratio = seat.k3(occupant + seat.pan_mass) / float(cfg.K3)
+    low, high = float(ratio.min()), float(ratio.max())
+    if max(abs(low - 1), abs(high - 1)) > 0.01:
+        print(
+            f"warning: known {names} are held at the reference vehicle's (known_source=reference), but the seat file's "
+            f"K3 at these occupants' loads is {low:.3g}..{high:.3g} x the reference K3 = {float(cfg.K3):g} N/m: p3, p5 "
+            "are off by that factor (hold none of them, or give known_source=file)"
+        )
+    return {"parameters": names, "k3_ratio_min": low, "k3_ratio_max": high}
 
 
 def _per_process_seconds(markers) -> list[float]:
