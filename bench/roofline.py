@@ -43,13 +43,15 @@ Exact outputs, modal (exact_outputs for b <= 160 samples, _modal.modal_outputs):
     ≈ 25 n³ (real nonsymmetric, with vectors; Golub & Van Loan's estimate), complex inverse 8 n³
     (these two are LAPACK calls, estimated, not checked by tests/test_roofline.py), gamma, xi0, beta of
     the kept modes 8 (o n K + K n + K n m), the hold's weights ≈ 200 K + 44 (M+1) K, forcing of the psi
-    channels [T, m(M+1)] @ [m(M+1), 2Km]: 2 T m (M+1) 2Km (e has none); recursion (T-1) 8 K (1+m);
+    channels [T, m(M+1)] @ [m(M+1), 2Km]: 2 T m (M+1) 2Km (e has none); recursion (T-1) 8 K (1+m) (blocked,
+    about twice that, where a call's row is small: scan_flops);
     final [T, 2K(1+m) + m + m%2] @ [., o]: 2 T (2K(1+m) + m + m%2) o.
 Exact sensitivities, modal (_modal.modal_sensitivities, the default): eigen-decomposition and inverse as
     above; V^-1 dA_j V 16 P n³ (two complex products); beta, gamma, xi0, beta''_j, Gam_j and their
     Sylvester corrections 8 (n² m + o n² + n² + P K n + 2 P K n m + 2 P o n K); S_j 11 P n² (complex
     division); the hold's weights as above; coefficients 6 (1+m) 2 K o W + 6 P o K (1+m);
-    forcing of the (psi, chi) channels [T, m(M+1)] @ [m(M+1), 4Km]: 2 T m (M+1) 4Km; recursion (T-1) 20 K (1+m);
+    forcing of the (psi, chi) channels [T, m(M+1)] @ [m(M+1), 4Km]: 2 T m (M+1) 4Km; recursion (T-1) 20 K (1+m)
+    (scan_flops, as above);
     final [T, 8K + m + m%2] @ [., o W]: 2 T (8K + m + m%2) o W. Samples the modal path leaves to the
     recursion (ok False) are counted again at the recursion's cost.
 Exact sensitivities, recursion (exact._recursion_sensitivities): maps with tangents; forcing and states
@@ -135,8 +137,35 @@ def _hold_weights_flops(K: int, substeps: int) -> int:
     return 200 * K + 44 * (substeps + 1) * K
 
 
-def exact_outputs_flops(method: str, steps, substeps, squarings=0, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT) -> int:
-    """Per sample."""
+def scan_flops(steps: int, E: int, pair: bool, batch: int | None = None) -> int:
+    """Per sample: _modal._scan over T = ``steps`` rows of E complex numbers a sample (``pair``: (z, dz) halves,
+    each step also dz += h z), counted as the dispatched ops are. Blocked (L = isqrt(T), nb = T // L blocks)
+    where the call's row, ``batch`` E, is at most _modal._SCAN_ROW; else (or ``batch`` None) the plain steps
+    (T - 1) (8 E, + 4 E/2 with pairs)."""
+    from hybridqcm.estimation._modal import _SCAN_ROW
+
+    T, half = steps, E // 2
+    step = 8 * E + (4 * half if pair else 0)  # addcmul (complex 8), and dz += h z (complex add with alpha: 4)
+    L = max(1, math.isqrt(T))
+    nb = T // L if batch is not None and batch * E <= _SCAN_ROW else 0
+    if nb < 2:
+        return (T - 1) * step
+    carry = 6 * E + 2 * E + (8 * half if pair else 0)  # mu^i c, its add, and (pairs) i h z's product and add
+    full = nb * L
+    return (
+        (4 * (nb - 1) * half if pair else 0)  # the blocks' first rows: dz += h z
+        + (L - 1) * nb * step  # within the blocks
+        + 6 * L * E  # the powers' exponent, i rate
+        + (nb - 1) * carry  # the blocks' ends
+        + (nb - 1) * (L - 1) * carry  # every row's share
+        + (T - full) * step  # the rows after the last block
+    )
+
+
+def exact_outputs_flops(
+    method: str, steps, substeps, squarings=0, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT, batch: int | None = None
+) -> int:
+    """Per sample (``batch``: the call's samples, which decide _modal._scan's form; None: the plain steps)."""
     T, M = steps, substeps
     if method == "recursion":
         return (
@@ -149,13 +178,13 @@ def exact_outputs_flops(method: str, steps, substeps, squarings=0, K=N_STATE, n=
     basis = 2 * K * (1 + m)
     setup = _eig_flops(n) + 8 * (o * n * K + K * n + K * n * m) + _hold_weights_flops(K, M)
     forcing = 2 * T * m * (M + 1) * 2 * K * m  # the psi channels' columns alone (e has no forcing)
-    return setup + forcing + (T - 1) * 8 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o
+    return setup + forcing + scan_flops(T, K * (1 + m), False, batch) + 2 * T * (basis + m + m % 2) * o
 
 
 def exact_sensitivities_flops(
-    method: str, steps, substeps, squarings=0, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT, P=N_PARAMS
+    method: str, steps, substeps, squarings=0, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT, P=N_PARAMS, batch=None
 ) -> int:
-    """Per sample, x0 unknown (W = 1 + P + n columns)."""
+    """Per sample, x0 unknown (W = 1 + P + n columns); ``batch`` as for exact_outputs_flops."""
     T, M, W = steps, substeps, 1 + P + n
     if method == "recursion":
         primal = exact_outputs_flops("recursion", T, M, 0, n=n, m=m, o=o) - van_loan_flops(M, 0, False)
@@ -172,7 +201,7 @@ def exact_sensitivities_flops(
         + 6 * P * o * K * (1 + m)
     )
     forcing = 2 * T * m * (M + 1) * 4 * K * m  # the (psi, chi) channels' columns alone
-    return setup + forcing + (T - 1) * 20 * K * (1 + m) + 2 * T * (basis + m + m % 2) * o * W
+    return setup + forcing + scan_flops(T, 2 * K * (1 + m), True, batch) + 2 * T * (basis + m + m % 2) * o * W
 
 
 def jacobian_bytes(kind: str, steps, width, substeps=1, K=N_STATE, n=N_STATE, m=N_IN, o=N_OUT, P=N_PARAMS) -> int:
@@ -290,7 +319,7 @@ def count(calls: list[dict], substeps: int, h: float = 0.01, n_obs: int = N_OUT)
             bad = c.get("n_bad", b) if c["method"] == "modal" else b
             if c["method"] == "modal":
                 K = _modes(c["A"])
-                terms["jacobian"]["flops"] += b * exact_sensitivities_flops("modal", T, substeps, K=K)
+                terms["jacobian"]["flops"] += b * exact_sensitivities_flops("modal", T, substeps, K=K, batch=b)
                 terms["jacobian"]["bytes"] += b * jacobian_bytes("modal", T, W, substeps, K=K)
             if bad:
                 s = _squarings(c["params"], h, substeps)
@@ -301,7 +330,7 @@ def count(calls: list[dict], substeps: int, h: float = 0.01, n_obs: int = N_OUT)
             bad = c.get("n_bad", b) if modal else b
             if modal:
                 K = _modes(c["A"])
-                terms["line_search"]["flops"] += b * exact_outputs_flops("modal", T, substeps, K=K)
+                terms["line_search"]["flops"] += b * exact_outputs_flops("modal", T, substeps, K=K, batch=b)
                 terms["line_search"]["bytes"] += b * output_bytes("modal", T, substeps, K=K)
             if bad:
                 s = _squarings(c["params"], h, substeps)

@@ -574,6 +574,42 @@ def test_modal_outputs_match_the_step_recursion(case, hold):
             assert _column_error(new, old) <= 1e-10, (method, start, n_steps)
 
 
+@pytest.mark.parametrize("rows", [3, 700])  # below and above _modal._SCAN_ROW: blocked, and step by step
+@pytest.mark.parametrize("n_steps", [1, 2, 7, 30, 101, 500])
+def test_blocked_scan_matches_the_step_recursion(n_steps, rows):
+    """_scan (the modal basis' recursion in blocks) against the plain steps z_k = mu z_(k-1) + F_k (and, for the
+    (z, dz) pairs, dz_k += h z_k after each step) on random forcing, and against the closed form of the pairs'
+    free response, z_k = mu^k z_0, dz_k = mu^k (dz_0 + k h z_0)."""
+    from hybridqcm.estimation._modal import _scan
+
+    g = torch.Generator().manual_seed(n_steps + rows)
+    rate = torch.complex(
+        -0.2 * torch.rand(rows, 2, 1, 1, generator=g, dtype=F64), torch.rand(rows, 2, 1, 1, generator=g, dtype=F64)
+    )
+    rate = rate.expand(rows, 2, 2, 1)  # the pair's two kinds share their mode's rate
+    forcing = torch.complex(*torch.randn(2, n_steps, rows, 2, 2, 1, generator=g, dtype=F64))
+    for h in (None, H):
+        shape = rate.shape if h is not None else rate[:, :, 0].shape
+        mu = torch.exp(rate if h is not None else rate[:, :, 0])
+        steps = forcing.clone() if h is not None else forcing[:, :, :, 0].clone()
+        for k in range(1, n_steps):
+            steps[k] += mu * steps[k - 1]
+            if h is not None:
+                steps[k][..., 1, :] += h * steps[k][..., 0, :]
+        blocked = forcing.clone() if h is not None else forcing[:, :, :, 0].clone()
+        _scan(blocked, rate if h is not None else rate[:, :, 0], h)
+        assert blocked.shape == (n_steps, *shape)
+        torch.testing.assert_close(blocked, steps, rtol=0, atol=1e-12 * float(steps.abs().amax()))
+    free = torch.zeros(n_steps, *rate.shape, dtype=torch.complex128)
+    free[0] = forcing[0]
+    _scan(free, rate, H)
+    k = torch.arange(n_steps, dtype=F64).view(-1, 1, 1, 1)
+    power = torch.exp(k * rate[..., 0, :])
+    z0, dz0 = forcing[0][..., 0, :], forcing[0][..., 1, :]
+    torch.testing.assert_close(free[..., 0, :], power * z0, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(free[..., 1, :], power * (dz0 + k * H * z0), rtol=1e-12, atol=1e-14)
+
+
 @pytest.mark.parametrize("delta", [0.0, 1e-8, -1e-8, 1e-6, 1e-2])
 def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta):
     """Seat damped near critically (as above): the outputs alone stay accurate much closer to the

@@ -185,6 +185,34 @@ def test_matrix_derivatives_match_finite_differences(model):
             torch.testing.assert_close(d[:, j], fd, rtol=1e-6, atol=1e-6 * max(1.0, float(fd.abs().max())))
 
 
+@pytest.mark.parametrize(
+    "model",
+    [
+        SeatOccupantBaseExcitation(1),
+        SeatOccupantBaseExcitation(2),
+        SprungOccupantBaseExcitation(1),
+        QuarterCarOccupantRoad(2, scaled_road=False),
+    ],
+)
+def test_multi_affine_derivatives_equal_forward_mode_autodiff(model):
+    """matrix_derivatives' M(p; p_j = 1) - M(p; p_j = 0) (exact for entries affine in each parameter alone)
+    against torch.func.jacfwd, at scattered parameters: any entry with a parameter twice (p_j^2, p_j / p_j')
+    would differ by O(1)."""
+    assert model.multi_affine
+    n_vehicle = model.n_params - 3 * model.n_modes
+    vehicle = torch.tensor([[24.0, 400.0]], dtype=torch.float64)
+    if n_vehicle != 2:
+        vehicle = _vehicle(60.0)[:, :n_vehicle]
+    p = torch.cat([vehicle, _body(model.n_modes)], 1).repeat(3, 1)
+    p = p * (1 + 0.3 * torch.rand(p.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64))
+    ours = model.matrix_derivatives(p)
+    jac = torch.func.vmap(torch.func.jacfwd(lambda q: tuple(m[0] for m in model.matrices(q[None]))))(p)
+    for d, reference in zip(ours, jac):
+        reference = reference.movedim(-1, 1)
+        assert d.shape == reference.shape
+        torch.testing.assert_close(d, reference, rtol=0, atol=1e-13 * max(1.0, float(reference.abs().max())))
+
+
 def test_names_and_layout():
     model = QuarterCarOccupantRoad(2, scaled_road=True)
     assert model.param_names == (*(f"p{i}" for i in range(1, 11)), "r1", "k1", "c1", "r2", "k2", "c2")

@@ -141,7 +141,7 @@ def test_exact_layer_flops_match_the_dispatched_ops(roofline, monkeypatch):
                     exact.exact_sensitivities(model, params, x0, inputs, 0.01, "spline", M, method=method, **window)
                 else:
                     exact.exact_outputs(model, params, x0, inputs, 0.01, "spline", M, method=method, **window)
-            formula = getattr(roofline, f"exact_{kind}_flops")(method, T, M, squarings, K=K)
+            formula = getattr(roofline, f"exact_{kind}_flops")(method, T, M, squarings, K=K, batch=b)
             if method == "modal":
                 formula -= roofline._eig_flops()
             counted = sum(counter.flops.values())

@@ -63,6 +63,10 @@ _LIMIT_REAL = 1e3
 # (measured, seat near critical damping: 1.3e-12 relative at cond 1.6e4, 1.2e-13 at 1.8e3;
 # exactly critical, cond 1e16: wrong), so modal_outputs keeps the samples with cond(V) up to this.
 _LIMIT_OUTPUTS = 1e4
+# _scan blocks the recursion where a row holds at most this many complex numbers: there the steps' fixed
+# cost is the recursion's, and blocking (2x the arithmetic) took 2-4x less time at 2-16 recordings; at
+# 96 and more recordings a call it took 1.1-2x more (measured on 2 cores, docs/measurements/persons.md)
+_SCAN_ROW = 512
 _SERIES_TERMS = 18  # phi_3(z) by its series for |z| <= 1: remainder < 1/21! < 2e-19 relative
 
 
@@ -328,11 +332,7 @@ def modal_sensitivities(
     Z[0] = 0
     Z[0, :, 0, 0] = 1
     # mu [b, 1 + m, 2, K], expanded: a broadcast operand makes the multiply-add 1.6x slower
-    mu = torch.exp(lam_s * h)[:, None, None, :].expand(-1, 1 + m, 2, -1).contiguous()
-    for k in range(T - 1):
-        nxt = Z[k + 1]
-        nxt.addcmul_(Z[k], mu)
-        nxt[:, :, 1].add_(nxt[:, :, 0], alpha=h)
+    _scan(Z, (lam_s * h)[:, None, None, :].expand(-1, 1 + m, 2, -1), h)
     out = _matmul(buffer.transpose(0, 1), coef_all)
     return out.view(batch, T, o, n_col), ok
 
@@ -396,7 +396,57 @@ def modal_outputs(
     Z[0] = 0
     if x0 is not None:
         Z[0, :, 0] = 1
-    mu = torch.exp(lam_s * h)[:, None, :].expand(-1, n_ch, -1).contiguous()  # [b, channel, K], as there
-    for k in range(T - 1):
-        Z[k + 1].addcmul_(Z[k], mu)
+    _scan(Z, (lam_s * h)[:, None, :].expand(-1, n_ch, -1))  # [b, channel, K], as there
     return _matmul(buffer.transpose(0, 1), coef_all), ok
+
+
+def _scan(Z: Tensor, rate: Tensor, h: float | None = None) -> None:
+    """In place: Z[k] <- mu Z[k - 1] + Z[k] for k = 1..T-1, mu = exp(``rate``) (Z [T, *shape] complex, rate
+    [*shape]); with ``h`` each row holds pairs (z, dz) on its axis -2 and dz[k] <- dz[k] + h z[k] follows
+    every step (dz = dz/d lambda of the same recursion, modal_sensitivities).
+
+    Blocked, so that the Python loop runs ~3 sqrt(T) vector steps instead of T (at a few recordings a call
+    the steps' overhead was the evaluation's cost): the recursion within blocks of L rows from a zero carry
+    (L steps over all blocks at once), then the blocks' last rows in order (T / L steps: the true end of
+    block j is its own plus M^L times block j - 1's), then every row's share of the previous block's end,
+    M^(i+1) c, in one product, where M^i = mu^i [[1, 0], [i h, 1]] acts on (z, dz) (mu^i for z alone). The
+    same sums as the step recursion in another order; the powers of mu are exp(i rate), not repeated
+    products."""
+    T = Z.shape[0]
+    block = max(1, math.isqrt(T))
+    n_blocks = T // block if Z[0].numel() <= _SCAN_ROW else 0  # a long row: the plain steps are cheaper
+    full = n_blocks * block
+    mu = torch.exp(rate).contiguous()
+    if n_blocks >= 2:
+        body = Z[:full].unflatten(0, (n_blocks, block))  # [n_blocks, L, *shape] (a view)
+        mu_blocks = mu.expand(n_blocks, *mu.shape).contiguous()  # a broadcast operand is 1.6x slower
+        if h is not None:  # a block's first row is a step's result too: its dz takes h times its own z
+            body[1:, 0, ..., 1, :].add_(body[1:, 0, ..., 0, :], alpha=h)
+        for i in range(1, block):
+            _step(body[:, i], body[:, i - 1], mu_blocks, h)
+        steps = torch.arange(1, block + 1, dtype=torch.float64, device=Z.device).view(-1, *(1,) * mu.dim())
+        powers = torch.exp(steps * rate)  # mu^(i+1) [L, *shape]
+        ends = body[:, block - 1]  # [n_blocks, *shape]
+        for j in range(1, n_blocks):
+            ends[j] += _carry(ends[j - 1], powers[-1], block * h if h is not None else None)
+        shares = _carry(ends[:-1, None], powers[None, :-1], None if h is None else steps[:-1] * h)
+        body[1:, : block - 1] += shares
+    start = full if n_blocks >= 2 else 1
+    for k in range(start, T):
+        _step(Z[k], Z[k - 1], mu, h)
+
+
+def _step(nxt: Tensor, prev: Tensor, mu: Tensor, h: float | None) -> None:
+    """In place, one step of _scan: nxt <- mu prev + nxt (then dz += h z with ``h``)."""
+    nxt.addcmul_(prev, mu)
+    if h is not None:
+        nxt[..., 1, :].add_(nxt[..., 0, :], alpha=h)
+
+
+def _carry(c: Tensor, power: Tensor, lag) -> Tensor:
+    """M^i c of _scan: mu^i c, and with the pairs (``lag`` = i h, a number or broadcastable) dz gets
+    mu^i i h z besides."""
+    out = power * c
+    if lag is not None:
+        out[..., 1, :] += (lag[..., 0, :] if torch.is_tensor(lag) else lag) * out[..., 0, :]
+    return out

@@ -122,8 +122,9 @@ class DelayedResponse(ResponseModel):
         wide = held[self.m_sub :].permute(2, 1, 0).contiguous()  # drop the leading zero rows: [b, m, W_wide]
         return DelayedInputs(samples, wide, int(start), n_steps, before * self.m_sub)
 
-    def _held(self, inputs: DelayedInputs, tau: Tensor) -> tuple[Tensor, Tensor]:
-        """(held, d held/dτ), each [W, m, b] in the exact layer's layout (M leading zero rows)."""
+    def _held(self, inputs: DelayedInputs, tau: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor | None]:
+        """(held, d held/dτ), each [W, m, b] in the exact layer's layout (M leading zero rows); the derivative
+        None unless ``derivative`` (a loss evaluation needs the held input alone)."""
         wide = inputs.held_by_sample  # [b, m, W_wide]
         b, m, n_wide = wide.shape
         n_fine = (inputs.n_steps - 1) * self.m_sub + 1
@@ -135,14 +136,18 @@ class DelayedResponse(ResponseModel):
         w, dw = _lagrange(u)
         index = base.long()[:, None] + torch.arange(n_fine, device=wide.device)[None, :]  # [b, n_fine]
         held = wide.new_zeros(b, m, n_fine)
-        dheld = wide.new_zeros(b, m, n_fine)
+        dheld = wide.new_zeros(b, m, n_fine) if derivative else None
         for i, offset in enumerate((-1, 0, 1, 2)):
             values = wide.gather(2, (index + offset)[:, None, :].expand(b, m, n_fine))
             held += w[:, i, None, None] * values
-            dheld += dw[:, i, None, None] * values
-        dheld = dheld * (-1.0 / self.fine_step)  # du/dτ = -1/Δ
+            if derivative:
+                dheld += dw[:, i, None, None] * values
         lead = wide.new_zeros(b, m, self.m_sub)
-        return (torch.cat([lead, held], 2).permute(2, 1, 0), torch.cat([lead, dheld], 2).permute(2, 1, 0))
+        held = torch.cat([lead, held], 2).permute(2, 1, 0)
+        if not derivative:
+            return held, None
+        dheld = dheld * (-1.0 / self.fine_step)  # du/dτ = -1/Δ
+        return held, torch.cat([lead, dheld], 2).permute(2, 1, 0)
 
     def _split(self, theta: Tensor):
         P = self.n_params - 1
@@ -154,7 +159,7 @@ class DelayedResponse(ResponseModel):
     def outputs(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         params, tau, x0 = self._split(theta)
         prepared = self._window(inputs, start, n_steps)
-        held, _ = self._held(prepared, tau)
+        held, _ = self._held(prepared, tau, derivative=False)
         inner = self.inner
         return exact_outputs(
             self.model, params, x0, prepared.samples, self.h, inner.hold, inner.substeps,
