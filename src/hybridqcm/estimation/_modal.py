@@ -123,7 +123,12 @@ def _real_times_complex(real: Tensor, cplx: Tensor) -> Tensor:
 def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """torch.linalg.eig of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]). LAPACK's QR iteration
     can fail to converge on a trial step's ill-conditioned matrix, and torch raises for the whole batch
-    then; such a matrix is one not-ok sample (identity eigenvectors, zero eigenvalues), not an error."""
+    then; such a matrix is one not-ok sample (identity eigenvectors, zero eigenvalues), not an error.
+    On another device the decomposition runs on the CPU: torch's CUDA eig is MAGMA's geev, a host
+    routine called once per matrix, and the batch's copy costs less than those calls."""
+    if M.device.type != "cpu":
+        lam, V, converged = _eig(M.cpu())
+        return lam.to(M.device), V.to(M.device), converged.to(M.device)
     try:
         lam, V = torch.linalg.eig(M)
         return lam, V, torch.ones(M.shape[0], dtype=torch.bool, device=M.device)
