@@ -342,3 +342,21 @@ def test_interpolated_line_search_gives_the_halving_estimates(data):
     assert torch.allclose(interpolate.params, halve.params, rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match="backtrack"):
         GaussNewton(SolverConfig(backtrack="cubic"))
+
+
+def test_eigh_in_slices_equals_one_call_and_pseudo_inverse_is_exact():
+    """The sliced eigen-decomposition (used off the CPU for large batches) gives the whole batch's
+    eigenvalues and the same matrices back, and the pseudo-inverse of a full-rank batch is its inverse."""
+    from hybridqcm.estimation._linalg import _eigh, pseudo_inverse
+
+    gen = torch.Generator().manual_seed(3)
+    a = torch.randn(50, 6, 6, dtype=torch.float64, generator=gen)
+    m = a @ a.transpose(1, 2) + 0.1 * torch.eye(6, dtype=torch.float64)
+    whole_values, _ = torch.linalg.eigh(m)
+    values, vectors = _eigh(m, slice_rows=7)
+    assert values.shape == (50, 6) and torch.allclose(values, whole_values, rtol=1e-12, atol=0)
+    rebuilt = vectors @ torch.diag_embed(values) @ vectors.transpose(1, 2)
+    assert torch.allclose(rebuilt, m, rtol=1e-10, atol=1e-10)
+    pinv, unidentified, _, deficient = pseudo_inverse(m, rcond=1e-10)
+    assert torch.allclose(pinv, torch.linalg.inv(m), rtol=1e-8, atol=1e-10)
+    assert not unidentified.any() and not deficient.any()
