@@ -261,6 +261,8 @@ def test_drive_plan_needs_the_drives_layout(tmp_path):
     "occupant",
     [
         pytest.param(["occupant.models=[rigid]", "delay=null"], id="rigid"),
+        # each segment and its running estimate from joint fits of its windows read again from the file
+        pytest.param(["occupant.models=[rigid]", "delay=null", "drive.joint=progress"], id="rigid-joint"),
         # occupant_roadfree's default: rigid, body1, body2 by evidence, delay auto (191 s on 2 shared cores)
         pytest.param([], id="default-models", marks=pytest.mark.slow),
     ],
@@ -297,6 +299,7 @@ def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path, occupant):
         assert stop[0] - 4.0 <= float(segs[1]["start_s"]) <= stop[1] + 4.0
         for seg, m3 in zip(segs, (record["m3"], record["m3_after"])):
             assert abs(float(seg["m3"]) / m3 - 1) < 0.03
+    assert {r["fit"] for r in rows} == {"joint" if "drive.joint=progress" in occupant else "combined"}
     summary = json.loads((run / "summary.json").read_text())
     assert summary["drive_aggregate"]["drives_split"] == 2
     assert summary["blocks"] == 4  # block_samples: 5 windows of 400 steps read per block at most, 18 windows

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from .blocks import build_inputs
-from .drive import Gaussian
+from .drive import Gaussian, InformationCombiner
 from .drive_joint import joint_gauss_newton
 from .initial_state import project_initial_state
 from .problems import ProblemEvaluation
@@ -181,10 +181,32 @@ def _segment_prior(problem, group: Tensor, n_groups: int) -> tuple[Tensor, Tenso
     return problem.prior_mean.double()[first], precision
 
 
-def as_gaussian(answer: SegmentAnswer, base: Gaussian, scale: str) -> Gaussian:
+def robust_ratio(view, rows, columns: Tensor, layout: Sequence[str], names: Sequence[str]) -> Tensor:
+    """[s] per shared parameter (``names``) the ratio of the windows' combined reported standard deviation to
+    their combined model-based one, at least 1 (1 where the combination has no such parameter): what the
+    windows' robust (jackknife) intervals say beyond the noise model, carried over to the joint fit's
+    model-based covariance."""
+    theta = torch.stack([view.theta[int(r)] for r in rows])[:, columns].double()
+    reported = torch.stack([view.cov[int(r)] for r in rows])[:, columns][:, :, columns].double()
+    model = torch.stack([view.weight_cov[int(r)] for r in rows])[:, columns][:, :, columns].double()
+    window = list(range(len(rows)))
+    try:
+        var_r = InformationCombiner(theta, reported).combine(window).covariance.diagonal()
+        var_m = InformationCombiner(theta, model).combine(window).covariance.diagonal()
+    except RuntimeError:  # a singular model-based covariance: no ratio to carry
+        return torch.ones(len(names), dtype=torch.float64)
+    ratio = (var_r / var_m).sqrt().nan_to_num(1.0, 1.0, 1.0).clamp_min(1.0)
+    combined = [layout[int(i)] for i in columns]
+    return torch.tensor([float(ratio[combined.index(n)]) if n in combined else 1.0 for n in names])
+
+
+def as_gaussian(answer: SegmentAnswer, base: Gaussian, scale: str, robust: Tensor | None = None) -> Gaussian:
     """The segment's Gaussian from the joint fit, with the windows' consistency (χ², dof) of the combination
-    ``base``; scale "birge": the covariance widened by max(1, χ²/dof) as the combination's is."""
+    ``base``; robust [s]: per-parameter factors on the standard deviations (:func:`robust_ratio`); scale
+    "birge": the covariance widened by max(1, χ²/dof) as the combination's is."""
     covariance = answer.covariance
+    if robust is not None:
+        covariance = covariance * robust[:, None] * robust[None, :]
     if scale == "birge" and base.dof > 0 and base.chi2 > base.dof:
         covariance = covariance * (base.chi2 / base.dof)
     return Gaussian(answer.mean, covariance, base.chi2, base.dof, base.n)
@@ -212,7 +234,14 @@ def joint_running(joint: JointDrives, view, good, segments, running, combiner, d
     for (k, j), answer in zip(where, answers):
         statuses.append(answer.status)
         if answer.status == "converged" and "p2" in answer.names:
-            running[k][j] = (as_gaussian(answer, running[k][j][0], drive.scale), answer.names.index("p2"))
+            rows = np.asarray(good)[segments[k][: j + 1]]
+            robust = (
+                robust_ratio(view, rows, combiner.columns, joint.layout, answer.names)
+                if drive.scale != "none"
+                else None
+            )
+            gaussian = as_gaussian(answer, running[k][j][0], drive.scale, robust)
+            running[k][j] = (gaussian, answer.names.index("p2"))
     last = [answers[i].status for i, (k, j) in enumerate(where) if j == len(segments[k]) - 1]
     label = "joint" if all(s == "converged" for s in last) else "joint:" + ";".join(sorted(set(last)))
     return running, label

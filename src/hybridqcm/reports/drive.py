@@ -14,7 +14,10 @@ Outputs in the run folder:
                         m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
                         windows_outliers, windows_overlapping, windows_skipped, model, model_margin,
                         windows_models, chi2, dof,
-                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
+                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window), fit
+                        (combined: the windows' Gaussians combined; joint: a joint fit of the segment's
+                        windows, drive.joint; joint:<statuses>: a joint fit did not converge and the
+                        combination's estimate stands)
                         [, m3_true when the file has params]
                         [, occupant_mass, occupant_mass_low, occupant_mass_high with a seat file:
                         the seat law (estimation/calibration.py) at the segment's p2 = K3 / m3, its 95 %
