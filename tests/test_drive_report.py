@@ -257,6 +257,21 @@ def test_drive_plan_needs_the_drives_layout(tmp_path):
         drive_plan(cfg, {"path": path, "split": "test", "n_samples": 3, "h": 0.01})
 
 
+def test_drive_plan_checks_the_joint_setting(tmp_path):
+    path = tmp_path / "drives.h5"
+    with h5py.File(path, "w") as f:
+        f["test/accel"] = np.zeros((3, 10, 3), np.float32)
+        f["test/profile_id"] = np.zeros(3, np.int32)
+        f["test/t_start"] = np.arange(3, dtype=np.float64)
+    settings = {"alpha": 0.01, "min_windows": 2, "outlier_alpha": 0.001, "neighbours": 2, "plots": 0}
+    plan = {"path": path, "split": "test", "n_samples": 3, "h": 0.01}
+    cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "progress"}})
+    assert drive_plan(cfg, plan).joint == "progress"
+    cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "always"}})
+    with pytest.raises(Exception, match=r"drive.joint='always': choose one of \['none', 'final', 'progress'\]"):
+        drive_plan(cfg, plan)
+
+
 @pytest.mark.parametrize(
     "occupant",
     [
