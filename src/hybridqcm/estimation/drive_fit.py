@@ -221,7 +221,7 @@ def joint_running(joint: JointDrives, view, good, segments, running, combiner, d
         rows = np.asarray(good)[seg]
         own = torch.stack([view.theta[int(r)] for r in rows]).double()
         variants = [joint.names[view.variant[int(r)]] for r in rows if view.variant.get(int(r), -1) >= 0]
-        delayed = 2 * sum(v.endswith("+delay") for v in variants) > len(variants)
+        delayed = any(v.endswith("+delay") for v in variants)  # a window that needed its own delay: all get one
         prefixes = range(1, len(seg) + 1) if drive.joint == "progress" else [len(seg)]
         for j in prefixes:
             start = torch.full((own.shape[1],), math.nan, dtype=torch.float64)
