@@ -40,6 +40,22 @@ def load_columns(run: Path) -> dict:
     return columns
 
 
+def _joint(run: Path, data: str, split: str, names, per_window):
+    """The joint fits' JointDrives under the run's own config (its refinement, network front, inputs)."""
+    from omegaconf import OmegaConf
+
+    from hybridqcm.estimation import runner
+    from hybridqcm.estimation.drive_fit import JointDrives
+    from hybridqcm.estimation.plan import validate
+
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    cfg.data.path, cfg.data.split = data, split
+    plan = validate(cfg)
+    refinement = runner.build_refinement(cfg, plan)
+    layout = list(refinement.response.theta_names)[: refinement.response.n_params]
+    return JointDrives(cfg, plan, refinement, layout, per_window)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run")
@@ -50,6 +66,13 @@ def main(argv=None) -> None:
     ap.add_argument("--K3", type=float, default=98935.0)
     ap.add_argument("--prior-per-window", action="store_true", help="the model prior as each window counts it")
     ap.add_argument("--model-cov", action="store_true", help="the model-based covariance as each window's own")
+    ap.add_argument(
+        "--joint",
+        choices=("none", "final", "progress"),
+        default=None,
+        help="drive.joint: segments (and prefixes) by a joint fit of the windows, read again from --data with the "
+        "run's config (RUN/.hydra/config.yaml)",
+    )
     args = ap.parse_args(argv)
     config = yaml.safe_load((REPO / "configs" / "estimate.yaml").read_text())
     settings = dict(config["drive"])
@@ -86,6 +109,7 @@ def main(argv=None) -> None:
         t_start=t_start,
         names=tuple(names),
         window_s=window_s,
+        joint=str(args.joint or settings.get("joint", "none")),
     )
     n_models = columns["drive_cand_logz"].shape[1]
     names_m = list(NAMES[:n_models]) if n_models > 1 else ["rigid"]
@@ -101,7 +125,10 @@ def main(argv=None) -> None:
         (out / stale).unlink(missing_ok=True)
     cfg = type("Cfg", (), {"K3": args.K3, "plots": False, "tensorboard": False})()
     params = ("p1", "p2", "r1", "k1", "c1", "r2", "k2", "c2", "tau")[: columns["drive_cand_theta"].shape[2]]
-    summary = aggregate_drives(cfg, {}, plan, columns, out, names_m, params, log_prior)
+    joint = None
+    if plan.joint != "none":
+        joint = _joint(Path(args.run), args.data, args.split, names_m, plan.per_window)
+    summary = aggregate_drives(cfg, {}, plan, columns, out, names_m, params, log_prior, joint=joint)
     print(json.dumps(summary))
 
 

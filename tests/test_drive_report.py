@@ -257,10 +257,27 @@ def test_drive_plan_needs_the_drives_layout(tmp_path):
         drive_plan(cfg, {"path": path, "split": "test", "n_samples": 3, "h": 0.01})
 
 
+def test_drive_plan_checks_the_joint_setting(tmp_path):
+    path = tmp_path / "drives.h5"
+    with h5py.File(path, "w") as f:
+        f["test/accel"] = np.zeros((3, 10, 3), np.float32)
+        f["test/profile_id"] = np.zeros(3, np.int32)
+        f["test/t_start"] = np.arange(3, dtype=np.float64)
+    settings = {"alpha": 0.01, "min_windows": 2, "outlier_alpha": 0.001, "neighbours": 2, "plots": 0}
+    plan = {"path": path, "split": "test", "n_samples": 3, "h": 0.01}
+    cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "progress"}})
+    assert drive_plan(cfg, plan).joint == "progress"
+    cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "always"}})
+    with pytest.raises(Exception, match=r"drive.joint='always': choose one of \['none', 'final', 'progress'\]"):
+        drive_plan(cfg, plan)
+
+
 @pytest.mark.parametrize(
     "occupant",
     [
         pytest.param(["occupant.models=[rigid]", "delay=null"], id="rigid"),
+        # each segment and its running estimate from joint fits of its windows read again from the file
+        pytest.param(["occupant.models=[rigid]", "delay=null", "drive.joint=progress"], id="rigid-joint"),
         # occupant_roadfree's default: rigid, body1, body2 by evidence, delay auto (191 s on 2 shared cores)
         pytest.param([], id="default-models", marks=pytest.mark.slow),
     ],
@@ -297,6 +314,7 @@ def test_aggregate_drive_end_to_end_on_foreign_drives(tmp_path, occupant):
         assert stop[0] - 4.0 <= float(segs[1]["start_s"]) <= stop[1] + 4.0
         for seg, m3 in zip(segs, (record["m3"], record["m3_after"])):
             assert abs(float(seg["m3"]) / m3 - 1) < 0.03
+    assert {r["fit"] for r in rows} == {"joint" if "drive.joint=progress" in occupant else "combined"}
     summary = json.loads((run / "summary.json").read_text())
     assert summary["drive_aggregate"]["drives_split"] == 2
     assert summary["blocks"] == 4  # block_samples: 5 windows of 400 steps read per block at most, 18 windows

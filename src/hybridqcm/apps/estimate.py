@@ -25,6 +25,7 @@ from hybridqcm.apps import common
 from hybridqcm.apps.common import fail
 from hybridqcm.errors import ConfigError, DatasetError, HybridQCMError
 from hybridqcm.estimation import runner
+from hybridqcm.estimation.drive_fit import JointDrives
 from hybridqcm.estimation.drive_plan import drive_columns, drive_plan, drive_skipped_columns, model_names
 from hybridqcm.estimation.plan import validate
 from hybridqcm.estimation.plan_seat import seat_plan
@@ -63,8 +64,12 @@ def run(cfg, run_dir: Path | None = None) -> dict:
 
         def aggregate(columns):
             prior = getattr(refinement, "log_prior", None)  # an occupant-model selection's model prior
+            joint = None
+            if drive.joint != "none":  # the segments fitted jointly from the file's windows
+                layout = list(refinement.response.theta_names)[:n_theta]
+                joint = JointDrives(cfg, plan, refinement, layout, drive.per_window)
             return aggregate_drives(
-                cfg, plan, drive, columns, run_dir, model_names(refinement), names, prior, seat=seat
+                cfg, plan, drive, columns, run_dir, model_names(refinement), names, prior, seat=seat, joint=joint
             )
 
     solved = runner.solve(cfg, plan, run_dir, store, refinement, tables)

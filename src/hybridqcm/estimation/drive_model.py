@@ -142,6 +142,7 @@ class DriveView:
             self.status_ok[int(r)] = int(columns["drive_cand_status"][r, v]) in allowed
             self.status[int(r)] = int(columns["drive_cand_status"][r, v])
         self.n_params = n_p
+        self.fit = "combined"  # how the drive's segments were estimated (reports/drive.py sets it)
 
     def usable(self, rows: np.ndarray, weights: str) -> np.ndarray:
         """[len(rows)] bool: the drive's model fitted the window (not misfit, not diverged), its status is one
@@ -168,7 +169,9 @@ class DriveView:
         weight = None
         if drive.weights == "model":
             weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
-        return InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale), index
+        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale)
+        combiner.columns = keep  # the combined parameters' places in the common layout (a joint fit's start)
+        return combiner, index
 
 
 __all__ = ["DriveView", "drive_model", "present", "usable_estimates"]

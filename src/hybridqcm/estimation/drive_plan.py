@@ -23,6 +23,7 @@ from hybridqcm.estimation.solver import STATUS_LABELS
 
 WEIGHTS = ("reported", "model")
 SCALES = ("none", "birge")
+JOINTS = ("none", "final", "progress")
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,7 @@ class DrivePlan:
     t_start: np.ndarray
     names: tuple[str, ...]
     window_s: float
+    joint: str = "none"  # none | final | progress: segments (and their prefixes) by a joint fit (drive_fit.py)
 
 
 def _fraction(settings, key: str) -> float:
@@ -85,6 +87,9 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         raise ConfigError(f"drive.weights={weights!r}: choose one of {list(WEIGHTS)}")
     if scale not in SCALES:
         raise ConfigError(f"drive.scale={scale!r}: choose one of {list(SCALES)}")
+    joint = str(settings.get("joint", "none"))
+    if joint not in JOINTS:
+        raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
     import h5py
 
     path, split = Path(plan["path"]), str(plan["split"])
@@ -128,6 +133,7 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         t_start=t_start,
         names=tuple(names),
         window_s=stored * float(plan["h"]),
+        joint=joint,
     )
 
 
@@ -213,4 +219,13 @@ def model_names(refinement) -> list[str]:
     return list(getattr(refinement, "names", None) or ["rigid"])
 
 
-__all__ = ["DrivePlan", "drive_plan", "drive_columns", "drive_skipped_columns", "model_names", "WEIGHTS", "SCALES"]
+__all__ = [
+    "DrivePlan",
+    "drive_plan",
+    "drive_columns",
+    "drive_skipped_columns",
+    "model_names",
+    "WEIGHTS",
+    "SCALES",
+    "JOINTS",
+]

@@ -98,6 +98,7 @@ class DriveSettings:
     outlier_alpha: float = MISSING
     neighbours: int = MISSING
     per_window: list[str] = MISSING
+    joint: str = MISSING
     plots: int = MISSING
 
 

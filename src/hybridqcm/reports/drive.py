@@ -14,7 +14,10 @@ Outputs in the run folder:
                         m3_high (95 %), t_to_5pct_s, t_to_2pct_s, windows, windows_used, windows_rejected,
                         windows_outliers, windows_overlapping, windows_skipped, model, model_margin,
                         windows_models, chi2, dof,
-                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window)
+                        chi2_per_dof, p_value, status (ok | inconsistent | no_usable_window), fit
+                        (combined: the windows' Gaussians combined; joint: a joint fit of the segment's
+                        windows, drive.joint; joint:<statuses>: a joint fit did not converge and the
+                        combination's estimate stands)
                         [, m3_true when the file has params]
                         [, occupant_mass, occupant_mass_low, occupant_mass_high with a seat file:
                         the seat law (estimation/calibration.py) at the segment's p2 = K3 / m3, its 95 %
@@ -70,6 +73,7 @@ from hybridqcm.estimation.drive import (
     static_mass,
     time_to_precision,
 )
+from hybridqcm.estimation.drive_fit import joint_running
 from hybridqcm.estimation.drive_model import DriveView
 from hybridqcm.estimation.drive_plan import DrivePlan
 from hybridqcm.estimation.solver import STATUS_LABELS
@@ -101,6 +105,7 @@ DRIVES_HEADER = [
     "chi2_per_dof",
     "p_value",
     "status",
+    "fit",
 ]
 PROGRESS_HEADER = [
     "drive",
@@ -177,19 +182,20 @@ def _no_estimate(name: str, rows: np.ndarray, reason: dict, overlapping: set, dr
         [name, 0, _time(drive.t_start[rows[0]]), _time(drive.t_start[rows[-1]] + drive.window_s)]
         + [""] * 6
         + [rows.size, 0, rows.size - len(overlapping) - skipped, 0, len(overlapping), skipped]
-        + ["", "", "", "", "", "", "", "no_usable_window"]
+        + ["", "", "", "", "", "", "", "no_usable_window", ""]
         + [""] * extra  # m3_true, the occupant's columns
     )
     progress_rows = [[name, 0, int(r), _time(drive.t_start[r]), "", reason[int(r)], "", "", "", 0] for r in rows]
     return drive_row, progress_rows
 
 
-def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view: DriveView, drive: DrivePlan):
+def _segment_rows(name, k, seg, in_seg, good, reason, running, k3, view: DriveView, drive: DrivePlan):
     """(drives.csv row, drive_progress.csv rows, final masses) of segment ``k`` of a drive: its windows
-    ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``."""
+    ``seg`` (positions in ``good``) combined, and the running estimate after each of ``in_seg``; running:
+    [(Gaussian, index of p2 in it)] after each window of ``seg``."""
     seg_start = float(drive.t_start[good[seg[0]]])
-    running = progress(combiner, seg)
-    masses = [static_mass(g, index, k3) for g in running]
+    masses = [static_mass(g, index, k3) for g, index in running]
+    running = [g for g, _ in running]
     ends = [float(drive.t_start[good[i]]) + drive.window_s - seg_start for i in seg]
     t5 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.05)
     t2 = time_to_precision(ends, *zip(*[(m[0], m[2], m[3]) for m in masses]), level=0.02)
@@ -222,6 +228,7 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view:
         _fmt(final.chi2_per_dof),
         _fmt(final.p_value),
         state,
+        view.fit,
     ]
     step = {i: j for j, i in enumerate(seg)}
     last = None
@@ -248,7 +255,9 @@ def _segment_rows(name, k, seg, in_seg, good, reason, combiner, index, k3, view:
     return drive_row, progress_rows, (m3, low, high)
 
 
-def _combine_drive(name, rows, good, reason, view: DriveView, drive: DrivePlan, K3, param_names, true, seat=None):
+def _combine_drive(
+    name, rows, good, reason, view: DriveView, drive: DrivePlan, K3, param_names, true, seat=None, joint=None
+):
     """One drive's usable windows ``good`` combined under its model: outliers marked in ``reason``, segments
     found. Returns (drives.csv rows, drive_progress.csv rows, [(m3, m3_low, m3_high, true m3 or None)] per
     segment)."""
@@ -259,13 +268,17 @@ def _combine_drive(name, rows, good, reason, view: DriveView, drive: DrivePlan, 
         reason[int(good[o])] = "outlier"
     kept = [i for i in local if i not in set(outliers)]
     segments = segment(combiner, kept, drive.min_windows, drive.alpha)
+    running = [[(g, index) for g in progress(combiner, seg)] for seg in segments]
+    view.fit = "combined"
+    if joint is not None and drive.joint != "none":
+        running, view.fit = joint_running(joint, view, good, segments, running, combiner, drive, param_names)
     bounds = [float(drive.t_start[good[s[0]]]) for s in segments[1:]] + [math.inf]
     starts = [float(drive.t_start[rows[0]])] + bounds[:-1]
     drive_rows, progress_rows, masses = [], [], []
     for k, seg in enumerate(segments):
         in_seg = rows[(drive.t_start[rows] >= starts[k]) & (drive.t_start[rows] < bounds[k])]
         row, progress_part, (m3, low, high) = _segment_rows(
-            name, k, seg, in_seg, good, reason, combiner, index, K3, view, drive
+            name, k, seg, in_seg, good, reason, running[k], K3, view, drive
         )
         true_m3 = None
         if true is not None:
@@ -289,6 +302,7 @@ def aggregate_drives(
     param_names: Sequence[str] = ("p1", "p2"),
     log_prior: Mapping[str, float] | None = None,
     seat=None,
+    joint=None,
 ) -> dict:
     """Combine every drive's windows (module docstring); write drives.csv, drive_progress.csv and the plots.
     names: the occupant models a window may report (drive_cand_*'s candidates); param_names: the parameters'
@@ -318,7 +332,7 @@ def aggregate_drives(
             progress_rows += progress_part
             continue
         rows_of_drive, progress_part, masses = _combine_drive(
-            name, rows, good, reason, view, drive, K3, param_names, true, seat
+            name, rows, good, reason, view, drive, K3, param_names, true, seat, joint
         )
         drive_rows += rows_of_drive
         progress_rows += progress_part
