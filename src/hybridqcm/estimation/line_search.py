@@ -41,7 +41,7 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
         trial = params[index[pos]].clone()
         trial[:, free] = solver._apply_step(trial[:, free], alpha.unsqueeze(1) * step[pos])
         positive = (
-            (trial[:, free][:, solver._positive] > 0).all(1)
+            ((trial[:, free] > 0) | run.held[index[pos]])[:, solver._positive].all(1)
             if cfg.parametrization != "unconstrained"
             else torch.ones(pos.numel(), dtype=torch.bool)
         )

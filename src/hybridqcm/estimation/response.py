@@ -53,6 +53,16 @@ class ResponseModel:
         mask[: self.n_params] = True
         return mask
 
+    @property
+    def boundary(self) -> Tensor:
+        """[n_theta] bool: parameters whose zero is a nested model (the linear model's ``nested_at_zero``: a
+        body mode's mass ratio r_i, at 0 the model without that mode); the solver may hold them there
+        (SolverConfig.boundary_test)."""
+        mask = torch.zeros(self.n_theta, dtype=torch.bool)
+        for name in getattr(getattr(self, "model", None), "nested_at_zero", ()):
+            mask[self.theta_names.index(name)] = True
+        return mask
+
     def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor | PreparedInputs:
         """What to pass as ``inputs`` for repeated evaluations of one window (default: the inputs)."""
         return inputs

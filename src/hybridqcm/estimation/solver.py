@@ -31,6 +31,7 @@ from torch import Tensor
 
 from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
+from .boundary import boundary_test, without_held
 from .line_search import line_search
 from .problems import LeastSquaresProblem, ProblemEvaluation
 from .uncertainty import final_uncertainty, unevaluated_uncertainty
@@ -77,6 +78,10 @@ class SolverConfig:
     # less than sqrt(decrement_tol) of a standard deviation in every direction (1e-6: 0.001 σ),
     # well below what the data can resolve. None: off.
     decrement_tol: float | None = 1e-6
+    # Nested models at a boundary (noise-whitened fits; estimation/boundary.py): a parameter whose zero is a
+    # smaller model (a body mode's mass ratio) is held at 0 where a full step heads there and the loss rises by
+    # less than this many nats with it at 0. None: off.
+    boundary_test: float | None = None
     rcond: float = 1e-7  # singular values of the scaled J below rcond·s_max count as zero
     chunk_size: int = 512  # samples per Jacobian pass (keeps the per-step working set in cache)
     # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
@@ -184,6 +189,7 @@ class _Run:
     history: list = field(default_factory=list)
     seconds: list = field(default_factory=list)
     exponent: Tensor | None = None  # [batch] each sample's last accepted e (α = α0 2^-e): "interpolate" starts there
+    held: Tensor | None = None  # [batch, n_free] bool: boundary parameters held at 0 (SolverConfig.boundary_test)
 
 
 class NonlinearLeastSquares(ABC):
@@ -280,7 +286,11 @@ class NonlinearLeastSquares(ABC):
 
         self.init_state(batch, dtype)
         status = torch.full((batch,), SolverStatus.MAX_ITERATIONS, dtype=torch.int8)
-        bad_start = (params[:, free][:, self._positive] <= 0).any(dim=1)
+        # A boundary parameter at 0 (a previous pass held it there) is its nested model: held, not outside.
+        boundary = getattr(problem.model, "boundary", torch.zeros(n_theta, dtype=torch.bool))[free]
+        held = (params[:, free] == 0) & boundary & bool(self.config.boundary_test is not None)
+        self._boundary = boundary
+        bad_start = ((params[:, free] <= 0) & ~held)[:, self._positive].any(dim=1)
         status[bad_start] = SolverStatus.DIVERGED
         return _Run(
             evaluation=evaluation,
@@ -292,6 +302,7 @@ class NonlinearLeastSquares(ABC):
             loss=torch.full((batch,), math.inf, dtype=dtype),
             active=~bad_start,
             exponent=torch.zeros(batch, dtype=torch.long),
+            held=held,
         )
 
     def _stop(self, run: _Run, index: Tensor, iteration: int) -> None:
@@ -309,8 +320,16 @@ class NonlinearLeastSquares(ABC):
         index, fisher, gradient, loss_now = self._drop_finished(run, index, iteration, fisher, gradient, loss_now)
         if index.numel() == 0:
             return False
+        fisher, gradient = without_held(run.held[index], fisher, gradient)
         step, predicted, stationary = self._step(run, index, fisher, gradient, loss_now)
-        self._accept(run, index, step, loss_now, predicted, stationary)
+        if self.config.boundary_test is not None and run.evaluation.problem.noise is not None:
+            go = ~boundary_test(self, run, index, step)  # the others moved to their nested model this iteration
+            run.iterations[index[~go]] += 1
+            index, step, loss_now, predicted, stationary = (
+                x[go] for x in (index, step, loss_now, predicted, stationary)
+            )
+        if index.numel():
+            self._accept(run, index, step, loss_now, predicted, stationary)
         return True
 
     def _drop_finished(self, run: _Run, index, iteration, fisher, gradient, loss_now):
@@ -386,7 +405,7 @@ class NonlinearLeastSquares(ABC):
         """The result at the end of the loop, with the final uncertainty pass unless switched off."""
         params, status, free = run.params, run.status, run.free
         # An unconstrained path may end outside the physical domain: report it, keep the numbers.
-        outside = (params[:, free][:, self._positive] <= 0).any(1)
+        outside = ((params[:, free] <= 0) & ~run.held)[:, self._positive].any(1)
         status[outside] = SolverStatus.DIVERGED
         history = torch.stack(run.history)
         history = torch.where(torch.isfinite(history), history, torch.zeros_like(history))
@@ -420,7 +439,7 @@ class NonlinearLeastSquares(ABC):
         new = free_params - scaled_step
         if self.config.parametrization == "log":
             logged = free_params * torch.exp(-scaled_step / free_params)
-            new = torch.where(self._positive, logged, new)
+            new = torch.where(self._positive & (free_params != 0), logged, new)  # 0: held at a boundary
         return new
 
     def _relative_step(self, step: Tensor, free_params: Tensor) -> Tensor:
@@ -428,7 +447,9 @@ class NonlinearLeastSquares(ABC):
         then the decrease test alone decides)."""
         if not bool(self._positive.any()):
             return torch.full((step.shape[0],), math.inf, dtype=step.dtype)
-        return (step[:, self._positive] / free_params[:, self._positive]).abs().amax(1)
+        step, free_params = step[:, self._positive], free_params[:, self._positive]
+        # a parameter held at 0 (boundary_test) takes no step: 0, not 0/0
+        return torch.where(step == 0, 0.0, step / free_params).abs().amax(1)
 
     def _line_search(self, run: _Run, index, step, loss_now, predicted):
         """Per-sample Armijo backtracking (estimation/line_search.py); returns (α [b], 0 = none found; new loss [b])."""
