@@ -59,9 +59,15 @@ class ResponseModel:
         body mode's mass ratio r_i, at 0 the model without that mode); the solver may hold them there
         (SolverConfig.boundary_test)."""
         mask = torch.zeros(self.n_theta, dtype=torch.bool)
-        for name in getattr(getattr(self, "model", None), "nested_at_zero", ()):
+        for name in getattr(getattr(self, "model", None), "nested_at_zero", {}):
             mask[self.theta_names.index(name)] = True
         return mask
+
+    def boundary_states(self, column: int) -> list[int]:
+        """θ columns of the initial states that the boundary parameter at θ column ``column`` removes at 0 (its
+        body mode's dy_i, y_i), where θ holds the initial state."""
+        states = getattr(getattr(self, "model", None), "nested_at_zero", {}).get(self.theta_names[column], ())
+        return [self.theta_names.index(f"x0_{s}") for s in states if f"x0_{s}" in self.theta_names]
 
     def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor | PreparedInputs:
         """What to pass as ``inputs`` for repeated evaluations of one window (default: the inputs)."""
