@@ -12,7 +12,7 @@ An initial state is not free, though: it is the system's state at the window's s
 with the steady-state covariance P(θ) (estimation/state_prior.py) that the selection already charges in every
 candidate's evidence. The test. Where a sample's full Gauss-Newton step θ − δ would take a boundary parameter θ_j
 (ResponseModel.boundary) to 0 or below — the fit heads to the nested model — the nested point θ_b is θ with θ_j = 0
-and the initial states it removes (ResponseModel.boundary_states) at 0, and the two are compared by
+and the initial states it removes (ResponseModel.boundary_removes) at 0, and the two are compared by
 
     D = [L(θ_b) − log N(x0_b; 0, P(θ_b))] − [L(θ) − log N(x0; 0, P(θ))]
 
@@ -20,7 +20,8 @@ and the initial states it removes (ResponseModel.boundary_states) at 0, and the 
 prior D is L's rise, an upper bound on half the likelihood-ratio statistic of the mode (the nested model
 re-optimised can only do better). Below ``threshold`` the data do not resolve what the mode adds beyond what a
 physical initial state explains: the sample takes θ_b and holds θ_j at 0 for the rest of its solve (a held
-parameter takes no step; a later pass that starts there holds it too) — it is its nested model, which the
+parameter takes no step, nor do the parameters and states it removes, on which the output no longer depends:
+a body mode's k_i, c_i, dy_i(0), y_i(0); a later pass that starts there holds them too) — it is its nested model, which the
 selection fits in its own right (estimation/occupant.OccupantSelection.collapsed). The level: the likelihood-ratio
 test of a parameter on its boundary has the null distribution ½χ²₀ + ½χ²₁ (Self & Liang 1987, JASA 82: 605–610),
 5 % at 2D = 2.71, i.e. 1.35 nats (plan_occupant.BOUNDARY_NATS). A mode the data resolve (a person's: D of tens to
@@ -61,16 +62,39 @@ def boundary_test(solver, run, index: Tensor, step: Tensor) -> Tensor:
             continue
         rows = index[crossing]
         trial = run.params[rows].clone()
-        trial[:, [column, *response.boundary_states(column)]] = 0.0
+        removed = response.boundary_removes(column)
+        trial[:, [column, *(c for c in removed if response.theta_names[c].startswith("x0_"))]] = 0.0
         loss = run.evaluation.loss_at(trial, rows)
         rise = loss - run.loss[rows] + state_cost(trial, rows) - state_cost(run.params[rows], rows)
         take = rise < solver.config.boundary_test
         rows = rows[take]
         run.params[rows] = trial[take]
         run.loss[rows] = loss[take]
-        run.held[rows, j] = True
+        run.held[rows] |= held_columns(response, run.free, j)
         snapped[crossing[take]] = True
     return snapped
+
+
+def held_columns(response, free: Tensor, j: int) -> Tensor:
+    """[n_free] bool: the free entry ``j`` (a boundary parameter) and those it removes at 0 (boundary_removes)."""
+    columns = torch.zeros(free.numel(), dtype=torch.bool)
+    columns[j] = True
+    removed = torch.tensor(response.boundary_removes(int(free[j])), dtype=torch.long)
+    return columns | torch.isin(free, removed)
+
+
+def initial_held(solver, problem, params: Tensor, free: Tensor) -> Tensor:
+    """[b, n_free] bool: what a solve starting at ``params`` [b, n_theta] holds — the boundary parameters at 0 (a
+    previous pass held them there) and what they remove; none without the test. Sets solver._boundary [n_free]."""
+    boundary = problem.model.boundary[free] if hasattr(problem.model, "boundary") else torch.zeros(free.numel())
+    solver._boundary = boundary.bool()
+    held = torch.zeros(params.shape[0], free.numel(), dtype=torch.bool)
+    if solver.config.boundary_test is None:
+        return held
+    for j in solver._boundary.nonzero().flatten().tolist():
+        at_zero = params[:, int(free[j])] == 0
+        held[at_zero] |= held_columns(problem.model, free, j)
+    return held
 
 
 def boundary_cap(solver, run, index: Tensor, step: Tensor) -> Tensor:

@@ -63,11 +63,12 @@ class ResponseModel:
             mask[self.theta_names.index(name)] = True
         return mask
 
-    def boundary_states(self, column: int) -> list[int]:
-        """θ columns of the initial states that the boundary parameter at θ column ``column`` removes at 0 (its
-        body mode's dy_i, y_i), where θ holds the initial state."""
-        states = getattr(getattr(self, "model", None), "nested_at_zero", {}).get(self.theta_names[column], ())
-        return [self.theta_names.index(f"x0_{s}") for s in states if f"x0_{s}" in self.theta_names]
+    def boundary_removes(self, column: int) -> list[int]:
+        """θ columns that the boundary parameter at θ column ``column`` removes at 0: the output depends on none of
+        them there (a body mode's k_i, c_i and, where θ holds the initial state, its dy_i, y_i)."""
+        names = getattr(getattr(self, "model", None), "nested_at_zero", {}).get(self.theta_names[column], ())
+        theta = [n if n in self.theta_names else f"x0_{n}" for n in names]
+        return [self.theta_names.index(n) for n in theta if n in self.theta_names]
 
     def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor | PreparedInputs:
         """What to pass as ``inputs`` for repeated evaluations of one window (default: the inputs)."""

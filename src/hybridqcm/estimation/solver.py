@@ -31,7 +31,7 @@ from torch import Tensor
 
 from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
-from .boundary import boundary_test, without_held
+from .boundary import boundary_test, initial_held, without_held
 from .line_search import line_search
 from .problems import LeastSquaresProblem, ProblemEvaluation
 from .uncertainty import final_uncertainty, unevaluated_uncertainty
@@ -286,10 +286,7 @@ class NonlinearLeastSquares(ABC):
 
         self.init_state(batch, dtype)
         status = torch.full((batch,), SolverStatus.MAX_ITERATIONS, dtype=torch.int8)
-        # A boundary parameter at 0 (a previous pass held it there) is its nested model: held, not outside.
-        boundary = getattr(problem.model, "boundary", torch.zeros(n_theta, dtype=torch.bool))[free]
-        held = (params[:, free] == 0) & boundary & bool(self.config.boundary_test is not None)
-        self._boundary = boundary
+        held = initial_held(self, problem, params, free)  # a boundary parameter at 0 is its nested model
         bad_start = ((params[:, free] <= 0) & ~held)[:, self._positive].any(dim=1)
         status[bad_start] = SolverStatus.DIVERGED
         return _Run(
