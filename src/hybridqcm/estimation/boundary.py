@@ -35,24 +35,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .state_prior import initial_state_prior
-
 
 def boundary_test(solver, run, index: Tensor, step: Tensor) -> Tensor:
     """In place on ``run`` (the solver's _Run): for each boundary parameter the full step δ [b, n_free] of the
-    samples ``index`` would take to 0 or below, the comparison D of the module docstring; where D is below the
-    solver's ``boundary_test`` nats, θ takes the nested point and the parameter is held at 0. Returns [b] bool: the
-    samples moved."""
+    samples ``index`` would take to 0 or below, the mode's apparent-mass contribution (module docstring); where the
+    data do not resolve it, θ takes the nested point and the parameter is held at 0. Returns [b] bool: the samples
+    moved."""
     problem = run.evaluation.problem
     response = problem.model
-    x0 = [i for i, name in enumerate(response.theta_names) if name.startswith("x0_")]
-
-    def state_cost(theta: Tensor, rows: Tensor) -> Tensor:  # −log N(x0; 0, P(θ)), up to a constant
-        if not x0:
-            return torch.zeros(rows.numel(), dtype=theta.dtype)
-        zero = torch.zeros(rows.numel(), len(x0), len(x0), dtype=theta.dtype)
-        return -initial_state_prior(response, problem, theta, theta[:, x0], zero, rows)
-
     snapped = torch.zeros(index.numel(), dtype=torch.bool)
     for j in solver._boundary.nonzero().flatten().tolist():
         column = int(run.free[j])
@@ -61,18 +51,38 @@ def boundary_test(solver, run, index: Tensor, step: Tensor) -> Tensor:
         if crossing.numel() == 0:
             continue
         rows = index[crossing]
-        trial = run.params[rows].clone()
-        removed = response.boundary_removes(column)
-        trial[:, [column, *(c for c in removed if response.theta_names[c].startswith("x0_"))]] = 0.0
-        loss = run.evaluation.loss_at(trial, rows)
-        rise = loss - run.loss[rows] + state_cost(trial, rows) - state_cost(run.params[rows], rows)
-        take = rise < solver.config.boundary_test
+        states = [c for c in response.boundary_removes(column) if response.theta_names[c].startswith("x0_")]
+        at_rest = run.params[rows].clone()
+        at_rest[:, states] = 0.0  # the mode's forced response only: its apparent mass, not a start transient
+        nested = at_rest.clone()
+        nested[:, column] = 0.0
+        energy, relative = contribution(run, at_rest, nested, rows)
+        take = (energy < solver.config.boundary_test) | (relative < solver.config.misfit_floor)
         rows = rows[take]
-        run.params[rows] = trial[take]
-        run.loss[rows] = loss[take]
-        run.held[rows] |= held_columns(response, run.free, j)
+        if rows.numel():
+            run.params[rows] = nested[take]
+            run.loss[rows] = run.evaluation.loss_at(nested[take], rows)
+            run.held[rows] |= held_columns(response, run.free, j)
         snapped[crossing[take]] = True
     return snapped
+
+
+def contribution(run, theta: Tensor, nested: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+    """What θ's mode adds to the outputs over the window, Δy = y(θ) − y(θ_b) (θ_b = ``nested``, the recordings
+    ``rows``): ([rows] ½‖W Δy‖², its energy in nats under the fit's noise model W — below the test's level no
+    likelihood-ratio test could tell the two apart —, [rows] the RMS of Δy over that of the data, the largest over
+    the observed channels — below SolverConfig.misfit_floor it is within the exact model's own error, the hold's
+    (noise-free data, whose fitted noise is that error))."""
+    problem, evaluation = run.evaluation.problem, run.evaluation
+    obs = problem.observed_index
+    road = evaluation.road[rows]
+    delta = (
+        problem.model.outputs(theta, road, *problem.window)[:, :, obs]
+        - problem.model.outputs(nested, road, *problem.window)[:, :, obs]
+    )
+    energy = 0.5 * problem.noise.whiten_residual(delta, theta, rows).square().sum((1, 2))
+    size = evaluation.targets[rows].square().mean(1).sqrt().clamp_min(1e-300)
+    return energy, (delta.square().mean(1).sqrt() / size).amax(1)
 
 
 def held_columns(response, free: Tensor, j: int) -> Tensor:
@@ -113,5 +123,6 @@ def without_held(held: Tensor, fisher: Tensor, gradient: Tensor) -> tuple[Tensor
     zeroed (a held parameter takes no step); unchanged where none is held."""
     if not bool(held.any()):
         return fisher, gradient
-    keep = (~held).to(fisher.dtype)
-    return fisher * keep[:, :, None] * keep[:, None, :], gradient * keep
+    keep = ~held
+    both = keep[:, :, None] & keep[:, None, :]  # where, not a product: a round-off column may hold inf or NaN
+    return torch.where(both, fisher, 0.0), torch.where(keep, gradient, 0.0)

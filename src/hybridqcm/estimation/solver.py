@@ -306,7 +306,8 @@ class NonlinearLeastSquares(ABC):
         """The end of the budget or of the active samples. No Jacobian needed to stop: the accepted losses
         are known from the line search."""
         if iteration == 0:  # max_iterations = 0: just evaluate the start
-            run.loss[index] = run.evaluation.loss_at(run.params[index], index)
+            if index.numel():  # (none: every start was outside the domain)
+                run.loss[index] = run.evaluation.loss_at(run.params[index], index)
             run.history.append(torch.where(torch.isfinite(run.loss), run.loss, torch.zeros_like(run.loss)))
         exact = index[run.loss[index] <= self.config.loss_tol * run.data_energy[index]]
         run.status[exact] = SolverStatus.CONVERGED
@@ -408,7 +409,7 @@ class NonlinearLeastSquares(ABC):
         history = torch.where(torch.isfinite(history), history, torch.zeros_like(history))
         diverged = status == SolverStatus.DIVERGED
         if self.config.uncertainty:
-            report = final_uncertainty(self.config, run.evaluation, params, free, diverged, run.loss)
+            report = final_uncertainty(self.config, run.evaluation, params, free, diverged, run.loss, run.held)
         else:
             report = unevaluated_uncertainty(run.evaluation.problem, params, free, run.loss)
         run.loss.copy_(report.loss)
