@@ -59,9 +59,9 @@ def _embedded(rigid_params: torch.Tensor) -> torch.Tensor:
 
 def test_a_body_mode_on_a_rigid_occupant_is_held_at_its_nested_model():
     """A rigid occupant's recordings fitted with the body1 model from the rigid estimate with a small mode: without
-    the test some fits crawl toward r -> 0 for all 30 iterations; with it, those that head there stop at r = 0 in a
-    few, never `diverged`, and their loss is the rigid model's own optimum (the same likelihood: at r = 0 the
-    models are one) with the same static mass."""
+    the test some fits crawl toward r -> 0 for all 30 iterations; with it, a mode whose apparent mass the data do
+    not resolve stops at r = 0 in a few, none ends `diverged` or below 0, and the held fit's loss is the rigid model's
+    own optimum (the same likelihood: at r = 0 the models are one) with the same static mass."""
     a2, y, noise = _recordings(body=False)
     rigid = ExactResponse(SeatBaseExcitation(), H, initial_state="unknown")
     body = ExactResponse(SeatOccupantBaseExcitation(1), H, initial_state="unknown")
@@ -72,10 +72,11 @@ def test_a_body_mode_on_a_rigid_occupant_is_held_at_its_nested_model():
     plain = _solver(None).solve(_problem(body, a2, y, noise), _embedded(fit.params))
     tested = _solver(1.35).solve(_problem(body, a2, y, noise), _embedded(fit.params))
     held = tested.params[:, 2] == 0
-    assert int(held.sum()) >= 2
-    assert (plain.iterations[held] == 30).any()  # the crawl the test ends
-    assert (tested.iterations[held] <= 20).all() and (tested.status[held] == SolverStatus.CONVERGED).all()
-    assert not (tested.status == SolverStatus.DIVERGED).any()
+    assert int(held.sum()) >= 1
+    assert (plain.iterations[held] == 30).all() and (plain.params[held, 2] > 0).all()  # the crawl the test ends
+    # held: the nested model's fit, converged in a few iterations; k1, c1 are not identifiable there (singular)
+    assert (tested.iterations[held] <= 15).all() and (tested.status[held] == SolverStatus.SINGULAR).all()
+    assert not (tested.status == SolverStatus.DIVERGED).any() and (tested.params[:, 2] >= 0).all()
     loss_body = _solver(1.35).objective(_problem(body, a2[held], y[held], _sub(noise, held)), tested.params[held])
     loss_rigid = GaussNewton(SolverConfig()).objective(
         _problem(rigid, a2[held], y[held], _sub(noise, held)), fit.params[held]
