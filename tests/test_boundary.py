@@ -119,3 +119,32 @@ def test_a_pass_that_starts_at_the_boundary_holds_it_there():
     torch.testing.assert_close(tested.params[:, 3:5], start[:, 3:5], rtol=0, atol=0)  # k1, c1 held with it
     plain = _solver(None).solve(_problem(body, a2, y, noise), start)
     assert (plain.status == SolverStatus.DIVERGED).all()
+
+
+def test_a_noise_free_rigid_occupant_is_rigid_with_its_body_candidates_at_the_boundary(tmp_path):
+    """Another simulator's rigid occupants, noise-free, occupant_roadfree's defaults (rigid, body1, body2, delay
+    auto): the body candidates that collapse to their nested model are named in ``at_boundary`` and out of the
+    comparison (log Z -inf), none is chosen there, and the answers are `converged` with m3 exact."""
+    import csv
+    import subprocess
+    import sys
+
+    from conftest import make_foreign
+
+    truth = torch.tensor(make_foreign(tmp_path / "rigid.h5", n=4, seed=7))
+    proc = subprocess.run(
+        [sys.executable, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree",
+         f"data.path={tmp_path / 'rigid.h5'}", "plots=false", "tensorboard=false", "progress=false",
+         f"hydra.run.dir={tmp_path / 'run'}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open(tmp_path / "run" / "estimates.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert any(r["at_boundary"] for r in rows)  # the case this test is about
+    for r in rows:
+        for name in r["at_boundary"].split():
+            assert float(r[f"logz_{name}"]) == -math.inf and r["occupant_model"] != name
+    m3 = torch.tensor([float(r["m3"]) for r in rows])
+    assert ((m3 / truth - 1).abs() < 1e-3).all()
+    assert all(r["status"] == "converged" for r in rows)

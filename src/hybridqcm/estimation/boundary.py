@@ -2,32 +2,29 @@
 
 A seated person's body mode with mass ratio r_i = m_i / m_s (physics/occupant.py) is, at r_i = 0, the model
 without that mode (body1 -> rigid, body2 -> body1): the models are nested at the boundary of the parameter
-space. Where the data hold no such mode (a rigid occupant), the fit still finds something for the mode to do: its
-free response from the initial state, r_i (c_i y_i' + k_i y_i) in a3, fits a transient at the window's start, and
-the data fix only its amplitude r_i·y_i(0). Gauss-Newton then crawls along that ridge, r_i -> 0 with y_i(0) ~ 1/r_i,
-with steps that overshoot r_i 2–1600× (30 iterations a pass), or ends across it, r_i < 0, `diverged`, its work
-lost (docs/measurements/persons.md: rigid_n5, r_i from 6e-2 to 9e-4 at a loss 4.5–370 nats below r_i = 0's).
+space. Where the data hold no such mode (a rigid occupant), the fit still finds something for the mode to do — its
+free response from the initial state, r_i (c_i y_i' + k_i y_i) in a3, fits a transient at the window's start, of
+which the data fix only the amplitude r_i·y_i(0) — and Gauss-Newton crawls along that ridge, r_i -> 0 with
+y_i(0) ~ 1/r_i, with steps that overshoot r_i 2–1600× (30 iterations a pass), or ends across it, r_i < 0,
+`diverged`, its work lost (docs/measurements/persons.md: on rigid_n5 r_i went from 6e-2 to 9e-4 with the loss
+4.5–370 nats below r_i = 0's all the way).
 
-An initial state is not free, though: it is the system's state at the window's start, driven by the same input,
-with the steady-state covariance P(θ) (estimation/state_prior.py) that the selection already charges in every
-candidate's evidence. The test. Where a sample's full Gauss-Newton step θ − δ would take a boundary parameter θ_j
-(ResponseModel.boundary) to 0 or below — the fit heads to the nested model — the nested point θ_b is θ with θ_j = 0
-and the initial states it removes (ResponseModel.boundary_removes) at 0, and the two are compared by
-
-    D = [L(θ_b) − log N(x0_b; 0, P(θ_b))] − [L(θ) − log N(x0; 0, P(θ))]
-
-(L the noise-whitened loss, −log likelihood plus the prior's ½Σλ(θ − μ)², in nats). Without the initial state's
-prior D is L's rise, an upper bound on half the likelihood-ratio statistic of the mode (the nested model
-re-optimised can only do better). Below ``threshold`` the data do not resolve what the mode adds beyond what a
-physical initial state explains: the sample takes θ_b and holds θ_j at 0 for the rest of its solve (a held
-parameter takes no step, nor do the parameters and states it removes, on which the output no longer depends:
-a body mode's k_i, c_i, dy_i(0), y_i(0); a later pass that starts there holds them too) — it is its nested model, which the
-selection fits in its own right (estimation/occupant.OccupantSelection.collapsed). The level: the likelihood-ratio
-test of a parameter on its boundary has the null distribution ½χ²₀ + ½χ²₁ (Self & Liang 1987, JASA 82: 605–610),
-5 % at 2D = 2.71, i.e. 1.35 nats (plan_occupant.BOUNDARY_NATS). A mode the data resolve (a person's: D of tens to
-thousands of nats) is never held, and none is tested before its step heads to 0. Where the test finds the
-mode resolved, the line search keeps the parameter at half its value or more (``boundary_cap``): it approaches
-the boundary but never crosses it.
+What a body mode is, physically, is its apparent mass: the forced response it adds to a3, not a start transient.
+The test. Where a sample's full Gauss-Newton step θ − δ would take a boundary parameter θ_j (ResponseModel.boundary)
+to 0 or below — the fit heads to the nested model — the mode's forced contribution is Δy = y(θ₀) − y(θ_b), θ₀ = θ
+with the mode's initial state at rest and θ_b = θ₀ with θ_j = 0. It is unresolved where either
+  - its energy under the fit's noise model, ½‖W Δy‖² (nats), is below ``boundary_test``: no likelihood-ratio test
+    could tell the two apart at that level. 1.35 = ½ · 2.71: the 5 % level of the test of a parameter on its
+    boundary, whose null distribution is ½χ²₀ + ½χ²₁ (Self & Liang 1987, JASA 82: 605–610; plan_occupant.BOUNDARY_NATS);
+  - or its RMS is below MODEL_FLOOR of the data's: within the exact model's own error (noise-free recordings,
+    whose fitted noise is that error, would otherwise call any mode that fits the hold's error resolved).
+Then the sample takes θ_b and holds θ_j at 0 — it is its nested model, which the selection fits in its own right
+(estimation/occupant.OccupantSelection.collapsed). A held parameter takes no step, nor do the parameters and states
+it removes, on which the output no longer depends (a body mode's k_i, c_i, dy_i(0), y_i(0): their Jacobian columns
+are round-off there); a later pass that starts at 0 holds them too. A hold made where the noise model was fitted
+to a poor fit's residual (coarse units) is let go once where the score test at the boundary asks for the mode
+(``release``). Where the test finds the mode resolved, the line search keeps the parameter at half its value or
+more (``boundary_cap``): it approaches the boundary but never crosses it.
 """
 
 from __future__ import annotations
