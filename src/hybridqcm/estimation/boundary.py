@@ -16,14 +16,13 @@ with the mode's initial state at rest and θ_b = θ₀ with θ_j = 0. It is unre
   - its energy under the fit's noise model, ½‖W Δy‖² (nats), is below ``boundary_test``: no likelihood-ratio test
     could tell the two apart at that level. 1.35 = ½ · 2.71: the 5 % level of the test of a parameter on its
     boundary, whose null distribution is ½χ²₀ + ½χ²₁ (Self & Liang 1987, JASA 82: 605–610; plan_occupant.BOUNDARY_NATS);
-  - or its RMS is below MODEL_FLOOR of the data's: within the exact model's own error (noise-free recordings,
-    whose fitted noise is that error, would otherwise call any mode that fits the hold's error resolved).
+  - or its RMS is below SolverConfig.misfit_floor (1e-3) of the data's: within what the exact model's own error
+    (the hold's, <= 2e-4 on two simulators' noise-free recordings) leaves unresolved — noise-free recordings, whose
+    fitted noise is that error, would otherwise call any mode that fits the hold's error resolved.
 Then the sample takes θ_b and holds θ_j at 0 — it is its nested model, which the selection fits in its own right
 (estimation/occupant.OccupantSelection.collapsed). A held parameter takes no step, nor do the parameters and states
 it removes, on which the output no longer depends (a body mode's k_i, c_i, dy_i(0), y_i(0): their Jacobian columns
-are round-off there); a later pass that starts at 0 holds them too. A hold made where the noise model was fitted
-to a poor fit's residual (coarse units) is let go once where the score test at the boundary asks for the mode
-(``release``). Where the test finds the mode resolved, the line search keeps the parameter at half its value or
+are round-off there); a later pass that starts at 0 holds them too. Where the test finds the mode resolved, the line search keeps the parameter at half its value or
 more (``boundary_cap``): it approaches the boundary but never crosses it.
 """
 
@@ -31,10 +30,6 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
-
-# The exact model's own error on noise-free recordings (the input hold's): relative RMS <= 2e-4 of a3 on two
-# simulators' recordings (solver.SolverConfig.misfit_floor's comment). A mode that adds less is not resolved.
-MODEL_FLOOR = 2e-4
 
 
 def boundary_test(solver, run, index: Tensor, step: Tensor) -> Tensor:
@@ -58,7 +53,7 @@ def boundary_test(solver, run, index: Tensor, step: Tensor) -> Tensor:
         nested = at_rest.clone()
         nested[:, column] = 0.0
         energy, relative = contribution(run, at_rest, nested, rows)
-        take = (energy < solver.config.boundary_test) | (relative < MODEL_FLOOR)
+        take = (energy < solver.config.boundary_test) | (relative < solver.config.misfit_floor)
         rows = rows[take]
         if rows.numel():
             run.params[rows] = nested[take]
@@ -122,22 +117,6 @@ def boundary_cap(solver, run, index: Tensor, step: Tensor) -> Tensor:
 def applies(config, problem) -> bool:
     """Whether the test applies: on, and the loss whitened by a noise model (in nats)."""
     return config.boundary_test is not None and problem.noise is not None
-
-
-def release(solver, run, index: Tensor, fisher: Tensor, gradient: Tensor) -> None:
-    """In place: a held boundary parameter is let go where the data now ask for it — the score test at the
-    boundary: the loss falls as the parameter rises from 0 (gradient g_j < 0) by more than the test's level to first
-    order, ½ g_j² / F_jj (a hold made where the noise model was still fitted to a poor fit's residual, in the first
-    pass of a stage, measured the mode in too coarse a unit). Once per sample and parameter: no back and forth."""
-    for j in solver._boundary.nonzero().flatten().tolist():
-        g, f = gradient[:, j], fisher[:, j, j]
-        wanted = (
-            run.held[index, j] & ~run.released[index, j] & (g < 0) & (0.5 * g * g > solver.config.boundary_test * f)
-        )
-        rows = index[wanted]
-        if rows.numel():
-            run.held[rows] &= ~held_columns(run.evaluation.problem.model, run.free, j)
-            run.released[rows, j] = True
 
 
 def without_held(held: Tensor, fisher: Tensor, gradient: Tensor) -> tuple[Tensor, Tensor]:

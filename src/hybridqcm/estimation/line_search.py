@@ -13,7 +13,7 @@ import math
 import torch
 from torch import Tensor
 
-from .boundary import applies, boundary_cap
+from .boundary import boundary_cap
 
 
 def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor):
@@ -28,7 +28,7 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
     if cfg.max_relative_step:
         relative = solver._relative_step(step, params[index][:, free])
         alpha0 = torch.minimum(alpha0, cfg.max_relative_step / relative.clamp_min(1e-300))
-    if applies(cfg, run.evaluation.problem) and bool(solver._boundary.any()):
+    if cfg.boundary_test is not None and bool(solver._boundary.any()):  # every stage: none crosses r = 0
         alpha0 = torch.minimum(alpha0, boundary_cap(solver, run, index, step))
     exponent = torch.zeros(b, dtype=torch.long)  # the trial's e
     if cfg.backtrack == "interpolate":  # one e above the last accepted one: where it fails, e* is known

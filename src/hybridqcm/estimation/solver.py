@@ -31,7 +31,7 @@ from torch import Tensor
 
 from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
-from .boundary import applies, boundary_test, initial_held, release, without_held
+from .boundary import applies, boundary_test, initial_held, without_held
 from .line_search import line_search
 from .problems import LeastSquaresProblem, ProblemEvaluation
 from .uncertainty import final_uncertainty, unevaluated_uncertainty
@@ -190,7 +190,6 @@ class _Run:
     seconds: list = field(default_factory=list)
     exponent: Tensor | None = None  # [batch] each sample's last accepted e (α = α0 2^-e): "interpolate" starts there
     held: Tensor | None = None  # [batch, n_free] bool: boundary parameters held at 0 (SolverConfig.boundary_test)
-    released: Tensor | None = None  # [batch, n_free] bool: ... and let go once (estimation/boundary.release)
 
 
 class NonlinearLeastSquares(ABC):
@@ -301,7 +300,6 @@ class NonlinearLeastSquares(ABC):
             active=~bad_start,
             exponent=torch.zeros(batch, dtype=torch.long),
             held=held,
-            released=torch.zeros_like(held),
         )
 
     def _stop(self, run: _Run, index: Tensor, iteration: int) -> None:
@@ -320,8 +318,6 @@ class NonlinearLeastSquares(ABC):
         index, fisher, gradient, loss_now = self._drop_finished(run, index, iteration, fisher, gradient, loss_now)
         if index.numel() == 0:
             return False
-        if applies(self.config, run.evaluation.problem):
-            release(self, run, index, fisher, gradient)
         fisher, gradient = without_held(run.held[index], fisher, gradient)
         step, predicted, stationary = self._step(run, index, fisher, gradient, loss_now)
         if applies(self.config, run.evaluation.problem):
