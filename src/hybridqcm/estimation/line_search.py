@@ -13,6 +13,8 @@ import math
 import torch
 from torch import Tensor
 
+from .boundary import boundary_cap
+
 
 def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor):
     """Per-sample Armijo backtracking over α = α0 2^-e, e = 0..max_backtracks; returns (α [b] with 0 = none
@@ -26,6 +28,8 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
     if cfg.max_relative_step:
         relative = solver._relative_step(step, params[index][:, free])
         alpha0 = torch.minimum(alpha0, cfg.max_relative_step / relative.clamp_min(1e-300))
+    if cfg.boundary_test is not None and bool(solver._boundary.any()):  # every stage: none crosses r = 0
+        alpha0 = torch.minimum(alpha0, boundary_cap(solver, run, index, step))
     exponent = torch.zeros(b, dtype=torch.long)  # the trial's e
     if cfg.backtrack == "interpolate":  # one e above the last accepted one: where it fails, e* is known
         exponent = (run.exponent[index] - 1).clamp(0, cfg.max_backtracks)
@@ -41,7 +45,7 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
         trial = params[index[pos]].clone()
         trial[:, free] = solver._apply_step(trial[:, free], alpha.unsqueeze(1) * step[pos])
         positive = (
-            (trial[:, free][:, solver._positive] > 0).all(1)
+            ((trial[:, free] > 0) | run.held[index[pos]])[:, solver._positive].all(1)
             if cfg.parametrization != "unconstrained"
             else torch.ones(pos.numel(), dtype=torch.bool)
         )

@@ -153,10 +153,21 @@ class OccupantSelection:
             ["occupant_model"]
             + [f"logz_{n}" for n in self.names]
             + [f"m3_{n}" for n in self.names]
-            + ["m3_interval"]
+            + ["m3_interval", "at_boundary"]
             + ["rigid_kg"]
             + [c for i in range(1, self.max_modes + 1) for c in (f"f{i}_hz", f"zeta{i}", f"mass{i}_kg")]
         )
+
+    def collapsed(self, name: str, params: Tensor) -> Tensor:
+        """[b] bool: candidate ``name``'s fits ``params`` [b, n_theta] that hold a body mode at r_i = 0 (the
+        solver's boundary test: the data do not resolve what the mode adds). Such a fit is a smaller model of the
+        set (body1 at r1 = 0 is rigid, body2 at r_i = 0 is body1), already fitted in its own right; its evidence
+        is at most that model's likelihood times the prior's mass where the mode is unresolved, so it is out of
+        the comparison (log Z -inf, not fitting; estimates.csv's ``at_boundary`` names it), not `diverged`."""
+        cols = self.all_models[name].response.boundary.nonzero().flatten()
+        if cols.numel() == 0:
+            return torch.zeros(params.shape[0], dtype=torch.bool)
+        return (params[:, cols].double() == 0).any(1)
 
     @staticmethod
     def _modes(refinement) -> int:
@@ -223,6 +234,8 @@ class OccupantSelection:
             extra[f"logz_{name}"] = logz_t[:, j]
             extra[f"m3_{name}"] = self.K3 / records[name]["params"][:, 1].double()
         extra["m3_interval"] = ["profile" if bool(p) else "laplace" for p in profiled]
+        held = {n: self.collapsed(n, records[n]["params"]) for n in self.names}
+        extra["at_boundary"] = [" ".join(n for n in self.names if bool(held[n][i])) for i in range(b)]
         names = self.response.theta_names
         wanted = ["p1", "p2"] + [f"{k}{i}" for i in range(1, self.max_modes + 1) for k in MODE_PARAMS]
         body = torch.nan_to_num(record["params"][:, [names.index(n) for n in wanted]].double(), nan=0.0)
@@ -301,8 +314,10 @@ class OccupantSelection:
         b = next(iter(records.values()))["params"].shape[0]
         v_out, v_in, log_std = None, None, None
         assigned = torch.zeros(b, dtype=torch.bool)
-        for name in reversed(names):
-            rows = ((records[name]["final"].status != SolverStatus.DIVERGED) & ~assigned).nonzero().squeeze(1)
+        held = {n: self.collapsed(n, records[n]["params"]) for n in names}
+        for name in reversed(names):  # a fit held at its boundary is a smaller model's: not the most flexible
+            ok = (records[name]["final"].status != SolverStatus.DIVERGED) & ~held[name]
+            rows = (ok & ~assigned).nonzero().squeeze(1)
             if rows.numel() == 0:
                 continue
             noise = (
@@ -321,17 +336,18 @@ class OccupantSelection:
             assigned[rows] = True
         for smaller, larger in zip(names, names[1:]):
             nest(self, outputs, records, smaller, larger, v_out, v_in, assigned)
+        held = {n: self.collapsed(n, records[n]["params"]) for n in names}  # a nest may have moved a fit
         logz, fits = {}, {}
         for name in names:
             record = records[name]
             logz[name] = torch.full((b,), -math.inf, dtype=torch.float64)
-            rows = (assigned & (record["final"].status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
+            rows = (assigned & (record["final"].status != SolverStatus.DIVERGED) & ~held[name]).nonzero().squeeze(1)
             if rows.numel():
                 variances = (v_out[rows], None if v_in is None else v_in[rows])
                 weighed = polish_and_weigh(self, name, select_rows(outputs, rows, b), record, rows, variances)
                 logz[name][rows] = weighed + self.log_prior[name.split("+")[0]]
             record["variances"] = (v_out, v_in, log_std)
-            fits[name] = record_fits(record)
+            fits[name] = record_fits(record) & ~held[name]
         return logz, fits
 
     def _choose(self, logz: Mapping[str, Tensor], fits: Mapping[str, Tensor], names) -> Tensor:

@@ -35,6 +35,7 @@ def nest(
             assigned
             & (records[smaller]["final"].status != SolverStatus.DIVERGED)
             & (records[larger]["final"].status != SolverStatus.DIVERGED)
+            & ~selection.collapsed(larger, records[larger]["params"])  # held at its boundary: the smaller one
         )
         .nonzero()
         .squeeze(1)

@@ -144,12 +144,22 @@ def _vehicle_settings(cfg, plan, names) -> tuple:
     return reference, std, (reference if plan["restarts_around"] == "reference" else None)
 
 
+# The 5 % level of the likelihood-ratio test of a body mode's mass ratio on its boundary r = 0 (½χ²₀ + ½χ²₁:
+# 2ΔL = 2.71), in nats of the noise-whitened loss (solver.SolverConfig.boundary_test).
+BOUNDARY_NATS = 1.35
+
+
 def _interpolating(refinement):
     """The refinement with its stages' line search set to "interpolate" (solver.SolverConfig.backtrack): a body
     candidate's GN steps overshoot by 10-1000×, and halving them took 9-12 loss evaluations an iteration; the
-    same α in fewer (docs/measurements/persons.md). The rigid one-clock fit outside a selection keeps halving."""
+    same α in fewer (docs/measurements/persons.md). The rigid one-clock fit outside a selection keeps halving.
+    And the boundary test (SolverConfig.boundary_test, BOUNDARY_NATS): a body mode whose full step heads to r = 0
+    and whose removal costs less than the test's level is held at r = 0, its nested model (on a rigid occupant
+    the mode is not identifiable and its fit crawled to r -> 0 for 30 iterations a pass, or across it:
+    `diverged`); the selection takes it out of the comparison (estimation/occupant.py)."""
     for stage in refinement.stages:
         stage.solver.config.backtrack = "interpolate"
+        stage.solver.config.boundary_test = BOUNDARY_NATS
     return refinement
 
 

@@ -53,6 +53,23 @@ class ResponseModel:
         mask[: self.n_params] = True
         return mask
 
+    @property
+    def boundary(self) -> Tensor:
+        """[n_theta] bool: parameters whose zero is a nested model (the linear model's ``nested_at_zero``: a
+        body mode's mass ratio r_i, at 0 the model without that mode); the solver may hold them there
+        (SolverConfig.boundary_test)."""
+        mask = torch.zeros(self.n_theta, dtype=torch.bool)
+        for name in getattr(getattr(self, "model", None), "nested_at_zero", {}):
+            mask[self.theta_names.index(name)] = True
+        return mask
+
+    def boundary_removes(self, column: int) -> list[int]:
+        """θ columns that the boundary parameter at θ column ``column`` removes at 0: the output depends on none of
+        them there (a body mode's k_i, c_i and, where θ holds the initial state, its dy_i, y_i)."""
+        names = getattr(getattr(self, "model", None), "nested_at_zero", {}).get(self.theta_names[column], ())
+        theta = [n if n in self.theta_names else f"x0_{n}" for n in names]
+        return [self.theta_names.index(n) for n in theta if n in self.theta_names]
+
     def prepare(self, inputs: Tensor, start: int = 0, n_steps: int | None = None) -> Tensor | PreparedInputs:
         """What to pass as ``inputs`` for repeated evaluations of one window (default: the inputs)."""
         return inputs

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
+from .boundary import applies, boundary_test, initial_held, without_held
 from .line_search import line_search
 from .problems import LeastSquaresProblem, ProblemEvaluation
 from .uncertainty import final_uncertainty, unevaluated_uncertainty
@@ -77,6 +78,10 @@ class SolverConfig:
     # less than sqrt(decrement_tol) of a standard deviation in every direction (1e-6: 0.001 σ),
     # well below what the data can resolve. None: off.
     decrement_tol: float | None = 1e-6
+    # Nested models at a boundary (noise-whitened fits; estimation/boundary.py): a parameter whose zero is a
+    # smaller model (a body mode's mass ratio) is held at 0 where a full step heads there and the loss rises by
+    # less than this many nats with it at 0. None: off.
+    boundary_test: float | None = None
     rcond: float = 1e-7  # singular values of the scaled J below rcond·s_max count as zero
     chunk_size: int = 512  # samples per Jacobian pass (keeps the per-step working set in cache)
     # Threads for torch inside solve(); the per-step ops are small, and with 2 threads on a busy
@@ -184,6 +189,7 @@ class _Run:
     history: list = field(default_factory=list)
     seconds: list = field(default_factory=list)
     exponent: Tensor | None = None  # [batch] each sample's last accepted e (α = α0 2^-e): "interpolate" starts there
+    held: Tensor | None = None  # [batch, n_free] bool: boundary parameters held at 0 (SolverConfig.boundary_test)
 
 
 class NonlinearLeastSquares(ABC):
@@ -280,7 +286,8 @@ class NonlinearLeastSquares(ABC):
 
         self.init_state(batch, dtype)
         status = torch.full((batch,), SolverStatus.MAX_ITERATIONS, dtype=torch.int8)
-        bad_start = (params[:, free][:, self._positive] <= 0).any(dim=1)
+        held = initial_held(self, problem, params, free)  # a boundary parameter at 0 is its nested model
+        bad_start = ((params[:, free] <= 0) & ~held)[:, self._positive].any(dim=1)
         status[bad_start] = SolverStatus.DIVERGED
         return _Run(
             evaluation=evaluation,
@@ -292,13 +299,15 @@ class NonlinearLeastSquares(ABC):
             loss=torch.full((batch,), math.inf, dtype=dtype),
             active=~bad_start,
             exponent=torch.zeros(batch, dtype=torch.long),
+            held=held,
         )
 
     def _stop(self, run: _Run, index: Tensor, iteration: int) -> None:
         """The end of the budget or of the active samples. No Jacobian needed to stop: the accepted losses
         are known from the line search."""
         if iteration == 0:  # max_iterations = 0: just evaluate the start
-            run.loss[index] = run.evaluation.loss_at(run.params[index], index)
+            if index.numel():  # (none: every start was outside the domain)
+                run.loss[index] = run.evaluation.loss_at(run.params[index], index)
             run.history.append(torch.where(torch.isfinite(run.loss), run.loss, torch.zeros_like(run.loss)))
         exact = index[run.loss[index] <= self.config.loss_tol * run.data_energy[index]]
         run.status[exact] = SolverStatus.CONVERGED
@@ -309,8 +318,16 @@ class NonlinearLeastSquares(ABC):
         index, fisher, gradient, loss_now = self._drop_finished(run, index, iteration, fisher, gradient, loss_now)
         if index.numel() == 0:
             return False
+        fisher, gradient = without_held(run.held[index], fisher, gradient)
         step, predicted, stationary = self._step(run, index, fisher, gradient, loss_now)
-        self._accept(run, index, step, loss_now, predicted, stationary)
+        if applies(self.config, run.evaluation.problem):
+            go = ~boundary_test(self, run, index, step)  # the others moved to their nested model this iteration
+            run.iterations[index[~go]] += 1
+            index, step, loss_now, predicted, stationary = (
+                x[go] for x in (index, step, loss_now, predicted, stationary)
+            )
+        if index.numel():
+            self._accept(run, index, step, loss_now, predicted, stationary)
         return True
 
     def _drop_finished(self, run: _Run, index, iteration, fisher, gradient, loss_now):
@@ -386,13 +403,13 @@ class NonlinearLeastSquares(ABC):
         """The result at the end of the loop, with the final uncertainty pass unless switched off."""
         params, status, free = run.params, run.status, run.free
         # An unconstrained path may end outside the physical domain: report it, keep the numbers.
-        outside = (params[:, free][:, self._positive] <= 0).any(1)
+        outside = ((params[:, free] <= 0) & ~run.held)[:, self._positive].any(1)
         status[outside] = SolverStatus.DIVERGED
         history = torch.stack(run.history)
         history = torch.where(torch.isfinite(history), history, torch.zeros_like(history))
         diverged = status == SolverStatus.DIVERGED
         if self.config.uncertainty:
-            report = final_uncertainty(self.config, run.evaluation, params, free, diverged, run.loss)
+            report = final_uncertainty(self.config, run.evaluation, params, free, diverged, run.loss, run.held)
         else:
             report = unevaluated_uncertainty(run.evaluation.problem, params, free, run.loss)
         run.loss.copy_(report.loss)
@@ -420,7 +437,7 @@ class NonlinearLeastSquares(ABC):
         new = free_params - scaled_step
         if self.config.parametrization == "log":
             logged = free_params * torch.exp(-scaled_step / free_params)
-            new = torch.where(self._positive, logged, new)
+            new = torch.where(self._positive & (free_params != 0), logged, new)  # 0: held at a boundary
         return new
 
     def _relative_step(self, step: Tensor, free_params: Tensor) -> Tensor:
@@ -428,7 +445,9 @@ class NonlinearLeastSquares(ABC):
         then the decrease test alone decides)."""
         if not bool(self._positive.any()):
             return torch.full((step.shape[0],), math.inf, dtype=step.dtype)
-        return (step[:, self._positive] / free_params[:, self._positive]).abs().amax(1)
+        step, free_params = step[:, self._positive], free_params[:, self._positive]
+        # a parameter held at 0 (boundary_test) takes no step: 0, not 0/0
+        return torch.where(step == 0, 0.0, step / free_params).abs().amax(1)
 
     def _line_search(self, run: _Run, index, step, loss_now, predicted):
         """Per-sample Armijo backtracking (estimation/line_search.py); returns (α [b], 0 = none found; new loss [b])."""

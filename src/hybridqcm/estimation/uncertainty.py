@@ -14,6 +14,7 @@ from scipy.stats import t as student_t
 from torch import Tensor
 
 from ._linalg import pseudo_inverse, pseudo_inverse_solve
+from .boundary import without_held
 from .diagnostics import residual_tests
 
 if TYPE_CHECKING:
@@ -42,11 +43,18 @@ class Uncertainty:
 
 
 def final_uncertainty(
-    config: SolverConfig, evaluation: ProblemEvaluation, params: Tensor, free: Tensor, diverged: Tensor, loss: Tensor
+    config: SolverConfig,
+    evaluation: ProblemEvaluation,
+    params: Tensor,
+    free: Tensor,
+    diverged: Tensor,
+    loss: Tensor,
+    held: Tensor | None = None,
 ) -> Uncertainty:
     """Uncertainty and conditioning at the final estimate ``params`` [batch, n_theta] (one more Jacobian
     pass over the samples not ``diverged`` [batch] bool); ``loss`` [batch] is the loop's, replaced by the
-    final pass's where finite."""
+    final pass's where finite. ``held`` [batch, n_free] bool: entries held at a boundary (estimation/boundary.py),
+    known there: their Jacobian columns are round-off."""
     problem = evaluation.problem
     batch, n_free, n_theta = params.shape[0], free.numel(), problem.n_theta
     covariance = torch.zeros(batch, n_theta, n_theta, dtype=params.dtype)
@@ -66,7 +74,7 @@ def final_uncertainty(
         no_sample, no_sample,
     )  # fmt: skip
     if index.numel():
-        _fill(result, config, evaluation, params, free, index)
+        _fill(result, config, evaluation, params, free, index, None if held is None else held[index])
     return result
 
 
@@ -92,7 +100,9 @@ def unevaluated_uncertainty(problem: LeastSquaresProblem, params: Tensor, free: 
     )
 
 
-def _fill(result: Uncertainty, config: SolverConfig, evaluation: ProblemEvaluation, params, free, index) -> None:
+def _fill(
+    result: Uncertainty, config: SolverConfig, evaluation: ProblemEvaluation, params, free, index, held=None
+) -> None:
     """The final pass over the samples ``index`` into ``result``."""
     cfg, problem = config, evaluation.problem
     n_free, n_theta = free.numel(), problem.n_theta
@@ -103,6 +113,10 @@ def _fill(result: Uncertainty, config: SolverConfig, evaluation: ProblemEvaluati
         )
     else:
         fisher, _, final_loss = evaluation.data_normal_equations(params, index)
+    if held is not None and bool(held.any()):
+        fisher = without_held(held, fisher, torch.zeros_like(fisher[..., 0]))[0]
+        if robust:
+            meat = without_held(held, meat, torch.zeros_like(meat[..., 0]))[0]
     ok = torch.isfinite(fisher).flatten(1).all(1) & torch.isfinite(final_loss)
     fisher = torch.where(ok[:, None, None], fisher, torch.zeros_like(fisher))
     final_loss = torch.where(ok, final_loss, result.loss[index])
@@ -170,6 +184,7 @@ def robust_covariance(
             # The variance is estimated from few effective groups: widen to the Student-t quantile.
             nu = dof.clamp_min(1.0).cpu().numpy()
             ratio = torch.from_numpy(student_t.ppf(0.975, nu) / student_t.ppf(0.975, math.inf)).to(data_cov)
+            ratio = ratio.nan_to_num(1.0)  # a column without variance (held at a boundary) has no dof
             data_cov = data_cov * ratio.unsqueeze(2) * ratio.unsqueeze(1)
     else:
         factor = n_groups / (n_groups - n_free)

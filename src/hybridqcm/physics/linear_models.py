@@ -38,6 +38,9 @@ class LinearModel:
     output_names: tuple[str, ...] = ()
     linear_in_params: bool = False
     multi_affine: bool = False  # every entry affine in each parameter alone (module docstring)
+    # parameters whose zero is a smaller model of the set (a body mode's r_i) -> the parameters and states that
+    # model lacks (at r_i = 0 the output depends on neither: the mode's k_i, c_i and its dy_i, y_i)
+    nested_at_zero: dict[str, tuple[str, ...]] = {}
 
     @property
     def n_params(self) -> int:
@@ -212,6 +215,7 @@ class SeatOccupantBaseExcitation(LinearModel):
         self.name = f"seat_body{self.n_modes}_base_excitation"
         self.param_names = occupant_param_names(self.n_modes)
         modes = range(1, self.n_modes + 1)
+        self.nested_at_zero = {f"r{i}": (f"k{i}", f"c{i}", f"dy{i}", f"y{i}") for i in modes}  # r_i = 0: no mass
         self.state_names = ("dz",) + tuple(f"dy{i}" for i in modes) + ("z",) + tuple(f"y{i}" for i in modes)
 
     def matrices(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -302,6 +306,7 @@ class _PersonOnPan(LinearModel):
         self.name = name
         modes = range(1, self.n_modes + 1)
         self.param_names = tuple(rigid.param_names) + tuple(f"{k}{i}" for i in modes for k in MODE_PARAMS)
+        self.nested_at_zero = {f"r{i}": (f"k{i}", f"c{i}", f"dy{i}", f"y{i}") for i in modes}  # r_i = 0: no mass
         v = rigid.n_state // 2
         self.state_names = (
             tuple(rigid.state_names[:v])
