@@ -248,3 +248,49 @@ def test_a_person_outside_the_model_set_is_never_a_converged_wrong_answer(tmp_pa
     outside = (truth < low) | (truth > high)
     converged = torch.tensor([r["status"] == "converged" for r in rows])
     assert not bool((converged & wrong & outside).any()), [(r["status"], r["m3"]) for r in rows]
+
+
+def test_every_evidence_of_a_recording_is_weighed_under_one_noise_model(tmp_path, monkeypatch):
+    """Each weighing fits the noise at its own most flexible candidate (phase one: body2; the winner's delay
+    comparison: its delay variant); a log Z is comparable with another only under the same variances, and a
+    drive sums them over windows (issue 32: one window's rigid log Z left from a weighing under a misfit body2's
+    noise, 312 nats off the others, chose the rigid drive's model). Occupant_roadfree's default selection on
+    persons at 5 % noise: per recording, the variances each candidate with a finite log Z was last weighed under
+    are the same for all of them."""
+    from hydra import compose, initialize_config_dir
+
+    import hybridqcm.estimation.occupant as occupant
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
+
+    _foreign(tmp_path / "p.h5", n=3, seed=21, occupant="body1", noise=0.05)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=3"])
+    plan = validate(cfg)
+    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
+    outputs = module.prepare(build_inputs(cfg, plan))
+    seen = {}  # (recording index, candidate) -> the variances it was last weighed under
+
+    def spy(selection_, name, outputs_, record, rows, variances):
+        for k, r in enumerate(rows.tolist()):
+            seen[(int(record["index"][r]), name)] = tuple(None if v is None else v[k].clone() for v in variances)
+        return polish_and_weigh(selection_, name, outputs_, record, rows, variances)
+
+    polish_and_weigh = occupant.polish_and_weigh
+    monkeypatch.setattr(occupant, "polish_and_weigh", spy)
+    record = selection.refine(outputs)
+    index = outputs["index"].tolist() if "index" in outputs else list(range(3))
+    names = selection.names
+    compared, most = 0, 0
+    for i, rec in enumerate(index):
+        weighed = [n for n in names if math.isfinite(float(record["extra"][f"logz_{n}"][i]))]
+        most = max(most, len(weighed))
+        first = seen[(int(rec), weighed[0])]
+        for name in weighed[1:]:
+            for a, b in zip(first, seen[(int(rec), name)]):
+                if a is not None:
+                    torch.testing.assert_close(a, b, rtol=0, atol=0)
+                    compared += 1
+    assert compared > 0 and most >= 4  # a recording with the three models and the winner's delay variant

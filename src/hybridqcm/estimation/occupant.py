@@ -273,7 +273,7 @@ class OccupantSelection:
 
     def _compare(self, outputs, records: dict, logz: dict, fits: dict, choice: Tensor, rows: Tensor, names) -> None:
         """In place: the candidates ``names`` of the recordings ``rows`` weighed together (_weigh), the winner
-        among them chosen there."""
+        among them chosen there; the recordings' other candidates weighed again under the same noise (_reweigh)."""
         b = choice.numel()
         group = {n: subset(records[n], rows) for n in names}
         group_logz, group_fits = self._weigh(select_rows(outputs, rows, b), group, list(names))
@@ -281,6 +281,36 @@ class OccupantSelection:
             scatter(records[key], group[key], rows)
             logz[key][rows], fits[key][rows] = group_logz[key], group_fits[key]
         choice[rows] = self._choose(group_logz, group_fits, list(names))
+        self._reweigh(outputs, records, logz, fits, rows, names, group[names[-1]]["variances"])
+
+    def _reweigh(self, outputs, records: dict, logz: dict, fits: dict, rows: Tensor, names, variances) -> None:
+        """In place: the candidates of the recordings ``rows`` other than ``names`` that were weighed before
+        (finite log Z) polished and weighed under ``variances`` (v_out, v_in, log_std [len(rows), ...]), the
+        noise model ``names`` were just weighed under. Evidences weighed under different noise models are not
+        comparable: each _weigh fits the variances at its own most flexible candidate (one that ended misfit
+        gives others, with band_cap up to hundreds of nats apart), and every reader of a recording's log Z
+        (the interval's members, the logz_* columns, a drive's model summed over its windows) compares them."""
+        b = next(iter(records.values()))["params"].shape[0]
+        v_out, v_in, log_std = variances
+        if v_out is None:
+            return
+        # where every one of ``names`` diverged, no noise was fitted (_weigh's placeholder): nothing to weigh under
+        noise = torch.stack([records[n]["final"].status[rows] != SolverStatus.DIVERGED for n in names]).any(0)
+        for key in self.names:
+            if key in names or key not in logz:  # a delay variant not set up yet: not fitted
+                continue
+            local = (torch.isfinite(logz[key][rows]) & noise).nonzero().squeeze(1)
+            if local.numel() == 0:
+                continue
+            record = subset(records[key], rows[local])
+            record["variances"] = tuple(None if v is None else v[local] for v in (v_out, v_in, log_std))
+            here = torch.arange(local.numel())
+            weighed = polish_and_weigh(
+                self, key, select_rows(outputs, rows[local], b), record, here, record["variances"][:2]
+            )
+            scatter(records[key], record, rows[local])
+            logz[key][rows[local]] = weighed + self.log_prior[key.split("+")[0]]
+            fits[key][rows[local]] = record_fits(record)
 
     def _rescue(self, outputs, records: dict, logz: dict, fits: dict, choice: Tensor, module) -> None:
         """In place: where the chosen candidate's fit is `misfit` or `diverged` (a wrong basin), its refinement
@@ -302,6 +332,7 @@ class OccupantSelection:
             sub_logz, sub_fits = self._weigh(select_rows(outputs, rows, b), {name: attempt}, [name])
             scatter(records[name], attempt, rows)
             logz[name][rows], fits[name][rows] = sub_logz[name], sub_fits[name]
+            self._reweigh(outputs, records, logz, fits, rows, [name], attempt["variances"])
 
     def _weigh(self, outputs: Mapping, records: dict, names: list[str]) -> tuple[dict, dict]:
         """Evidence and fit flags of the candidates ``names`` (their records, in place) under one noise model.
