@@ -123,7 +123,7 @@ def test_a_pass_that_starts_at_the_boundary_holds_it_there():
 
 def test_a_noise_free_rigid_occupant_is_rigid_with_its_body_candidates_at_the_boundary(tmp_path):
     """Another simulator's rigid occupants, noise-free, occupant_roadfree's defaults (rigid, body1, body2, delay
-    auto): the body candidates that collapse to their nested model are named in ``at_boundary`` and out of the
+    auto) with occupant.boundary_hold=true: the body candidates that collapse to their nested model are named in ``at_boundary`` and out of the
     comparison (log Z -inf), none is chosen there, and the answers are `converged` with m3 exact."""
     import csv
     import subprocess
@@ -134,7 +134,7 @@ def test_a_noise_free_rigid_occupant_is_rigid_with_its_body_candidates_at_the_bo
     truth = torch.tensor(make_foreign(tmp_path / "rigid.h5", n=4, seed=7))
     proc = subprocess.run(
         [sys.executable, "-m", "hybridqcm.apps.estimate", "experiment=occupant_roadfree",
-         f"data.path={tmp_path / 'rigid.h5'}", "plots=false", "tensorboard=false", "progress=false",
+         f"data.path={tmp_path / 'rigid.h5'}", "occupant.boundary_hold=true", "plots=false", "tensorboard=false", "progress=false",
          f"hydra.run.dir={tmp_path / 'run'}"],
         capture_output=True, text=True,
     )  # fmt: skip
@@ -148,3 +148,20 @@ def test_a_noise_free_rigid_occupant_is_rigid_with_its_body_candidates_at_the_bo
     m3 = torch.tensor([float(r["m3"]) for r in rows])
     assert ((m3 / truth - 1).abs() < 1e-3).all()
     assert all(r["status"] == "converged" for r in rows)
+
+
+def test_the_boundary_hold_is_opt_in_and_validated():
+    """occupant.boundary_hold is off unless asked for (it held real persons' modes at 10 % noise), and a value
+    that is not a boolean is refused in one line naming the key."""
+    from omegaconf import OmegaConf
+
+    from hybridqcm.errors import ConfigError
+    from hybridqcm.estimation.plan_occupant import occupant_plan
+
+    def plan(**occupant):
+        cfg = OmegaConf.create({"occupant": {"models": ["rigid", "body1"], **occupant}, "delay": None})
+        return occupant_plan(cfg, "seat")
+
+    assert plan()["boundary_hold"] is False and plan(boundary_hold=True)["boundary_hold"] is True
+    with pytest.raises(ConfigError, match="occupant.boundary_hold"):
+        plan(boundary_hold="yes")

@@ -4,6 +4,7 @@
     occupant.interval_weight: 0.05           candidates this close (evidence weight) widen m3's interval
     occupant.body_prior: true                the literature's ranges as a weak prior on body modes
     occupant.profile: true                   the winner's m3 interval by profile likelihood (else Laplace)
+    occupant.boundary_hold: false            hold a body mode the data do not resolve at r = 0 (its nested model)
     occupant.rigid_prior: 0.05               prior probability of a rigid occupant (ballast); the body
                                              models share the rest
     delay: auto | estimate | <ms> | null     a3 behind its driving channel: the winner refitted with the
@@ -77,6 +78,7 @@ def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
         "interval_weight": float(weight),
         "body_prior": bool(occupant.get("body_prior", True)),
         "profile": _flag(occupant, "profile", True),
+        "boundary_hold": _flag(occupant, "boundary_hold", False),
         "rigid_prior": _probability(occupant, "rigid_prior", 0.05),
         "delay_prior": _delay_prior(cfg),
     }
@@ -149,17 +151,20 @@ def _vehicle_settings(cfg, plan, names) -> tuple:
 BOUNDARY_NATS = 1.35
 
 
-def _interpolating(refinement):
+def _interpolating(refinement, boundary_hold: bool = False):
     """The refinement with its stages' line search set to "interpolate" (solver.SolverConfig.backtrack): a body
     candidate's GN steps overshoot by 10-1000×, and halving them took 9-12 loss evaluations an iteration; the
     same α in fewer (docs/measurements/persons.md). The rigid one-clock fit outside a selection keeps halving.
-    And the boundary test (SolverConfig.boundary_test, BOUNDARY_NATS): a body mode whose full step heads to r = 0
-    and whose removal costs less than the test's level is held at r = 0, its nested model (on a rigid occupant
-    the mode is not identifiable and its fit crawled to r -> 0 for 30 iterations a pass, or across it:
-    `diverged`); the selection takes it out of the comparison (estimation/occupant.py)."""
+    With ``boundary_hold`` the boundary test (SolverConfig.boundary_test, BOUNDARY_NATS): a body mode whose full
+    step heads to r = 0 and whose removal costs less than the test's level is held at r = 0, its nested model
+    (on a rigid occupant the mode is not identifiable and its fit crawled to r -> 0 for 30 iterations a pass,
+    or across it: `diverged`); the selection takes it out of the comparison (estimation/occupant.py). Off by
+    default: at 10 % noise it held real persons' modes mid-fit (the test runs at the iterate, not at the
+    optimum), and rigid then won +30-70 % off (docs/measurements/persons.md)."""
     for stage in refinement.stages:
         stage.solver.config.backtrack = "interpolate"
-        stage.solver.config.boundary_test = BOUNDARY_NATS
+        if boundary_hold:
+            stage.solver.config.boundary_test = BOUNDARY_NATS
     return refinement
 
 
@@ -205,8 +210,8 @@ def build_selection(cfg, plan, occupant: dict, make_refinement):
         full_std = torch.cat([vehicle_std, std])
         prior = (torch.cat([vehicle_mean, mean]), full_std) if bool(torch.isfinite(full_std).any()) else None
         pair = (
-            _interpolating(make_refinement(response, known, prior, False, centre)),
-            _interpolating(make_refinement(response, known, prior, True, centre)),
+            _interpolating(make_refinement(response, known, prior, False, centre), occupant["boundary_hold"]),
+            _interpolating(make_refinement(response, known, prior, True, centre), occupant["boundary_hold"]),
         )
         return pair, start
 

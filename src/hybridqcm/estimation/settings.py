@@ -86,6 +86,7 @@ class OccupantSettings:
     body_prior: bool = MISSING
     profile: bool = MISSING
     rigid_prior: float = MISSING
+    boundary_hold: bool = MISSING
 
 
 @dataclass
