@@ -121,6 +121,7 @@ def test_a_pass_that_starts_at_the_boundary_holds_it_there():
     assert (plain.status == SolverStatus.DIVERGED).all()
 
 
+@pytest.mark.slow  # the opt-in hold end to end; the unit tests above check its behaviour in the default suite
 def test_a_noise_free_rigid_occupant_is_rigid_with_its_body_candidates_at_the_boundary(tmp_path):
     """Another simulator's rigid occupants, noise-free, occupant_roadfree's defaults (rigid, body1, body2, delay
     auto) with occupant.boundary_hold=true: the body candidates that collapse to their nested model are named in ``at_boundary`` and out of the
