@@ -168,6 +168,15 @@ def _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, splin
     return params, x0, inputs, int(start), n_steps
 
 
+def _held(held, inputs, hold, substeps, start, T, spline_degree, window: bool = True):
+    """The held input of the window (hold.held_window's layout): ``held`` checked against the inputs, then cast, or
+    made from the inputs where None; with ``window`` False only checked (a one-step output needs none)."""
+    check_held(held, inputs, hold, substeps, T)
+    if not window:
+        return held
+    return held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+
+
 @torch.no_grad()
 def exact_outputs(
     model: LinearModel,
@@ -197,9 +206,7 @@ def exact_outputs(
     if method not in OUTPUT_METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {OUTPUT_METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
-    check_held(held, inputs, hold, substeps, T)
-    if T > 1:
-        held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    held = _held(held, inputs, hold, substeps, start, T, spline_degree, window=T > 1)
     if method == "auto":
         method = "modal" if params.shape[0] <= _MODAL_OUTPUTS_MAX else "recursion"
     if method == "recursion" or T == 1:
@@ -277,8 +284,7 @@ def exact_sensitivities(
     if method not in METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
-    check_held(held, inputs, hold, substeps, T)
-    held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    held = _held(held, inputs, hold, substeps, start, T, spline_degree)
     if method == "recursion" or T == 1:
         out = _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
         if targets is not None:
@@ -344,8 +350,7 @@ def fallback_sensitivities(
     """exact_sensitivities by the step recursion alone (the rows that ``defer_fallback`` left), with the
     variant for the batch size that the modal path's own fallback takes; same arguments and result."""
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
-    check_held(held, inputs, hold, substeps, T)
-    held = held_window(inputs, hold, substeps, start, T, spline_degree) if held is None else held.to(_DTYPE)
+    held = _held(held, inputs, hold, substeps, start, T, spline_degree)
     if T == 1:
         return _recursion_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
     return _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
