@@ -528,7 +528,8 @@ def score(args) -> None:
     with open(run / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     summary = json.loads((run / "summary.json").read_text())
-    data = Path(args.data or summary.get("data", {}).get("path", ""))
+    stored = summary.get("data", "")  # the run's data path (a string; a mapping in older summaries)
+    data = Path(args.data or (stored.get("path", "") if isinstance(stored, dict) else stored))
     with h5py.File(data, "r") as f:
         truth = f["test/params"][()]
         # a file of ours has no truth_m3: its seat is the reference one (thesis prior, SPEC § 2)

@@ -399,3 +399,38 @@ def test_a_chosen_law_round_trips_and_a_file_whose_held_parameters_are_not_0_is_
     with pytest.raises(SeatFileError, match="holds \\['exponent', 'pan_mass'\\] at 0") as error:
         load_seat(bad)
     assert "\n" not in str(error.value)
+
+
+def test_occupants_beyond_the_calibrations_loads_are_warned_with_the_extrapolation(tmp_path, capsys):
+    """summary.json's mass_scale and one warning line: how many occupant masses lie outside the loads the seat
+    was calibrated at, their range and the furthest extrapolation (NaN rows, not fitted, are not counted)."""
+    from omegaconf import OmegaConf
+
+    from hybridqcm.reports.estimate import _mass_scale
+
+    seat = SeatLaw(K3, E, PAN, np.zeros((3, 3)), loads=[0.0, 40.0, 80.0, 120.0])
+    (tmp_path / "estimates.csv").write_text("index,occupant_mass\n0,30.0\n1,131.5\n2,nan\n3,150.25\n4,120.0\n")
+    cfg = OmegaConf.create({"seat_file": "seat.json", "K3": 98935.0})
+    scale = _mass_scale(cfg, seat, tmp_path)
+    assert (scale["extrapolated"], scale["extrapolated_kg"]) == (2, pytest.approx(30.25))
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == [
+        "warning: 2 of 4 occupant masses lie outside the calibration's loads 0..120 kg (131.5..150.2 kg: the seat "
+        "law extrapolated by up to 30.2 kg; calibrate with heavier or lighter loads)"
+    ]
+    seat.loads = [0.0, 160.0]
+    assert _mass_scale(cfg, seat, tmp_path)["extrapolated"] == 0 and capsys.readouterr().out == ""
+
+
+def test_estimate_with_a_seat_file_that_is_not_ours_is_one_line_and_runs_nothing(tmp_path):
+    """qcm-estimate seat_file=<a YAML object tag> refuses before any fit: exit 2, one line naming the file, nothing
+    executed, no estimates.csv."""
+    data, seat_file = tmp_path / "plain.h5", tmp_path / "seat.json"
+    make_foreign(data, n=2)
+    seat_file.write_text(f"!!python/object/apply:os.system ['touch {tmp_path / 'PWNED'}']\n")
+    proc = _app(
+        "estimate", tmp_path / "est", "experiment=occupant_roadfree", f"data.path={data}", f"seat_file={seat_file}"
+    )
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and f"seat_file={seat_file}: not a seat file" in lines[0], lines
+    assert not (tmp_path / "PWNED").exists() and not (tmp_path / "est" / "estimates.csv").exists()

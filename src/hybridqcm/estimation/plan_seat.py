@@ -24,7 +24,10 @@ def seat_view_plan(cfg, path, split: str, info: dict, base: str | None) -> dict 
     seat = cfg.get("seat")
     if kind == QUARTER_CAR:
         if seat is not None:
-            raise ConfigError(f"seat={seat!r}: {path} is a quarter-car file with its one seat (drop seat=)")
+            raise ConfigError(
+                f"seat={seat!r}: {path} is a quarter-car file with its one seat (drop seat=; a seat calibration "
+                "of qcm-calibrate is read with seat_file=)"
+            )
         return None
     name = cfg.get("experiment_name", "custom")
     if base != "seat":

@@ -354,12 +354,15 @@ def _mass_scale(cfg, seat, run_dir: Path) -> dict:
     with open(run_dir / "estimates.csv", newline="") as handle:
         occupant = np.array([float(r["occupant_mass"]) for r in csv.DictReader(handle)])
     fitted = np.isfinite(occupant)
-    outside = int((fitted & ~seat.covers(occupant)).sum())
+    beyond = fitted & ~seat.covers(occupant)
+    outside = int(beyond.sum())
+    lo, hi, far = min(seat.loads), max(seat.loads), occupant[beyond]
+    reach = float(np.max(np.maximum(lo - far, far - hi))) if outside else 0.0  # the furthest extrapolation [kg]
     if outside:
         print(
             f"warning: {outside} of {int(fitted.sum())} occupant masses lie outside the calibration's loads "
-            f"{min(seat.loads):g}..{max(seat.loads):g} kg (the seat law extrapolated; calibrate with heavier or "
-            f"lighter loads)"
+            f"{lo:g}..{hi:g} kg ({far.min():.1f}..{far.max():.1f} kg: the seat law extrapolated by up to "
+            f"{reach:.1f} kg; calibrate with heavier or lighter loads)"
         )
     held = _held_seat_parameters(cfg, seat, occupant[fitted])
     return {
@@ -372,6 +375,7 @@ def _mass_scale(cfg, seat, run_dir: Path) -> dict:
         "pan_mass": seat.pan_mass,
         "loads_kg": seat.loads,
         "extrapolated": outside,
+        "extrapolated_kg": reach,
     }
 
 
