@@ -84,6 +84,30 @@ def make_foreign(path, n: int = 6, **options):
         return f["test/truth_m3"][()]
 
 
+def app_in_process(app: str, run_dir: Path, *overrides: str) -> dict:
+    """What `qcm-<app> overrides` runs (app: simulate or estimate), in this process: the configuration composed
+    as the app composes it, run_dir the run folder; returns the run's summary. A console start (torch,
+    Lightning, Hydra: 5-7 s of CPU) costs more than the tiny runs of the tests; each app keeps its console
+    tests (test_app_simulate, test_app_estimate, ...)."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+
+    paths = [f"paths.root_dir={run_dir}", f"paths.output_dir={run_dir}"]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(app, overrides=[*overrides, *paths])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if app == "simulate":
+        from hybridqcm.data.simulate_run import run_simulation
+
+        return run_simulation(cfg)
+    if app == "estimate":
+        from hybridqcm.apps.estimate import run
+
+        return run(cfg, run_dir)
+    raise ValueError(f"app_in_process: no in-process run for qcm-{app}")
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
