@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
+from conftest import app_in_process
 from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, dataset_info, read_split
 
 
@@ -166,9 +167,10 @@ def test_refuses_to_overwrite_existing_output(tmp_path):
 @pytest.mark.parametrize("h", [0.005, 0.002, 0.001])
 def test_logger_rates_continuous_mid_drive(tmp_path, h):
     n_steps = int(round(0.64 / h))  # the same 0.64 s window at every rate
-    result = qcm_simulate(tmp_path, f"h={h}", f"n_steps={n_steps}", "samples_per_profile=2")
-    assert result.returncode == 0, result.stderr
     out = tmp_path / "data" / "out.h5"
+    # qcm-simulate's run in-process (the console: the other tests of this file)
+    app_in_process("simulate", tmp_path / "run", "preset=tiny", f"output={out}", f"h={h}", f"n_steps={n_steps}",
+                   "samples_per_profile=2", "progress=false")  # fmt: skip
     info = dataset_info(out)
     assert info["physics"] == "continuous" and info["initial_state"] == "mid-drive"
     assert info["attrs"]["h"] == h and info["attrs"]["warmup_s"] == [2.0, 20.0]
@@ -183,8 +185,9 @@ def test_logger_rates_continuous_mid_drive(tmp_path, h):
 
 
 def test_euler_from_rest_keeps_the_source_protocol(tmp_path):
-    result = qcm_simulate(tmp_path, "physics=euler", "n_steps=64")
-    assert result.returncode == 0, result.stderr
+    out = tmp_path / "data" / "out.h5"
+    app_in_process("simulate", tmp_path / "run", "preset=tiny", f"output={out}", "physics=euler", "n_steps=64",
+                   "progress=false")  # fmt: skip
     info = dataset_info(tmp_path / "data" / "out.h5")
     assert info["physics"] == "euler" and info["initial_state"] == "rest"
     assert info["attrs"]["integrator"] == "semi_explicit_euler" and info["attrs"]["warmup_s"] == [0.0, 0.0]
