@@ -84,6 +84,30 @@ def make_foreign(path, n: int = 6, **options):
         return f["test/truth_m3"][()]
 
 
+def app_in_process(app: str, run_dir: Path, *overrides: str) -> dict:
+    """What `qcm-<app> overrides` runs (app: simulate or estimate), in this process: the configuration composed
+    as the app composes it, run_dir the run folder; returns the run's summary. A console start (torch,
+    Lightning, Hydra: 5-7 s of CPU) costs more than the tiny runs of the tests; each app keeps its console
+    tests (test_app_simulate, test_app_estimate, ...)."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+
+    paths = [f"paths.root_dir={run_dir}", f"paths.output_dir={run_dir}"]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(app, overrides=[*overrides, *paths])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if app == "simulate":
+        from hybridqcm.data.simulate_run import run_simulation
+
+        return run_simulation(cfg)
+    if app == "estimate":
+        from hybridqcm.apps.estimate import run
+
+        return run(cfg, run_dir)
+    raise ValueError(f"app_in_process: no in-process run for qcm-{app}")
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO_ROOT
@@ -96,3 +120,86 @@ def tiny_dataset(tmp_path_factory) -> Path:
     write_tiny_dataset(path)
     path.chmod(0o444)
     return path
+
+
+# -- the training tests' files and short runs (test_app_train, test_export_files, test_tracking) -----------------
+# Small nets and data so a run takes seconds.
+TRAIN_SMALL = ["debug=short", "data.samples_per_epoch=64", "data.val_samples=32", "data.batch_size=32", "seed=1"]
+TRAIN_SMALL_NET = {
+    "exp1_labelled": ["model.net.channels=[8,8]", "model.net.hidden=[16,8]"],
+    "exp2_physics": ["model.net.channels=[8,8]", "model.net.hidden=[16,8]"],
+    "exp4_denoiser": ["model.net.channels=[4,8]", "model.net.kernel_size=9"],
+    "exp9_unet": ["model.net.filters=[2,4]"],
+}
+
+
+def train_config(overrides, out_dir):
+    """qcm-train's configuration composed in-process, writing under out_dir."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("train", overrides=[*overrides, f"paths.root_dir={out_dir}", f"paths.output_dir={out_dir}"])
+
+
+def _train_tiny(path, seed=0):
+    from hybridqcm.data.simulate import write_dataset
+    from hybridqcm.physics import RoadProfile, build_prior
+
+    write_dataset(
+        path,
+        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
+        build_prior("thesis", h=0.01),
+        RoadProfile(n_waves=200),
+        n_steps=512,
+        h=0.01,
+        speed_mps=30 / 3.6,
+        samples_per_profile=8,
+        seed=seed,
+        progress=False,
+        compression=None,
+    )
+    return path
+
+
+@pytest.fixture(scope="session")
+def train_files(tmp_path_factory) -> dict:
+    """tiny.h5 and other.h5 (seeds 0, 1: 48 train / 32 test samples, 512 steps), partial.h5 (no disp/vel)
+    and the root folder they lie in; written once per session, never modified."""
+    import numpy as np
+
+    from hybridqcm.data.dataset_writer import DatasetWriter
+
+    root = tmp_path_factory.mktemp("app")
+    partial = root / "partial.h5"
+    with DatasetWriter(partial) as writer:
+        for split in ("train", "test"):
+            writer.create_split(split, 8, 512, keys=("accel", "road", "params"))
+            writer.write(
+                split,
+                0,
+                accel=np.random.rand(8, 512, 3).astype(np.float32),
+                road=np.zeros((8, 512), np.float32),
+                params=np.ones((8, 10)),
+            )
+    return {
+        "tiny": _train_tiny(root / "tiny.h5"),
+        "other": _train_tiny(root / "other.h5", seed=1),
+        "partial": partial,
+        "root": root,
+    }
+
+
+@pytest.fixture(scope="session")
+def train_runs(train_files) -> dict:
+    """Short in-process runs of exp2 (physics CNN) and exp4 (CAE); returns their run folders."""
+    from hybridqcm.training import train
+
+    runs = {}
+    for exp in ("exp2_physics", "exp4_denoiser"):
+        out = train_files["root"] / exp
+        overrides = [f"experiment={exp}", f"data.path={train_files['tiny']}", *TRAIN_SMALL, *TRAIN_SMALL_NET[exp]]
+        assert train(train_config(overrides, out))
+        runs[exp] = out
+    return runs

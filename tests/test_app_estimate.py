@@ -163,12 +163,25 @@ def test_inference_without_params(files, tmp_path):
     ],
 )
 def test_the_settings_schema_refuses_on_the_console_in_one_line(tiny_dataset, tmp_path, overrides, message):
-    """Typed by estimation/settings.py's schema (registered as schema/estimate when the plan imports it)."""
-    main = "import hybridqcm.estimation.settings; from hybridqcm.apps.estimate import main; main()"
-    cmd = [sys.executable, "-c", main, "experiment=exp5_random_init", f"data.path={tiny_dataset}", *overrides]
-    proc = subprocess.run([*cmd, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 2 and proc.stderr.startswith(f"error: {message}"), proc.stderr[-2000:]
-    assert len(proc.stderr.strip().splitlines()) == 1
+    """Typed by estimation/settings.py's schema (registered as schema/estimate when the plan imports it). Two
+    on the console; the others through the checks run_hydra_app makes before Hydra, in-process (the same
+    ConfigError the console prints as its one line)."""
+    args = ["experiment=exp5_random_init", f"data.path={tiny_dataset}", *overrides, f"hydra.run.dir={tmp_path}"]
+    if overrides[0] in ("-m", "+data.pathh=x.h5"):
+        main = "import hybridqcm.estimation.settings; from hybridqcm.apps.estimate import main; main()"
+        proc = subprocess.run([sys.executable, "-c", main, *args], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2 and proc.stderr.startswith(f"error: {message}"), proc.stderr[-2000:]
+        assert len(proc.stderr.strip().splitlines()) == 1
+    else:
+        import hybridqcm.estimation.settings  # noqa: F401 - registers schema/estimate, as in the console run
+        from hybridqcm.apps.common import check_task_name_overrides
+        from hybridqcm.config import check_schema_overrides
+
+        with pytest.raises(ConfigError) as error:
+            check_experiment_overrides(args, "estimate")
+            check_schema_overrides(args, "estimate")
+            check_task_name_overrides(args)
+        assert str(error.value).startswith(message) and "\n" not in str(error.value), error.value
     assert not (tmp_path / "estimates.csv").exists()
 
 

@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 import pytest
 
+from conftest import app_in_process
 from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, dataset_info, read_split
 
 
@@ -97,9 +98,14 @@ BAD_INPUTS = [
 ]
 
 
+# run on the console (Hydra, fail(): the whole stderr of a real process); the others go through the same
+# run_simulation in-process and raise one of the errors qcm-simulate turns into its one-line `error:`
+CONSOLE_BAD = ("+splits.train.profiles.Z=3", "prior=nope", "physics=exact", "window.warmup_s=[5,2]")
+
+
 @pytest.fixture(scope="module")
 def bad_runs(tmp_path_factory) -> dict[str, tuple[Path, int, str]]:
-    """All bad-input runs, two at a time (they are independent and mostly interpreter start-up)."""
+    """The console's bad-input runs, two at a time (they are independent and mostly interpreter start-up)."""
     from concurrent.futures import ThreadPoolExecutor
 
     def one(item):
@@ -109,17 +115,38 @@ def bad_runs(tmp_path_factory) -> dict[str, tuple[Path, int, str]]:
         return override, (folder, result.returncode, result.stderr)
 
     with ThreadPoolExecutor(max_workers=2) as pool:
-        return dict(pool.map(one, enumerate(o for o, _ in BAD_INPUTS)))
+        return dict(pool.map(one, enumerate(CONSOLE_BAD)))
+
+
+def _bad_in_process(folder: Path, override: str) -> str:
+    """run_simulation on tiny + override, composed as qcm-simulate composes it -> the error's message."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.data.simulate_run import run_simulation
+    from hybridqcm.errors import ConfigError
+
+    paths = [f"paths.root_dir={folder}", f"paths.output_dir={folder / 'run'}", f"output={folder / 'data' / 'out.h5'}"]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("simulate", overrides=["preset=tiny", *paths, override])
+    with pytest.raises((ValueError, FileExistsError, OSError, ConfigError)) as error:  # the ones the app catches
+        run_simulation(cfg)
+    return str(error.value)
 
 
 @pytest.mark.parametrize("override,message", BAD_INPUTS)
-def test_bad_input_fails_cleanly(bad_runs, override, message):
-    folder, returncode, stderr = bad_runs[override]
-    assert returncode != 0
-    lines = [line for line in stderr.splitlines() if line.strip()]
-    assert lines and lines[-1].startswith("error:"), stderr
-    assert message in lines[-1], lines[-1]
-    assert "Traceback" not in stderr
+def test_bad_input_fails_cleanly(bad_runs, tmp_path, override, message):
+    if override in bad_runs:
+        folder, returncode, stderr = bad_runs[override]
+        assert returncode != 0
+        lines = [line for line in stderr.splitlines() if line.strip()]
+        assert lines and lines[-1].startswith("error:"), stderr
+        assert message in lines[-1], lines[-1]
+        assert "Traceback" not in stderr
+    else:
+        folder = tmp_path
+        error = _bad_in_process(folder, override)
+        assert message in error and "\n" not in error, error
     data_dir = folder / "data"
     assert not data_dir.exists() or list(data_dir.iterdir()) == [], "no output or temporary file may be left"
 
@@ -140,9 +167,10 @@ def test_refuses_to_overwrite_existing_output(tmp_path):
 @pytest.mark.parametrize("h", [0.005, 0.002, 0.001])
 def test_logger_rates_continuous_mid_drive(tmp_path, h):
     n_steps = int(round(0.64 / h))  # the same 0.64 s window at every rate
-    result = qcm_simulate(tmp_path, f"h={h}", f"n_steps={n_steps}", "samples_per_profile=2")
-    assert result.returncode == 0, result.stderr
     out = tmp_path / "data" / "out.h5"
+    # qcm-simulate's run in-process (the console: the other tests of this file)
+    app_in_process("simulate", tmp_path / "run", "preset=tiny", f"output={out}", f"h={h}", f"n_steps={n_steps}",
+                   "samples_per_profile=2", "progress=false")  # fmt: skip
     info = dataset_info(out)
     assert info["physics"] == "continuous" and info["initial_state"] == "mid-drive"
     assert info["attrs"]["h"] == h and info["attrs"]["warmup_s"] == [2.0, 20.0]
@@ -157,8 +185,9 @@ def test_logger_rates_continuous_mid_drive(tmp_path, h):
 
 
 def test_euler_from_rest_keeps_the_source_protocol(tmp_path):
-    result = qcm_simulate(tmp_path, "physics=euler", "n_steps=64")
-    assert result.returncode == 0, result.stderr
+    out = tmp_path / "data" / "out.h5"
+    app_in_process("simulate", tmp_path / "run", "preset=tiny", f"output={out}", "physics=euler", "n_steps=64",
+                   "progress=false")  # fmt: skip
     info = dataset_info(tmp_path / "data" / "out.h5")
     assert info["physics"] == "euler" and info["initial_state"] == "rest"
     assert info["attrs"]["integrator"] == "semi_explicit_euler" and info["attrs"]["warmup_s"] == [0.0, 0.0]

@@ -8,85 +8,33 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from conftest import TRAIN_SMALL as SMALL
+from conftest import TRAIN_SMALL_NET as SMALL_NET
+from conftest import train_config as _cfg
 from hybridqcm.config import CONFIG_DIR, app_experiments, check_experiment_overrides
 from hybridqcm.data.dataset_writer import DatasetWriter
-from hybridqcm.data.simulate import write_dataset
 from hybridqcm.errors import ConfigError
-from hybridqcm.physics import RoadProfile, build_prior
 from hybridqcm.training import build_datamodule, prepare, train
 
 BIN = Path(sys.executable).parent
 TRAIN_EXPERIMENTS = app_experiments("train")
-# Small nets and data so a run takes seconds.
-SMALL = ["debug=short", "data.samples_per_epoch=64", "data.val_samples=32", "data.batch_size=32", "seed=1"]
-SMALL_NET = {
-    "exp1_labelled": ["model.net.channels=[8,8]", "model.net.hidden=[16,8]"],
-    "exp2_physics": ["model.net.channels=[8,8]", "model.net.hidden=[16,8]"],
-    "exp4_denoiser": ["model.net.channels=[4,8]", "model.net.kernel_size=9"],
-    "exp9_unet": ["model.net.filters=[2,4]"],
-}
-
-
-def _tiny(path, seed=0):
-    write_dataset(
-        path,
-        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-        build_prior("thesis", h=0.01),
-        RoadProfile(n_waves=200),
-        n_steps=512,
-        h=0.01,
-        speed_mps=30 / 3.6,
-        samples_per_profile=8,
-        seed=seed,
-        progress=False,
-        compression=None,
-    )
-    return path
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("app")
-    partial = root / "partial.h5"
-    with DatasetWriter(partial) as writer:
-        for split in ("train", "test"):
-            writer.create_split(split, 8, 512, keys=("accel", "road", "params"))
-            writer.write(
-                split,
-                0,
-                accel=np.random.rand(8, 512, 3).astype(np.float32),
-                road=np.zeros((8, 512), np.float32),
-                params=np.ones((8, 10)),
-            )
-    return {
-        "tiny": _tiny(root / "tiny.h5"),
-        "other": _tiny(root / "other.h5", seed=1),
-        "partial": partial,
-        "root": root,
-    }
-
-
-def _cfg(overrides, out_dir):
-    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        return compose("train", overrides=[*overrides, f"paths.root_dir={out_dir}", f"paths.output_dir={out_dir}"])
+def data(train_files):
+    """The tiny training files (conftest.train_files: one per session, shared with the export and tracking tests)."""
+    return train_files
 
 
 @pytest.fixture(scope="module")
-def trained(data):
-    """Short in-process runs of exp2 (physics CNN) and exp4 (CAE); returns their run folders."""
-    runs = {}
-    for exp in ("exp2_physics", "exp4_denoiser"):
-        out = data["root"] / exp
-        metrics = train(_cfg([f"experiment={exp}", f"data.path={data['tiny']}", *SMALL, *SMALL_NET[exp]], out))
-        assert metrics
-        runs[exp] = out
-    return runs
+def trained(train_runs):
+    """Short in-process runs of exp2 (physics CNN) and exp4 (CAE) (conftest.train_runs: one per session)."""
+    return train_runs
 
 
 # -- configs ---------------------------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from conftest import app_in_process
 from hybridqcm.config import CONFIG_DIR, check_schema_overrides
 from hybridqcm.data.hdf5 import LAYOUT, dataset_info, read_split
 from hybridqcm.data.vehicle_files import read_seat_split
@@ -146,10 +147,9 @@ def test_quarter_car_files_are_unchanged(tmp_path):
 
 
 def test_hcm_full_observation_run(files, tmp_path):
-    proc = _run(
-        "qcm-estimate", tmp_path / "run", "experiment=hcm_full_observation", f"data.path={files['hcm']}", "n_samples=4"
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    # qcm-estimate's run in-process (the vehicles' console: test_bad_vehicle_inputs_on_the_console)
+    overrides = ["experiment=hcm_full_observation", f"data.path={files['hcm']}", "n_samples=4", "progress=false"]
+    app_in_process("estimate", tmp_path / "run", *overrides)
     with open(tmp_path / "run" / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == 4

@@ -9,8 +9,6 @@ runs on its files as a user would, and its answers are scored against the consta
 
 import csv
 import importlib.util
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -68,9 +66,10 @@ def _make(path, **kw):
 
 
 def _estimate(run_dir, *overrides):
-    cmd = [sys.executable, "-m", "hybridqcm.apps.estimate", *overrides, f"hydra.run.dir={run_dir}", "progress=false"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    """qcm-estimate's run in-process (these tests are about the estimates; its console: test_app_estimate)."""
+    from conftest import app_in_process
+
+    app_in_process("estimate", run_dir, *overrides, "progress=false")
     with open(run_dir / "estimates.csv", newline="") as handle:
         return list(csv.DictReader(handle))
 

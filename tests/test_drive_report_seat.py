@@ -7,8 +7,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import subprocess
-import sys
 
 import h5py
 import numpy as np
@@ -16,6 +14,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from conftest import app_in_process
 from hybridqcm.estimation.calibration import SeatLaw, seat_document
 from hybridqcm.estimation.solver import SolverStatus
 from hybridqcm.reports.drive import aggregate_drives
@@ -89,22 +88,17 @@ def test_drives_csv_carries_the_occupant_through_the_seat_law(tmp_path):
     assert b["status"] == "no_usable_window" and b["occupant_mass"] == b["occupant_mass_low"] == ""
 
 
-def _app(module, run_dir, *overrides):
-    cmd = [sys.executable, "-m", f"hybridqcm.apps.{module}", *overrides, f"hydra.run.dir={run_dir}", "progress=false"]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-
-
 def test_aggregate_drive_with_a_seat_file_end_to_end(tmp_path):
     """qcm-simulate foam seat (the law below), two occupants (55, 105 kg) as known loads cycled over 8 windows,
     cut here into two drives of 4 windows each (profile_id, t_start); the seat file holds the simulator's law.
     drives.csv's occupant_mass is within 0.5 % of each drive's truth (noise-free) and its interval covers it."""
     data = tmp_path / "drives.h5"
-    proc = _app(
+    # qcm-simulate's and qcm-estimate's runs in-process (their console: test_app_simulate, test_drive_report)
+    app_in_process(
         "simulate", tmp_path / "sim", "preset=tiny", f"output={data}", "~splits.train", "splits.test.profiles={A: 6}",
         "samples_per_profile=1", "seat.law=power", f"seat.exponent={E}", f"seat.pan_mass={PAN}",
-        "seat.known_loads=[55,105]",
+        "seat.known_loads=[55,105]", "progress=false",
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     with h5py.File(data, "r+") as f:
         truth = f["test/truth_occupant_mass"][()]
         n = truth.size
@@ -114,11 +108,10 @@ def test_aggregate_drive_with_a_seat_file_end_to_end(tmp_path):
     seat = SeatLaw(98935.0, E, PAN, np.diag([50.0**2, 1e-3**2, 0.05**2]), loads=[0.0, 60.0, 120.0])
     seat_file = tmp_path / "seat.json"
     seat_file.write_text(seat_document(seat, {"fit": {}}))
-    proc = _app(
+    app_in_process(
         "estimate", tmp_path / "est", "experiment=occupant_roadfree", "occupant.models=[rigid]", "delay=null",
-        f"data.path={data}", f"seat_file={seat_file}", "aggregate=drive", "plots=false",
+        f"data.path={data}", f"seat_file={seat_file}", "aggregate=drive", "plots=false", "progress=false",
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     with open(tmp_path / "est" / "drives.csv", newline="") as handle:
         drives = list(csv.DictReader(handle))
     assert [r["drive"] for r in drives] == ["0", "1"]

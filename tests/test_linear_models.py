@@ -378,24 +378,14 @@ def test_sprung_persons_are_weighed_by_their_static_mass(persons_file, tmp_path)
     the body models the static mass is within 0.5 % and the body's rigid part and frequency are the
     truth's (the diagnostics read the body's columns, after p1..p6); the rigid model is > 10 % off."""
     import csv
-    import subprocess
-    import sys
 
     import h5py
 
-    cmd = [
-        sys.executable,
-        "-m",
-        "hybridqcm.apps.estimate",
-        "experiment=sprung_roadfree",
-        f"data.path={persons_file}",
-        "occupant.models=[rigid,body1]",
-        f"hydra.run.dir={tmp_path}",
-        "progress=false",
-        "tensorboard=false",
-    ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    from conftest import app_in_process
+
+    # qcm-estimate's run in-process (its console: test_app_estimate and the others)
+    overrides = ["experiment=sprung_roadfree", f"data.path={persons_file}", "occupant.models=[rigid,body1]"]
+    app_in_process("estimate", tmp_path, *overrides, "progress=false", "tensorboard=false")
     with open(tmp_path / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     with h5py.File(persons_file, "r") as f:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import app_in_process
 from hybridqcm.physics.parameters import REFERENCE_VEHICLE, is_stable
 from hybridqcm.physics.prior import build_prior
 from hybridqcm.physics.seat_law import LoadedSeat, SeatLawPrior
@@ -83,13 +84,13 @@ def _app(module, run_dir, *overrides):
 
 
 def _simulate(tmp_path, name, *overrides):
+    """qcm-simulate's run in-process (conftest.app_in_process; qcm-calibrate below runs on the console)."""
     path = tmp_path / f"{name}.h5"
     seat = ["seat.law=power", f"seat.exponent={E}", f"seat.c3_exponent={EC}", f"seat.pan_mass={PAN}"]
-    proc = _app(
+    app_in_process(
         "simulate", tmp_path / f"sim_{name}", "preset=tiny", f"output={path}", "~splits.train",
-        "splits.test.profiles={A: 2, B: 1, C: 1}", *seat, *overrides,
+        "splits.test.profiles={A: 2, B: 1, C: 1}", *seat, *overrides, "progress=false",
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     return path
 
 
@@ -112,11 +113,10 @@ def test_a_simulated_foam_seat_calibrated_by_qcm_calibrate_recovers_its_law(tmp_
     assert law["c3_exponent"] == pytest.approx(EC, abs=0.01) and law["C3_ref"] == pytest.approx(615.0, rel=5e-3)
 
     unknown = _simulate(tmp_path, "unknown", "samples_per_profile=1", "seed=5")
-    proc = _app(
+    app_in_process(
         "estimate", tmp_path / "est", "experiment=occupant_roadfree", "occupant.models=[rigid]", "delay=null",
-        f"data.path={unknown}", f"seat_file={seat_file}", "plots=false",
+        f"data.path={unknown}", f"seat_file={seat_file}", "plots=false", "progress=false",
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     with open(tmp_path / "est" / "estimates.csv", newline="") as handle:
         rows = list(csv.DictReader(handle))
     with h5py.File(unknown, "r") as f:
@@ -127,11 +127,10 @@ def test_a_simulated_foam_seat_calibrated_by_qcm_calibrate_recovers_its_law(tmp_
     assert np.all(np.abs(mass / truth - 1) < 0.01), (mass, truth)
 
     # the road-driven quarter car (exp5: all ten parameters from a3, a2, a1 and the road) reads it too
-    proc = _app(
+    app_in_process(
         "estimate", tmp_path / "road", "experiment=exp5_random_init", "n_samples=3", f"data.path={unknown}",
-        f"seat_file={seat_file}", "plots=false",
+        f"seat_file={seat_file}", "plots=false", "progress=false",
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
     with open(tmp_path / "road" / "estimates.csv", newline="") as handle:
         rows = [r for r in csv.DictReader(handle) if r["status"] == "converged"]
     assert rows

@@ -24,7 +24,10 @@ from hybridqcm.physics.seated import BODY_RANGES, draw_body, physical_matrices, 
 REPO = Path(__file__).resolve().parents[1]
 # the last commit before occupant=: its generator is "today's" for the rigid occupant
 BEFORE = "935b0a8"
-ENV_COLUMNS = {"COLUMNS": "160", "PYTHONWARNINGS": "ignore"}
+# one BLAS thread in every run whose files are compared byte for byte, as the README says for byte-exact data:
+# a threaded GEMM splits its sums by its threads, and MKL may change their number under load (two body1 runs
+# of one seed once differed under a loaded full suite; test_app_simulate saw 1 ulp of float32 in a3)
+ENV_COLUMNS = {"COLUMNS": "160", "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 # one small dataset, written by the code before and after the change
 SMALL = dict(
