@@ -36,6 +36,7 @@ from hybridqcm.errors import ConfigError
 class DataSettings:
     path: str = MISSING
     split: str = MISSING
+    space: str = MISSING
 
 
 @dataclass
@@ -100,6 +101,8 @@ class DriveSettings:
     neighbours: int = MISSING
     per_window: list[str] = MISSING
     joint: str = MISSING
+    split: str = MISSING
+    space: str = MISSING
     plots: int = MISSING
 
 
