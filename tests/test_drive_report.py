@@ -271,6 +271,17 @@ def test_drive_plan_checks_the_joint_setting(tmp_path):
     cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "always"}})
     with pytest.raises(Exception, match=r"drive.joint='always': choose one of \['none', 'final', 'progress'\]"):
         drive_plan(cfg, plan)
+    # the combination's defaults (estimation/drive.py) and their one-line refusals
+    default = drive_plan(OmegaConf.create({"aggregate": "drive", "drive": settings}), plan)
+    assert (default.scale, default.split, default.space) == ("marginal", "pooled", "log")
+    for key, bad, choices in [
+        ("scale", "robust", r"\['none', 'birge', 'marginal'\]"),
+        ("split", "chow", r"\['wald', 'pooled'\]"),
+        ("space", "sqrt", r"\['log', 'linear'\]"),
+    ]:
+        cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, key: bad}})
+        with pytest.raises(Exception, match=rf"drive.{key}='{bad}': choose one of {choices}"):
+            drive_plan(cfg, plan)
 
 
 @pytest.mark.parametrize(

@@ -36,7 +36,6 @@ from hybridqcm.errors import ConfigError
 class DataSettings:
     path: str = MISSING
     split: str = MISSING
-    space: str = MISSING
 
 
 @dataclass
