@@ -110,6 +110,8 @@ def main(argv=None) -> None:
         names=tuple(names),
         window_s=window_s,
         joint=str(args.joint or settings.get("joint", "none")),
+        split=str(settings.get("split", "pooled")),
+        space=str(settings.get("space", "log")),
     )
     n_models = columns["drive_cand_logz"].shape[1]
     names_m = list(NAMES[:n_models]) if n_models > 1 else ["rigid"]

@@ -182,7 +182,8 @@ def test_a_drive_pools_its_windows_under_the_model_of_most_summed_evidence(tmp_p
     logz[::4, 1] = best_rigid[::4] + 2.0  # two windows on their own prefer body1 either way
     columns["drive_model"] = logz.argmax(1)
     log_prior = {"rigid": -0.2, "body1": 0.0}
-    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",))
+    # in θ (space="linear"): the combination that this test computes independently
+    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",), space="linear")
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     params = ("p1", "p2", "r1", "k1", "c1", "tau")
     aggregate_drives(cfg, {}, plan, columns, tmp_path, names, params, log_prior)
@@ -271,6 +272,17 @@ def test_drive_plan_checks_the_joint_setting(tmp_path):
     cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, "joint": "always"}})
     with pytest.raises(Exception, match=r"drive.joint='always': choose one of \['none', 'final', 'progress'\]"):
         drive_plan(cfg, plan)
+    # the combination's defaults (estimation/drive.py) and their one-line refusals
+    default = drive_plan(OmegaConf.create({"aggregate": "drive", "drive": settings}), plan)
+    assert (default.scale, default.split, default.space) == ("marginal", "pooled", "log")
+    for key, bad, choices in [
+        ("scale", "robust", r"\['none', 'birge', 'marginal'\]"),
+        ("split", "chow", r"\['wald', 'pooled'\]"),
+        ("space", "sqrt", r"\['log', 'linear'\]"),
+    ]:
+        cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, key: bad}})
+        with pytest.raises(Exception, match=rf"drive.{key}='{bad}': choose one of {choices}"):
+            drive_plan(cfg, plan)
 
 
 @pytest.mark.parametrize(
@@ -397,7 +409,7 @@ def test_windows_with_and_without_their_own_delay_combine_as_the_joint_fit(tmp_p
         "m3_low": torch.full((n_w,), 70.0, dtype=torch.float64),
         "m3_high": torch.full((n_w,), 90.0, dtype=torch.float64),
     }
-    plan = _plan([0] * n_w, [5.0 * k for k in range(n_w)], ["D"], scale="none")
+    plan = _plan([0] * n_w, [5.0 * k for k in range(n_w)], ["D"], scale="none", space="linear")  # the linear fit
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     aggregate_drives(cfg, {}, plan, columns, tmp_path, ["rigid", "rigid+delay"], ("p1", "p2", "tau"))
     (row,) = _rows(tmp_path / "drives.csv")

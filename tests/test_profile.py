@@ -123,3 +123,20 @@ def test_leverage_corrected_noise_variance_is_unbiased():
     assert abs(float(plain.mean()) - expected_plain) < 0.01
     assert abs(float(corrected.mean()) - 1.0) < 0.01
     assert float(parseval_weights(T).sum()) == T - 1
+
+
+def test_a_sigma_many_times_the_value_gives_an_open_interval_not_an_error():
+    """A Laplace σ thousands of times θ (a window standing still: next to no signal in p2) stepped the first
+    profile point to θ e^(1.96 σ/θ) = inf and the solver refused it ("initial params contain NaN/inf"), which
+    stopped a whole run of drives with a stop. Now the step in log θ is bounded: no error, the other rows'
+    intervals unchanged, the wide row's ends numbers (not NaN)."""
+    problem, truth = _seat_problem(sigma=0.4)
+    params, cov, _ = _fit(problem, truth)
+    solver = build_solver("gauss_newton", max_iterations=8, covariance="model")
+    low, high, _ = profile_interval(solver, problem, params, cov, 1)
+    wide = cov.clone()
+    wide[0, 1, 1] = (5e3 * params[0, 1]) ** 2
+    low_w, high_w, _ = profile_interval(solver, problem, params, wide, 1)
+    torch.testing.assert_close(low_w[1:], low[1:])
+    torch.testing.assert_close(high_w[1:], high[1:])
+    assert not bool(torch.isnan(low_w[0])) and not bool(torch.isnan(high_w[0]))

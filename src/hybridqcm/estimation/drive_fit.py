@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from .blocks import build_inputs
-from .drive import Gaussian, InformationCombiner
+from .drive import Gaussian, InformationCombiner, scaled
 from .drive_joint import joint_gauss_newton
 from .initial_state import project_initial_state
 from .problems import ProblemEvaluation
@@ -201,15 +201,16 @@ def robust_ratio(view, rows, columns: Tensor, layout: Sequence[str], names: Sequ
 
 
 def as_gaussian(answer: SegmentAnswer, base: Gaussian, scale: str, robust: Tensor | None = None) -> Gaussian:
-    """The segment's Gaussian from the joint fit, with the windows' consistency (χ², dof) of the combination
-    ``base``; robust [s]: per-parameter factors on the standard deviations (:func:`robust_ratio`); scale
-    "birge": the covariance widened by max(1, χ²/dof) as the combination's is."""
+    """The segment's Gaussian from the joint fit, with the windows' consistency (χ², dof, the focus's χ²) of the
+    combination ``base``; robust [s]: per-parameter factors on the standard deviations (:func:`robust_ratio`);
+    scale "birge" | "marginal": the covariance widened as the combination's is (estimation/drive.scaled; the
+    focus is p2)."""
     covariance = answer.covariance
     if robust is not None:
         covariance = covariance * robust[:, None] * robust[None, :]
-    if scale == "birge" and base.dof > 0 and base.chi2 > base.dof:
-        covariance = covariance * (base.chi2 / base.dof)
-    return Gaussian(answer.mean, covariance, base.chi2, base.dof, base.n)
+    g = Gaussian(answer.mean, covariance, base.chi2, base.dof, base.n, covariance, base.focus_chi2, base.focus_scatter)
+    focus = answer.names.index("p2") if "p2" in answer.names else None
+    return scaled(g, scale, focus)
 
 
 def joint_running(joint: JointDrives, view, good, segments, running, combiner, drive, param_names):

@@ -169,7 +169,8 @@ class DriveView:
         weight = None
         if drive.weights == "model":
             weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
-        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale)
+        log = (theta[:, keep] > 0).all(0) if drive.space == "log" else None  # positive parameters: in logarithms
+        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale, index, log)
         combiner.columns = keep  # the combined parameters' places in the common layout (a joint fit's start)
         return combiner, index
 

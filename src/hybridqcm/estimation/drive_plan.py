@@ -19,11 +19,12 @@ import numpy as np
 import torch
 
 from hybridqcm.errors import ConfigError, DatasetError
+from hybridqcm.estimation.drive import SCALES, SPLIT_TESTS
 from hybridqcm.estimation.solver import STATUS_LABELS
 
 WEIGHTS = ("reported", "model")
-SCALES = ("none", "birge")
 JOINTS = ("none", "final", "progress")
+SPACES = ("log", "linear")
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,8 @@ class DrivePlan:
     names: tuple[str, ...]
     window_s: float
     joint: str = "none"  # none | final | progress: segments (and their prefixes) by a joint fit (drive_fit.py)
+    split: str = "pooled"  # wald | pooled: the change-point test (estimation/drive.segment)
+    space: str = "log"  # log | linear: positive parameters combined in their logarithm (estimation/drive.py)
 
 
 def _fraction(settings, key: str) -> float:
@@ -82,11 +85,17 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
     bad = [s for s in statuses if s not in STATUS_LABELS.values()]
     if bad or not statuses:
         raise ConfigError(f"drive.statuses={statuses}: {bad or 'empty'}; choose from {list(STATUS_LABELS.values())}")
-    weights, scale = str(settings.get("weights", "reported")), str(settings.get("scale", "birge"))
+    weights, scale = str(settings.get("weights", "reported")), str(settings.get("scale", "marginal"))
     if weights not in WEIGHTS:
         raise ConfigError(f"drive.weights={weights!r}: choose one of {list(WEIGHTS)}")
     if scale not in SCALES:
         raise ConfigError(f"drive.scale={scale!r}: choose one of {list(SCALES)}")
+    split_test = str(settings.get("split", "pooled"))
+    space = str(settings.get("space", "log"))
+    if space not in SPACES:
+        raise ConfigError(f"drive.space={space!r}: choose one of {list(SPACES)}")
+    if split_test not in SPLIT_TESTS:
+        raise ConfigError(f"drive.split={split_test!r}: choose one of {list(SPLIT_TESTS)}")
     joint = str(settings.get("joint", "none"))
     if joint not in JOINTS:
         raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
@@ -134,6 +143,8 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         names=tuple(names),
         window_s=stored * float(plan["h"]),
         joint=joint,
+        split=split_test,
+        space=space,
     )
 
 

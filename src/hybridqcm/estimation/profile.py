@@ -32,6 +32,8 @@ from torch import Tensor
 from .problems import LeastSquaresProblem
 from .solver import NonlinearLeastSquares, SolverStatus
 
+MAX_LOG = 50.0  # the farthest step in log θ_c: e^50 ≈ 5e21 times θ_c, far past any interval end
+
 
 def profile_interval(
     solver: NonlinearLeastSquares,
@@ -73,7 +75,8 @@ def profile_interval(
         for _ in range(rounds):
             if rows.numel() == 0:
                 break
-            target = value[rows] * torch.exp(side * t[rows] * sigma[rows] / value[rows])
+            # in log θ_c; a σ_c many times θ_c (a window with next to no signal in θ_c) would step to exp(inf)
+            target = value[rows] * torch.exp((side * t[rows] * sigma[rows] / value[rows]).clamp(-MAX_LOG, MAX_LOG))
             here = current[rows]
             start = here + ridge[rows] * (target - here[:, column])[:, None]
             start[:, column] = target

@@ -100,6 +100,8 @@ class DriveSettings:
     neighbours: int = MISSING
     per_window: list[str] = MISSING
     joint: str = MISSING
+    split: str = MISSING
+    space: str = MISSING
     plots: int = MISSING
 
 

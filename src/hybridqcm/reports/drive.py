@@ -267,7 +267,7 @@ def _combine_drive(
     for o in outliers:
         reason[int(good[o])] = "outlier"
     kept = [i for i in local if i not in set(outliers)]
-    segments = segment(combiner, kept, drive.min_windows, drive.alpha)
+    segments = segment(combiner, kept, drive.min_windows, drive.alpha, drive.split)
     running = [[(g, index) for g in progress(combiner, seg)] for seg in segments]
     view.fit = "combined"
     if joint is not None and drive.joint != "none":
