@@ -144,23 +144,9 @@ def train_config(overrides, out_dir):
 
 
 def _train_tiny(path, seed=0):
-    from hybridqcm.data.simulate import write_dataset
-    from hybridqcm.physics import RoadProfile, build_prior
+    from test_datamodules import make_tiny_dataset  # the tests' tiny dataset, one definition
 
-    write_dataset(
-        path,
-        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-        build_prior("thesis", h=0.01),
-        RoadProfile(n_waves=200),
-        n_steps=512,
-        h=0.01,
-        speed_mps=30 / 3.6,
-        samples_per_profile=8,
-        seed=seed,
-        progress=False,
-        compression=None,
-    )
-    return path
+    return make_tiny_dataset(path, seed=seed)
 
 
 @pytest.fixture(scope="session")

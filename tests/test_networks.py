@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from conftest import tiny_datamodule
-from hybridqcm.data.simulate import simulate_samples, write_dataset
+from hybridqcm.data.simulate import simulate_samples
 from hybridqcm.errors import CheckpointError
 from hybridqcm.models import (
     CompletionUNet,
@@ -27,6 +27,7 @@ from hybridqcm.models.checkpoint import load_module
 from hybridqcm.models.physics_losses import balanced_residual_loss
 from hybridqcm.models.schedule import one_cycle_lr
 from hybridqcm.physics import RoadProfile, build_prior
+from test_datamodules import make_tiny_dataset
 
 SMALL_CNN = {
     "_target_": "hybridqcm.models.networks.ParameterCNN",
@@ -40,21 +41,7 @@ SMALL_CAE = {"_target_": "hybridqcm.models.networks.DenoisingCAE", "channels": [
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    path = tmp_path_factory.mktemp("data") / "tiny.h5"
-    write_dataset(
-        path,
-        {"train": {"profiles": {"A": 3, "B": 2, "C": 1}}, "test": {"profiles": {"A": 2, "B": 1, "C": 1}}},
-        build_prior("thesis", h=0.01),
-        RoadProfile(n_waves=200),
-        n_steps=512,
-        h=0.01,
-        speed_mps=30 / 3.6,
-        samples_per_profile=8,
-        seed=0,
-        progress=False,
-        compression=None,
-    )
-    return path
+    return make_tiny_dataset(tmp_path_factory.mktemp("data") / "tiny.h5")
 
 
 @pytest.fixture(scope="module")
