@@ -102,7 +102,12 @@ def test_exp10_on_the_gpu_gives_the_cpu_estimates(tiny_dataset, tmp_path, monkey
     "experiment",
     [
         ["experiment=exp5_random_init", "n_samples=8"],  # the exact model, x0 unknown, restarts
-        ["experiment=exp8_occupant_only", "n_samples=8", "noise_sigma=0.05"],  # noise model, intervals
+        [
+            "experiment=exp8_occupant_only",
+            "n_samples=8",
+            "noise_sigma=0.05",
+            "init.cnn=false",
+        ],  # noise model, intervals
     ],
     ids=["exp5", "exp8_noise"],
 )
