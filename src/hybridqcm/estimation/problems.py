@@ -225,7 +225,7 @@ class ProblemEvaluation:
     def data_normal_equations(self, params, index, band: int | None = None):
         """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``; with ``band``
         also the score matrix of :func:`~hybridqcm.estimation.uncertainty.score_groups` [b, n_free, n_free]
-        and (G, the jackknife's degrees of freedom [b, n_free] or None).
+        and (G, Satterthwaite degrees of freedom [b, n_free] or None).
 
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].

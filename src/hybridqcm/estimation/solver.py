@@ -115,8 +115,7 @@ class SolverConfig:
     #               (time-domain loss) — Huber-White, band-averaged so that model error coherent
     #               over neighbouring frequencies is seen;
     #   "jackknife": the delete-a-group jackknife over the same groups (the sandwich with leverage
-    #               correction) over its mean under the working model (unbiased where the whitened residual
-    #               is white), at the Student-t quantile of its Bell-McCaffrey degrees of freedom;
+    #               correction), at the Student-t quantile of its effective degrees of freedom;
     #   "robust_sandwich" / "robust_jackknife": per parameter the larger of "model" and that variance
     #               (correlations of "model"). The app chooses per model (intervals.covariance: auto in
     #               configs/estimate.yaml; estimation/plan_settings.resolve_covariance).
@@ -126,7 +125,7 @@ class SolverConfig:
     # unevaluated (inf), never a status it did not earn.
     uncertainty: bool = True
     covariance_band: int = 1
-    covariance_dof: bool = True  # jackknife: Student-t quantile at its (Bell-McCaffrey) degrees of freedom
+    covariance_dof: bool = True  # jackknife: Student-t quantile at its Satterthwaite degrees of freedom
     lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
     lm_min_damping: float = 1e-12
     lm_max_damping: float = 1e8
