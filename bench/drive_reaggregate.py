@@ -109,9 +109,9 @@ def main(argv=None) -> None:
         t_start=t_start,
         names=tuple(names),
         window_s=window_s,
-        joint=str(args.joint or settings.get("joint", "none")),
-        split=str(settings.get("split", "pooled")),
-        space=str(settings.get("space", "log")),
+        joint=str(args.joint or settings.get("joint", DrivePlan.joint)),
+        split=str(settings.get("split", DrivePlan.split)),
+        space=str(settings.get("space", DrivePlan.space)),
     )
     n_models = columns["drive_cand_logz"].shape[1]
     names_m = list(NAMES[:n_models]) if n_models > 1 else ["rigid"]

@@ -90,13 +90,13 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         raise ConfigError(f"drive.weights={weights!r}: choose one of {list(WEIGHTS)}")
     if scale not in SCALES:
         raise ConfigError(f"drive.scale={scale!r}: choose one of {list(SCALES)}")
-    split_test = str(settings.get("split", "pooled"))
-    space = str(settings.get("space", "log"))
+    split_test = str(settings.get("split", DrivePlan.split))
+    space = str(settings.get("space", DrivePlan.space))
     if space not in SPACES:
         raise ConfigError(f"drive.space={space!r}: choose one of {list(SPACES)}")
     if split_test not in SPLIT_TESTS:
         raise ConfigError(f"drive.split={split_test!r}: choose one of {list(SPLIT_TESTS)}")
-    joint = str(settings.get("joint", "none"))
+    joint = str(settings.get("joint", DrivePlan.joint))
     if joint not in JOINTS:
         raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
     import h5py
