@@ -3,8 +3,9 @@
     PYTHONPATH=src .venv/bin/python bench/calibration_crb.py FILE.h5 [--file-noise 0.05 --noise 0.05
         --exponent 0.5 --pan 12 --seat-file SEAT.json --first N --json OUT.json]
 
-bench/occupant_crb.py gives per recording the bound σ(ln p2) of one window (the frequency-domain Fisher
-information of the road-free seat model, a3 and a2 both noisy; for a rigid occupant the rigid model, for a
+bench/occupant_crb.py gives per recording the bound σ(ln p2) of one window (`--domain time`, the default: the
+finite window's Fisher information, bench/window_fisher.py; `dft`: the window taken as periodic, too small; of
+the road-free seat model, a3 and a2 both noisy; for a rigid occupant the rigid model, for a
 body1 person the body1 model at its true constants; τ known and unknown). On the reference seat that is the
 relative bound of the static mass M = K3 / p2. On a seat with the law K3(M) = K3_ref (M / 80)^e and a pan,
 the occupant = M(p2) - pan with ∂occupant/∂ln p2 = -M / (1 - e) (estimation/calibration.SeatLaw
@@ -77,12 +78,14 @@ def occupant_bounds(sd_ln_p2: np.ndarray, p2: np.ndarray, true: SeatLaw, fitted:
     return out
 
 
-def calibration_bound(crb, path: str, noise: float, file_noise: float, true: SeatLaw, law: str) -> SeatLaw:
+def calibration_bound(
+    crb, path: str, noise: float, file_noise: float, true: SeatLaw, law: str, domain: str = "dft"
+) -> SeatLaw:
     """The true law with the covariance of its Cramér–Rao bound from the calibration drives in ``path``."""
     accel, h, truth = crb.read_file(Path(path))
     with h5py.File(path, "r") as f:
         loads = f["test/known_mass"][()][: len(accel)]
-    sd = noise * crb.bounds(accel, h, truth, file_noise)["rigid_known"]
+    sd = noise * crb.bounds(accel, h, truth, file_noise, domain)["rigid_known"]
     theta = np.array([np.log(true.K3_ref), true.exponent, true.pan_mass])
     _, J = _model(theta, loads)
     free = np.array(NESTED[law])
@@ -105,12 +108,18 @@ def main(argv=None) -> None:
     ap.add_argument("--cal-law", default="power", choices=list(NESTED), help="the law whose parameters it fits")
     ap.add_argument("--first", type=int, help="the file's first N recordings only")
     ap.add_argument("--json", help="write the summary here")
+    ap.add_argument(
+        "--domain",
+        choices=("time", "dft"),
+        default="time",
+        help="one window's bound: time, the finite window (bench/window_fisher.py); dft, taken as periodic (too small)",
+    )
     args = ap.parse_args(argv)
     crb = _occupant_crb()
     accel, h, truth = crb.read_file(Path(args.file))
     if args.first is not None:
         accel, truth = accel[: args.first], crb._first(truth, args.first)
-    per = crb.bounds(accel, h, truth, args.file_noise)
+    per = crb.bounds(accel, h, truth, args.file_noise, args.domain)
     with h5py.File(args.file, "r") as f:
         n = len(accel)
         occupant = f["test/truth_occupant_mass"][()][:n]
@@ -122,7 +131,7 @@ def main(argv=None) -> None:
     fitted = load_seat(args.seat_file) if args.seat_file else None
     at_bound = None
     if args.cal_file:
-        at_bound = calibration_bound(crb, args.cal_file, args.noise, args.file_noise, true, args.cal_law)
+        at_bound = calibration_bound(crb, args.cal_file, args.noise, args.file_noise, true, args.cal_law, args.domain)
     kinds = np.asarray(truth["occupant"])
     result = {"file": args.file, "noise": args.noise, "n": int(n), "rows": []}
     for model, kind in (("rigid", 0), ("body1", 1)):

@@ -12,7 +12,9 @@ The information of a stationary drive grows in proportion to its duration D, so 
 is σ_M/M (D/T)^½ and an estimator at the bound has its 95 % interval within ±x after T_x = D (1.96 σ_M/M / x)²
 (the bound of a short stretch computed directly from its periodogram scatters from second to second: too few
 frequencies for the bound's large-sample form). Printed: the mean E|error| = sqrt(2/π) σ_M/M of whole drives
-and the median T_5, T_2.
+and the median T_5, T_2. `--domain time` takes the drive as the finite stretch it is (bench/window_fisher.py; the
+periodic bound is 1-9 % too small on 60 s drives), `--window 500` the summed information of its 5 s windows, each
+with its own initial state (the bound of the per-window estimate combined by information: 1-2 % above the whole's).
 """
 
 from __future__ import annotations
@@ -32,6 +34,35 @@ def _crb():
     return module
 
 
+def _windowed(crb, accel: np.ndarray, h: float, truth: dict, window: int) -> dict:
+    """occupant_crb.bounds' per-drive σ_M/M (unit noise) from the summed information of the drive's consecutive
+    windows of ``window`` samples (the remainder dropped), each window's bound in the time domain."""
+    n_rec, steps = accel.shape[:2]
+    k = steps // window
+    if k < 1:
+        raise SystemExit(f"drive_crb: --window {window}: longer than the drives ({steps} samples)")
+    pieces = accel[:, : k * window].reshape(n_rec * k, window, accel.shape[2])
+    # the noise is a fraction of the whole drive's RMS, not of each window's
+    rms = np.repeat(np.sqrt(np.mean(accel[:, :, :2] ** 2, axis=1)), k, axis=0)
+    per = crb.bounds(pieces, h, _repeat(truth, k), domain="time", rms=rms)
+    out = {}
+    for key, values in per.items():
+        v = np.asarray(values, dtype=float).reshape(n_rec, k)
+        if key == "fit_error":
+            out[key] = v[:, 0]
+            continue
+        with np.errstate(divide="ignore"):
+            info = np.nansum(v**-2.0, axis=1)
+        with np.errstate(divide="ignore"):
+            out[key] = np.where(np.isnan(v).all(axis=1), np.nan, info**-0.5)
+    return out
+
+
+def _repeat(truth: dict, k: int) -> dict:
+    """The truth of each drive repeated for its k windows (arrays per recording, nested dicts of them)."""
+    return {key: _repeat(v, k) if isinstance(v, dict) else np.repeat(np.asarray(v), k) for key, v in truth.items()}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("whole", help="foreign_sim drives --whole output (whole.h5)")
@@ -39,7 +70,25 @@ def main(argv=None) -> None:
     ap.add_argument("--delay-unknown", action="store_true", help="the channel delay estimated too")
     ap.add_argument("--n", type=int, help="the first n drives only (those a run estimated)")
     ap.add_argument("--json")
+    ap.add_argument(
+        "--domain",
+        choices=("dft", "time"),
+        default="dft",
+        help="dft: the drive taken as periodic; time: its finite stretch with an unknown initial state "
+        "(bench/window_fisher.py; the whole drive at once is slow: about 20 s a 60 s drive)",
+    )
+    ap.add_argument(
+        "--window",
+        type=int,
+        default=0,
+        help="--domain time: the information of consecutive windows of this many samples, each with its own "
+        "initial state, summed (what a per-window estimate combined by information can reach; 0: the whole drive)",
+    )
     args = ap.parse_args(argv)
+    if args.window and args.domain != "time":
+        raise SystemExit("drive_crb: --window is for --domain time")
+    if args.window < 0:
+        raise SystemExit(f"drive_crb: --window {args.window}: a number of samples >= 0")
     crb = _crb()
     accel, h, truth = crb.read_file(Path(args.whole))
     if args.n:
@@ -47,7 +96,10 @@ def main(argv=None) -> None:
     n_rec, steps = accel.shape[:2]
     # each drive's bound under the model an estimator has to fit (occupant_crb.bounds: rigid for a rigid
     # occupant, body1 at the true constants for a body1 person, body1 fitted to a body2 person)
-    per = crb.bounds(accel, h, truth)
+    if args.window:
+        per = _windowed(crb, accel, h, truth, args.window)
+    else:
+        per = crb.bounds(accel, h, truth, domain=args.domain)
     which = "unknown" if args.delay_unknown else "known"
     kinds = np.asarray(truth["occupant"]).astype(int)
     columns = np.stack([per[f"{m}_{which}"] for m in ("rigid", "body1", "body1fit")], 1)
@@ -61,6 +113,8 @@ def main(argv=None) -> None:
         "duration_s": steps * h,
         "noise": args.noise,
         "delay_unknown": bool(args.delay_unknown),
+        "domain": args.domain,
+        "window": args.window,
         "mean_abs_error_bound": float(np.sqrt(2 / np.pi) * whole.mean()),
         "median_t_to_5pct_s": float(np.median(t5)),
         "median_t_to_2pct_s": float(np.median(t2)),
