@@ -5,6 +5,7 @@
     .venv/bin/python bench/occupant_crb.py --synthetic body1 [--n 200 --steps 512 --h 0.01 --classes A B
         --speed-kmh 30 --seed 0]                     (recordings made here by bench/foreign_sim.py, noise-free)
     ... [--domain time|dft] [--clean data/persons/body1_n0.h5 [...]]   (a noisy file's noise-free twin, per file)
+    ... --body-prior --noise 0.05        (body1 with the default's literature prior as information, at one level)
 
 Two bounds of one window. ``--domain time`` (the default): the Fisher information of the model the estimator
 fits on the finite window — a3 = T(θ) a2 + the transient of an unknown initial state, errors in variables in
