@@ -237,21 +237,22 @@ def table(args) -> None:
                 f"{_bound(name)} | {_prior_bound(name)} | {_pct(s['within2'])} | {_pct(s['within5'])} | {_pct(s['within10'])} | "
                 f"{_pct(s['coverage'])} | {_pct(s['converged'])} | {_dishonest(name, s)} | {_seconds(s['seconds'])} |"
             )
-    speed = []
-    for name in args.files:  # the time of both on the same recordings, side by side on this machine
-        scores = {m: score(name, m, args.speed_runs) for m in METHODS}
-        if all(scores.values()) and all(v["seconds"] == v["seconds"] for v in scores.values()):
-            speed.append((name, scores["rigid"]["n"], scores["rigid"]["seconds"], scores["persons"]["seconds"]))
-    if speed:
-        lines += [
-            "",
-            "Time (GN solve, the same recordings, both on this machine's two processes, `run --runs "
-            f"{args.speed_runs.relative_to(ROOT)}`; issue target ≤ 4×):",
-            "",
-        ]
-        lines += [
-            f"- {name}, {n} recordings: before {a:.1f} s, after {b:.1f} s: {b / a:.0f}×" for name, n, a, b in speed
-        ]
+    for runs in args.speed_runs:
+        speed = []
+        for name in args.files:  # the time of both on the same recordings, side by side on this machine
+            scores = {m: score(name, m, runs) for m in METHODS}
+            if all(scores.values()) and all(v["seconds"] == v["seconds"] for v in scores.values()):
+                speed.append((name, scores["rigid"]["n"], scores["rigid"]["seconds"], scores["persons"]["seconds"]))
+        if speed:
+            lines += [
+                "",
+                f"Time (GN solve, the same recordings side by side on this machine, the runs in "
+                f"`{runs.resolve().relative_to(ROOT)}`; issue target ≤ 4×):",
+                "",
+            ]
+            lines += [
+                f"- {name}, {n} recordings: before {a:.1f} s, after {b:.1f} s: {b / a:.0f}×" for name, n, a, b in speed
+            ]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
@@ -343,7 +344,14 @@ def main(argv=None) -> None:
     t = sub.add_parser("table", help="write the markdown table")
     t.add_argument("--files", nargs="+", default=list(FILES))
     t.add_argument("--out", default=str(ROOT / "docs" / "results" / "persons.md"))
-    t.add_argument("--speed-runs", type=Path, default=ROOT / "outputs" / "persons_speed", help="the timing runs")
+    t.add_argument(
+        "--speed-runs",
+        type=Path,
+        nargs="+",
+        default=[ROOT / "outputs" / "persons_speed", ROOT / "outputs" / "persons_speed400"],
+        help="folders of timing runs (<file> and <file>__rigid each), one time list per folder that has them "
+        "(persons_speed400: links to `speed --n 400`'s runs)",
+    )
     i = sub.add_parser("import", help="file an estimates.csv made elsewhere as a file's after-run")
     i.add_argument("--csv", required=True)
     i.add_argument("--file", required=True, choices=FILES)
