@@ -4,8 +4,9 @@ The frequency-domain bound of bench/occupant_crb.py (``--domain dft``) treats th
 A3_k = H_k A2_k exactly. A recording is a cut out of a drive, so |A2_k|² of the window holds the leakage of its
 edges (a 1-2 Hz chassis motion cut at both ends spreads power over every bin, to the seat's 4-6 Hz as well), and the
 transient the window starts with (the seat's unknown state) costs information that no bin accounts for. Both make
-that bound too small: on 100 rigid recordings of 5.12 s the finite window's bound below is 1.08x the periodic one
-at the median and 1.19x on average (bench: `occupant_crb.py FILE --domain both`). This module is the bound of the
+that bound too small: on 100 rigid recordings of 5 s (noise on a3) the finite window's bound below is 1.08-1.11x
+the periodic one at the median and 1.19x on average (`occupant_crb.py FILE --domain time` against `--domain dft`;
+bench/bound_check.py puts the estimator beside both). This module is the bound of the
 model the estimator fits, on the samples it sees:
 
     y = T(θ) u + O(θ) x0 + (noise),    u the a2 samples [N], y the a3 samples [N],
