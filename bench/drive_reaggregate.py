@@ -112,6 +112,8 @@ def main(argv=None) -> None:
         joint=str(args.joint or settings.get("joint", DrivePlan.joint)),
         split=str(settings.get("split", DrivePlan.split)),
         space=str(settings.get("space", DrivePlan.space)),
+        prior=str(settings.get("prior", DrivePlan.prior)),
+        prior_from=str(settings.get("prior_from", DrivePlan.prior_from)),
     )
     n_models = columns["drive_cand_logz"].shape[1]
     names_m = list(NAMES[:n_models]) if n_models > 1 else ["rigid"]

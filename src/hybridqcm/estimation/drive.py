@@ -228,13 +228,19 @@ class InformationCombiner:
             self.scale,
             self.focus,
         )
-        if not bool(self.log.any()):
-            return g
-        value = torch.where(self.log, mean.exp(), mean)
-        d = torch.where(self.log, value, torch.ones_like(value))
-        jac = d.unsqueeze(1) * d.unsqueeze(0)
-        scatter = focus_scatter * float(d[self.focus]) ** 2 if self.focus is not None else math.nan
-        return Gaussian(value, g.covariance * jac, chi2, dof, len(idx), g.raw * jac, focus_chi2, scatter)
+        return in_theta(g, self.log, self.focus)
+
+
+def in_theta(g: Gaussian, log: Tensor, focus: int | None = None) -> Gaussian:
+    """A combination in the combiner's coordinates answered in θ: the parameters ``log`` [d] bool combined in
+    their logarithm mapped back (θ = exp, covariances D C D with D = diag θ, the focus's scatter likewise)."""
+    if not bool(log.any()):
+        return g
+    value = torch.where(log, g.mean.exp(), g.mean)
+    d = torch.where(log, value, torch.ones_like(value))
+    jac = d.unsqueeze(1) * d.unsqueeze(0)
+    scatter = g.focus_scatter * float(d[focus]) ** 2 if focus is not None else math.nan
+    return Gaussian(value, g.covariance * jac, g.chi2, g.dof, g.n, g.raw * jac, g.focus_chi2, scatter)
 
 
 def scaled(g: Gaussian, scale: str, focus: int | None = None) -> Gaussian:
@@ -403,6 +409,7 @@ __all__ = [
     "segment",
     "pooled_f",
     "scaled",
+    "in_theta",
     "SCALES",
     "SPLIT_TESTS",
     "isolated_outliers",

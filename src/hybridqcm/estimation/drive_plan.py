@@ -25,6 +25,8 @@ from hybridqcm.estimation.solver import STATUS_LABELS
 WEIGHTS = ("reported", "model")
 JOINTS = ("none", "final", "progress")
 SPACES = ("log", "linear")
+PRIORS = ("windows", "once")
+PRIOR_SOURCES = ("model", "reported")
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,8 @@ class DrivePlan:
     joint: str = "none"  # none | final | progress: segments (and their prefixes) by a joint fit (drive_fit.py)
     split: str = "pooled"  # wald | pooled: the change-point test (estimation/drive.segment)
     space: str = "log"  # log | linear: positive parameters combined in their logarithm (estimation/drive.py)
+    prior: str = "windows"  # windows | once: the body prior as each window counts it, or once (drive_prior.py)
+    prior_from: str = "model"  # model | reported: the covariance the prior is taken out of (drive_prior.py)
 
 
 def _fraction(settings, key: str) -> float:
@@ -96,6 +100,16 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         raise ConfigError(f"drive.space={space!r}: choose one of {list(SPACES)}")
     if split_test not in SPLIT_TESTS:
         raise ConfigError(f"drive.split={split_test!r}: choose one of {list(SPLIT_TESTS)}")
+    prior, prior_from = (
+        str(settings.get("prior", DrivePlan.prior)),
+        str(settings.get("prior_from", DrivePlan.prior_from)),
+    )
+    if prior not in PRIORS:
+        raise ConfigError(f"drive.prior={prior!r}: choose one of {list(PRIORS)}")
+    if prior_from not in PRIOR_SOURCES:
+        raise ConfigError(f"drive.prior_from={prior_from!r}: choose one of {list(PRIOR_SOURCES)}")
+    if prior == "once" and weights == "model":
+        raise ConfigError("drive.prior=once needs drive.weights=reported (the sandwich's weights keep each prior)")
     joint = str(settings.get("joint", DrivePlan.joint))
     if joint not in JOINTS:
         raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
@@ -145,6 +159,8 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         joint=joint,
         split=split_test,
         space=space,
+        prior=prior,
+        prior_from=prior_from,
     )
 
 
@@ -239,4 +255,6 @@ __all__ = [
     "WEIGHTS",
     "SCALES",
     "JOINTS",
+    "PRIORS",
+    "PRIOR_SOURCES",
 ]
