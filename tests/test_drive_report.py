@@ -275,10 +275,13 @@ def test_drive_plan_checks_the_joint_setting(tmp_path):
     # the combination's defaults (estimation/drive.py) and their one-line refusals
     default = drive_plan(OmegaConf.create({"aggregate": "drive", "drive": settings}), plan)
     assert (default.scale, default.split, default.space) == ("marginal", "pooled", "log")
+    assert (default.prior, default.prior_from) == ("windows", "model")
     for key, bad, choices in [
         ("scale", "robust", r"\['none', 'birge', 'marginal'\]"),
         ("split", "chow", r"\['wald', 'pooled'\]"),
         ("space", "sqrt", r"\['log', 'linear'\]"),
+        ("prior", "twice", r"\['windows', 'once'\]"),
+        ("prior_from", "both", r"\['model', 'reported'\]"),
     ]:
         cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, key: bad}})
         with pytest.raises(Exception, match=rf"drive.{key}='{bad}': choose one of {choices}"):
