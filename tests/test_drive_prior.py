@@ -6,7 +6,7 @@ must be the stationary point of the joint log posterior (its gradient by autogra
 import pytest
 import torch
 
-from hybridqcm.estimation.drive import InformationCombiner
+from hybridqcm.estimation.drive import InformationCombiner, wald
 from hybridqcm.estimation.drive_prior import PriorOnceCombiner
 
 
@@ -113,3 +113,23 @@ def test_prior_once_without_any_prior_is_todays_combination():
     old = InformationCombiner(theta, cov, scale="marginal", focus=1).combine(range(5))
     assert torch.allclose(new.mean, old.mean, atol=1e-12) and torch.allclose(new.covariance, old.covariance, atol=1e-12)
     assert new.chi2 == pytest.approx(old.chi2, rel=1e-9) and new.focus_scatter == pytest.approx(old.focus_scatter)
+
+
+def test_prior_once_tests_compare_the_likelihoods_not_the_posteriors_that_share_the_prior():
+    """Two halves of a drive: wald() between their prior-once combinations is the Wald statistic of the halves'
+    least-squares estimates (computed here from the windows' own data), not of their posteriors."""
+    theta, cov, mu, lam, _, _, own, info = _posterior_windows(8, 4)
+    combiner = PriorOnceCombiner(theta, cov, mu.expand(8, 3), lam.expand(8, 3))
+    halves = [list(range(4)), list(range(4, 8))]
+    fits = []
+    for half in halves:
+        total = info[half].sum(0)
+        fits.append((torch.linalg.solve(total, (info[half] @ own[half].unsqueeze(-1)).squeeze(-1).sum(0)), total))
+    diff = fits[0][0] - fits[1][0]
+    expected = float(diff @ torch.linalg.solve(torch.linalg.inv(fits[0][1]) + torch.linalg.inv(fits[1][1]), diff))
+    a, b = (combiner.combine(h) for h in halves)
+    assert wald(a, b) == pytest.approx(expected, rel=1e-9)
+    posterior = a.mean - b.mean
+    assert float(posterior @ torch.linalg.solve(a.covariance + b.covariance, posterior)) != pytest.approx(
+        expected, rel=1e-3
+    )

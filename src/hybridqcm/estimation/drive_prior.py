@@ -40,8 +40,10 @@ docstring): χ² = Σ_w (x̃_w − x̄)ᵀ L_w (x̃_w − x̄) of each window's 
 their flat combination x̄ = (Σ L_w)⁻¹ Σ η_w (χ²_{d(n−1)} for linear-Gaussian windows, whatever the prior), the
 focus's χ²_f with the likelihoods' variances (L_w⁻¹)_ff, and the delete-one-window jackknife
 x̂_(−w) = (Σ_{v≠w} L_v + P(x̂))⁻¹ (Σ_{v≠w} η_v + P(x̂) x̂ + g(x̂)) (one Newton step from x̂, the prior kept).
-A segment's combination counts the prior once too, so segment(), isolated_outliers() and progress() need nothing
-else (one window's combination is its own posterior again).
+A segment's combination counts the prior once too (one window's combination is its own posterior again). Two
+segments' posteriors share that prior, so they are not independent estimates: the tests between combinations
+(estimation/drive.wald, pooled_f: the outliers and the change of occupant) compare their likelihoods' own
+combinations x̄ with covariance (Σ L_w)⁻¹ (``Gaussian.flat``), scaled as the posterior is.
 """
 
 from __future__ import annotations
@@ -162,9 +164,10 @@ class PriorOnceCombiner:
             rhs = moment + curv * mean + grad - eta
             loo = torch.linalg.solve(information - L, rhs)[:, f]
             focus_scatter = float((loo - loo.mean()).square().sum()) * (n - 1) / n
-        g = scaled(
-            Gaussian(mean, covariance, chi2, dof, n, covariance, focus_chi2, focus_scatter), self.scale, self.focus
-        )
+        flat_cov = torch.linalg.inv(total)
+        flat = (flat, 0.5 * (flat_cov + flat_cov.T))
+        g = Gaussian(mean, covariance, chi2, dof, n, covariance, focus_chi2, focus_scatter, flat)
+        g = scaled(g, self.scale, self.focus)
         return in_theta(g, self.log, self.focus)
 
 
