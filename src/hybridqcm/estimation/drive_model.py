@@ -198,10 +198,11 @@ class DriveView:
 
     def _priors(self, rows: np.ndarray, param_names: Sequence[str], n_p: int) -> tuple[torch.Tensor, torch.Tensor]:
         """(mean [W, P], precision [W, P]) of the windows' priors: the shards' drive_cand_prior_* where they carry
-        them; else (shards written before) assumed: the body prior (physics/occupant.BODY_PRIOR) on every body
+        them for every window; else (shards written before, a single model's fit) assumed: the body prior (physics/occupant.BODY_PRIOR) on every body
         parameter of every window, as the refinement applies it on a recording with a sensor noise floor."""
-        if all(int(r) in self.prior for r in rows):
-            return (torch.stack([self.prior[int(r)][k] for r in rows]).double() for k in (0, 1))
+        known = all(int(r) in self.prior and bool(torch.isfinite(self.prior[int(r)][1]).all()) for r in rows)
+        if known:
+            return tuple(torch.stack([self.prior[int(r)][k] for r in rows]).double() for k in (0, 1))
         mean, std = body_prior(2)
         body = [f"{x}{i}" for i in (1, 2) for x in MODE_PARAMS]
         m = torch.zeros(n_p, dtype=torch.float64)
