@@ -179,7 +179,7 @@ class DriveView:
             weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
         log = (theta[:, keep] > 0).all(0) if drive.space == "log" else None  # positive parameters: in logarithms
         if drive.prior == "once":
-            mean, precision = self._priors(rows, param_names, theta.shape[1])
+            mean, precision = self._priors(rows, param_names, theta.shape[1], keep)
             model = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
             combiner = PriorOnceCombiner(
                 theta[:, keep],
@@ -196,13 +196,14 @@ class DriveView:
         combiner.columns = keep  # the combined parameters' places in the common layout (a joint fit's start)
         return combiner, index
 
-    def _priors(self, rows: np.ndarray, param_names: Sequence[str], n_p: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _priors(self, rows: np.ndarray, param_names: Sequence[str], n_p: int, keep: torch.Tensor):
         """(mean [W, P], precision [W, P]) of the windows' priors: the shards' drive_cand_prior_* where they carry
-        them for every window; else (shards written before, a single model's fit) assumed: the body prior (physics/occupant.BODY_PRIOR) on every body
-        parameter of every window, as the refinement applies it on a recording with a sensor noise floor."""
-        known = all(int(r) in self.prior and bool(torch.isfinite(self.prior[int(r)][1]).all()) for r in rows)
-        if known:
-            return tuple(torch.stack([self.prior[int(r)][k] for r in rows]).double() for k in (0, 1))
+        them for every window on the combined parameters ``keep``; else (shards written before, a single model's
+        fit) assumed: the body prior (physics/occupant.BODY_PRIOR) on every body parameter of every window, as the
+        refinement applies it on a recording with a sensor noise floor."""
+        known = all(int(r) in self.prior and bool(torch.isfinite(self.prior[int(r)][1][keep]).all()) for r in rows)
+        if known:  # NaN elsewhere: parameters the model lacks
+            return tuple(torch.stack([self.prior[int(r)][k] for r in rows]).double().nan_to_num(0.0) for k in (0, 1))
         mean, std = body_prior(2)
         body = [f"{x}{i}" for i in (1, 2) for x in MODE_PARAMS]
         m = torch.zeros(n_p, dtype=torch.float64)
