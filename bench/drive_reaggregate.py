@@ -67,6 +67,11 @@ def main(argv=None) -> None:
     ap.add_argument("--prior-per-window", action="store_true", help="the model prior as each window counts it")
     ap.add_argument("--model-cov", action="store_true", help="the model-based covariance as each window's own")
     ap.add_argument(
+        "--assume-prior",
+        action="store_true",
+        help="drive.prior=once: ignore the shards' drive_cand_prior_* and assume the body prior on every body window",
+    )
+    ap.add_argument(
         "--joint",
         choices=("none", "final", "progress"),
         default=None,
@@ -83,6 +88,8 @@ def main(argv=None) -> None:
     order = torch.argsort(columns["index"])
     columns = {k: v[order] for k, v in columns.items()}
     index = columns["index"].numpy()
+    if args.assume_prior:
+        columns.pop("drive_cand_prior_mean", None), columns.pop("drive_cand_prior_precision", None)
     if args.model_cov:
         if "drive_cov" in columns:  # early shards: the chosen candidate's model-based covariance only
             rows = torch.arange(len(index))
@@ -112,6 +119,8 @@ def main(argv=None) -> None:
         joint=str(args.joint or settings.get("joint", DrivePlan.joint)),
         split=str(settings.get("split", DrivePlan.split)),
         space=str(settings.get("space", DrivePlan.space)),
+        prior=str(settings.get("prior", DrivePlan.prior)),
+        prior_from=str(settings.get("prior_from", DrivePlan.prior_from)),
     )
     n_models = columns["drive_cand_logz"].shape[1]
     names_m = list(NAMES[:n_models]) if n_models > 1 else ["rigid"]

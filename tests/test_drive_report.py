@@ -202,6 +202,38 @@ def test_a_drive_pools_its_windows_under_the_model_of_most_summed_evidence(tmp_p
     assert float(row["model_margin"]) == pytest.approx(abs((-6.0 if rigid_wins else 6.0) + 4.0 - 7 * 0.2))
 
 
+def test_drive_prior_once_takes_the_windows_priors_out_of_their_posteriors(tmp_path):
+    """drive.prior=once on body1 windows that carry their prior (drive_cand_prior_*, a third of the smallest
+    information on the body parameters): in θ (space="linear") the drive's mean is, written out with numpy,
+    (Σ Λ_w − (n − 1) P)⁻¹ (Σ Λ_w θ_w − (n − 1) P μ): n posteriors, n − 1 of their priors taken out."""
+    rng = np.random.default_rng(6)
+    names, columns = _selection_columns(rng)
+    columns["drive_cand_logz"][:, 1] += 50.0  # body1 carries the drive
+    columns["drive_model"] = columns["drive_cand_logz"].argmax(1)
+    keep, n = [0, 1, 2, 3, 4], 8
+    theta = [columns["drive_cand_theta"][w, 1, keep].numpy() for w in range(n)]
+    cov = [columns["drive_cand_cov"][w, 1][keep][:, keep].numpy() for w in range(n)]
+    smallest = min(np.linalg.eigvalsh(np.linalg.inv(c)).min() for c in cov)
+    lam = np.array([0.0, 0.0, 1.0, 1.0, 1.0, 0.0]) * smallest / 3
+    mu = np.array([0.0, 0.0, 0.6, 950.0, 28.0, 0.0])
+    columns["drive_cand_prior_precision"] = torch.from_numpy(np.broadcast_to(lam, (n, 3, 6)).copy())
+    columns["drive_cand_prior_mean"] = torch.from_numpy(np.broadcast_to(mu, (n, 3, 6)).copy())
+    cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
+    params = ("p1", "p2", "r1", "k1", "c1", "tau")
+    precision = [np.linalg.inv(c) for c in cov]
+    P, m = np.diag(lam[keep]), mu[keep]
+    expected = np.linalg.solve(
+        sum(precision) - (n - 1) * P, sum(L @ t for L, t in zip(precision, theta)) - (n - 1) * P @ m
+    )
+    for prior, mean in (("once", expected), ("windows", _information_mean(theta, cov))):
+        plan = _plan([0] * n, [5.0 * k for k in range(n)], ["D"], space="linear", prior=prior)
+        aggregate_drives(cfg, {}, plan, columns, tmp_path, names, params, None)
+        (row,) = _rows(tmp_path / "drives.csv")
+        assert row["model"] == "body1" and row["windows_used"] == "8"
+        assert float(row["m3"]) == pytest.approx(K3 / mean[1], rel=1e-10)
+    assert abs(expected[1] / _information_mean(theta, cov)[1] - 1) > 1e-5  # far beyond the 1e-10 checked above
+
+
 def test_a_window_the_drives_model_did_not_fit_is_rejected(tmp_path):
     """A window where the drive's model ended misfit is not combined (counted as rejected, with the reason),
     even when another model fitted it and won there."""
@@ -275,10 +307,13 @@ def test_drive_plan_checks_the_joint_setting(tmp_path):
     # the combination's defaults (estimation/drive.py) and their one-line refusals
     default = drive_plan(OmegaConf.create({"aggregate": "drive", "drive": settings}), plan)
     assert (default.scale, default.split, default.space) == ("marginal", "pooled", "log")
+    assert (default.prior, default.prior_from) == ("windows", "model")
     for key, bad, choices in [
         ("scale", "robust", r"\['none', 'birge', 'marginal'\]"),
         ("split", "chow", r"\['wald', 'pooled'\]"),
         ("space", "sqrt", r"\['log', 'linear'\]"),
+        ("prior", "twice", r"\['windows', 'once'\]"),
+        ("prior_from", "both", r"\['model', 'reported'\]"),
     ]:
         cfg = OmegaConf.create({"aggregate": "drive", "drive": {**settings, key: bad}})
         with pytest.raises(Exception, match=rf"drive.{key}='{bad}': choose one of {choices}"):

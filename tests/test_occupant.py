@@ -308,3 +308,41 @@ def test_every_evidence_of_a_recording_is_weighed_under_one_noise_model(tmp_path
                     torch.testing.assert_close(a, b, rtol=0, atol=0)
                     compared += 1
     assert compared > 0 and most >= 4  # a recording with the three models and the winner's delay variant
+
+
+def test_the_candidates_carry_the_prior_their_covariance_holds(tmp_path):
+    """A drive counts each window's prior once (drive.prior=once, estimation/drive_prior.py) by taking out the
+    prior each candidate's covariance holds: persons at 5 % noise (a sensor noise floor, where the refinement
+    applies the body prior) carry per candidate and recording the literature's body prior (physics/occupant.py's
+    ranges: precision 1/std²) on the body parameters and none on p1, p2; NaN only where a candidate was not
+    weighed."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
+    from hybridqcm.physics.occupant import N_MODES, body_prior
+
+    _foreign(tmp_path / "p.h5", n=2, seed=21, occupant="body1", noise=0.05)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=2"])
+    plan = validate(cfg)
+    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
+    record = selection.refine(module.prepare(build_inputs(cfg, plan)))
+    cand = record["candidates"]
+    checked = 0
+    for j, name in enumerate(selection.names):
+        weighed = torch.isfinite(record["extra"][f"logz_{name}"])
+        modes = N_MODES[name.split("+")[0]]
+        precision = cand["prior_precision"][weighed, j]
+        assert bool((precision[:, :2] == 0).all())
+        if modes:
+            torch.testing.assert_close(
+                precision[:, 2 : 2 + 3 * modes], body_prior(modes)[1].pow(-2).expand(len(precision), -1)
+            )
+            torch.testing.assert_close(
+                cand["prior_mean"][weighed, j, 2 : 2 + 3 * modes], body_prior(modes)[0].expand(len(precision), -1)
+            )
+            checked += int(weighed.sum())
+    assert checked >= 2

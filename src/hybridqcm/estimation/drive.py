@@ -125,6 +125,16 @@ class Gaussian:
     unscaled: Tensor | None = None  # [d, d] the covariance before any scale (None: as ``covariance``)
     focus_chi2: float = math.nan  # Σ_w (θ_w,f − θ̂_f)² / Σ_w,ff of the focus parameter (NaN: no focus)
     focus_scatter: float = math.nan  # the focus's variance from the windows' scatter (jackknife; NaN: none)
+    flat: tuple[Tensor, Tensor] | None = None  # prior once: the likelihoods' own combination (mean, unscaled cov)
+
+    def tested(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(mean, covariance, unscaled covariance) that the tests between combinations compare (wald, pooled_f):
+        with the prior counted once (estimation/drive_prior.py) the windows' likelihoods alone (``flat``, scaled
+        as the posterior is), for two posteriors that share one prior are not independent; else the posterior."""
+        if self.flat is None:
+            return self.mean, self.covariance, self.raw
+        scale = (self.covariance.diagonal() / self.raw.diagonal().clamp_min(1e-300)).sqrt()
+        return self.flat[0], self.flat[1] * scale[:, None] * scale[None, :], self.flat[1]
 
     @property
     def raw(self) -> Tensor:
@@ -228,13 +238,24 @@ class InformationCombiner:
             self.scale,
             self.focus,
         )
-        if not bool(self.log.any()):
-            return g
-        value = torch.where(self.log, mean.exp(), mean)
-        d = torch.where(self.log, value, torch.ones_like(value))
-        jac = d.unsqueeze(1) * d.unsqueeze(0)
-        scatter = focus_scatter * float(d[self.focus]) ** 2 if self.focus is not None else math.nan
-        return Gaussian(value, g.covariance * jac, chi2, dof, len(idx), g.raw * jac, focus_chi2, scatter)
+        return in_theta(g, self.log, self.focus)
+
+
+def in_theta(g: Gaussian, log: Tensor, focus: int | None = None) -> Gaussian:
+    """A combination in the combiner's coordinates answered in θ: the parameters ``log`` [d] bool combined in
+    their logarithm mapped back (θ = exp, covariances D C D with D = diag θ, the focus's scatter likewise)."""
+    if not bool(log.any()):
+        return g
+    value = torch.where(log, g.mean.exp(), g.mean)
+    d = torch.where(log, value, torch.ones_like(value))
+    jac = d.unsqueeze(1) * d.unsqueeze(0)
+    scatter = g.focus_scatter * float(d[focus]) ** 2 if focus is not None else math.nan
+    flat = None
+    if g.flat is not None:
+        flat_value = torch.where(log, g.flat[0].exp(), g.flat[0])
+        e = torch.where(log, flat_value, torch.ones_like(flat_value))
+        flat = (flat_value, g.flat[1] * e.unsqueeze(1) * e.unsqueeze(0))
+    return Gaussian(value, g.covariance * jac, g.chi2, g.dof, g.n, g.raw * jac, g.focus_chi2, scatter, flat)
 
 
 def scaled(g: Gaussian, scale: str, focus: int | None = None) -> Gaussian:
@@ -251,7 +272,7 @@ def scaled(g: Gaussian, scale: str, focus: int | None = None) -> Gaussian:
             factor = torch.ones(covariance.shape[0], dtype=covariance.dtype)
             factor[focus] = math.sqrt(scatter / float(covariance[focus, focus]))
             covariance = covariance * factor[:, None] * factor[None, :]
-    return Gaussian(g.mean, covariance, g.chi2, g.dof, g.n, g.raw, g.focus_chi2, g.focus_scatter)
+    return Gaussian(g.mean, covariance, g.chi2, g.dof, g.n, g.raw, g.focus_chi2, g.focus_scatter, g.flat)
 
 
 @functools.cache
@@ -275,8 +296,9 @@ def usable_windows(theta: Tensor, covariance: Tensor) -> Tensor:
 
 def wald(a: Gaussian, b: Gaussian) -> float:
     """(μ_a − μ_b)ᵀ (C_a + C_b)⁻¹ (μ_a − μ_b): χ²_d when both estimate the same θ independently."""
-    diff = a.mean - b.mean
-    return float(diff @ torch.linalg.solve(a.covariance + b.covariance, diff))
+    (mean_a, cov_a, _), (mean_b, cov_b, _) = a.tested(), b.tested()
+    diff = mean_a - mean_b
+    return float(diff @ torch.linalg.solve(cov_a + cov_b, diff))
 
 
 def _quantile(alpha: float, tests: int, dim: int) -> float:
@@ -294,8 +316,9 @@ def pooled_f(a: Gaussian, b: Gaussian, focus: int) -> float:
         ratios.append(
             sum((g.n - 1) * g.focus_scatter / float(g.raw[focus, focus]) for g in (a, b) if g.n > 1) / (a.n + b.n - 2)
         )
-    diff = float(a.mean[focus] - b.mean[focus])
-    return diff**2 / (max(ratios) * float(a.raw[focus, focus] + b.raw[focus, focus]))
+    (mean_a, _, raw_a), (mean_b, _, raw_b) = a.tested(), b.tested()
+    diff = float(mean_a[focus] - mean_b[focus])
+    return diff**2 / (max(ratios) * float(raw_a[focus, focus] + raw_b[focus, focus]))
 
 
 def segment(
@@ -403,6 +426,7 @@ __all__ = [
     "segment",
     "pooled_f",
     "scaled",
+    "in_theta",
     "SCALES",
     "SPLIT_TESTS",
     "isolated_outliers",

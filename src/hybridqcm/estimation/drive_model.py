@@ -17,7 +17,9 @@ import torch
 
 from hybridqcm.estimation.drive import InformationCombiner, usable_windows
 from hybridqcm.estimation.drive_plan import DrivePlan
+from hybridqcm.estimation.drive_prior import PriorOnceCombiner
 from hybridqcm.estimation.solver import STATUS_LABELS
+from hybridqcm.physics.occupant import MODE_PARAMS, body_prior
 
 
 def present(theta: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
@@ -127,6 +129,7 @@ class DriveView:
         self.weight_cov = {}
         self.status_ok = {}
         self.status = {}
+        self.prior = {}  # per row: the window's prior (mean [P], precision [P]) where the shards carry it
         allowed = {k for k, v in STATUS_LABELS.items() if v in drive.statuses}
         members = [j for j, n in enumerate(names) if n.split("+")[0] == self.family]
         for r in rows:
@@ -139,6 +142,11 @@ class DriveView:
             self.theta[int(r)] = columns["drive_cand_theta"][r, v]
             self.cov[int(r)] = columns["drive_cand_cov"][r, v]
             self.weight_cov[int(r)] = columns["drive_cand_model_cov"][r, v]
+            if "drive_cand_prior_precision" in columns:
+                self.prior[int(r)] = (
+                    columns["drive_cand_prior_mean"][r, v],
+                    columns["drive_cand_prior_precision"][r, v],
+                )
             self.status_ok[int(r)] = int(columns["drive_cand_status"][r, v]) in allowed
             self.status[int(r)] = int(columns["drive_cand_status"][r, v])
         self.n_params = n_p
@@ -170,9 +178,40 @@ class DriveView:
         if drive.weights == "model":
             weight = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
         log = (theta[:, keep] > 0).all(0) if drive.space == "log" else None  # positive parameters: in logarithms
-        combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale, index, log)
+        if drive.prior == "once":
+            mean, precision = self._priors(rows, param_names, theta.shape[1], keep)
+            model = torch.stack([self.weight_cov[int(r)] for r in rows])[:, keep][:, :, keep]
+            combiner = PriorOnceCombiner(
+                theta[:, keep],
+                cov[:, keep][:, :, keep],
+                mean[:, keep],
+                precision[:, keep],
+                model if drive.prior_from == "model" else None,
+                drive.scale,
+                index,
+                log,
+            )
+        else:
+            combiner = InformationCombiner(theta[:, keep], cov[:, keep][:, :, keep], weight, drive.scale, index, log)
         combiner.columns = keep  # the combined parameters' places in the common layout (a joint fit's start)
         return combiner, index
+
+    def _priors(self, rows: np.ndarray, param_names: Sequence[str], n_p: int, keep: torch.Tensor):
+        """(mean [W, P], precision [W, P]) of the windows' priors: the shards' drive_cand_prior_* where they carry
+        them for every window on the combined parameters ``keep``; else (shards written before, a single model's
+        fit) assumed: the body prior (physics/occupant.BODY_PRIOR) on every body parameter of every window, as the
+        refinement applies it on a recording with a sensor noise floor."""
+        known = all(int(r) in self.prior and bool(torch.isfinite(self.prior[int(r)][1][keep]).all()) for r in rows)
+        if known:  # NaN elsewhere: parameters the model lacks
+            return tuple(torch.stack([self.prior[int(r)][k] for r in rows]).double().nan_to_num(0.0) for k in (0, 1))
+        mean, std = body_prior(2)
+        body = [f"{x}{i}" for i in (1, 2) for x in MODE_PARAMS]
+        m = torch.zeros(n_p, dtype=torch.float64)
+        lam = torch.zeros(n_p, dtype=torch.float64)
+        for j, name in enumerate(param_names[:n_p]):
+            if name in body:
+                m[j], lam[j] = mean[body.index(name)], std[body.index(name)] ** -2
+        return m.expand(len(rows), n_p), lam.expand(len(rows), n_p)
 
 
 __all__ = ["DriveView", "drive_model", "present", "usable_estimates"]

@@ -25,6 +25,8 @@ from hybridqcm.estimation.solver import STATUS_LABELS
 WEIGHTS = ("reported", "model")
 JOINTS = ("none", "final", "progress")
 SPACES = ("log", "linear")
+PRIORS = ("windows", "once")
+PRIOR_SOURCES = ("model", "reported")
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,8 @@ class DrivePlan:
     joint: str = "none"  # none | final | progress: segments (and their prefixes) by a joint fit (drive_fit.py)
     split: str = "pooled"  # wald | pooled: the change-point test (estimation/drive.segment)
     space: str = "log"  # log | linear: positive parameters combined in their logarithm (estimation/drive.py)
+    prior: str = "windows"  # windows | once: the body prior as each window counts it, or once (drive_prior.py)
+    prior_from: str = "model"  # model | reported: the covariance the prior is taken out of (drive_prior.py)
 
 
 def _fraction(settings, key: str) -> float:
@@ -96,6 +100,16 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         raise ConfigError(f"drive.space={space!r}: choose one of {list(SPACES)}")
     if split_test not in SPLIT_TESTS:
         raise ConfigError(f"drive.split={split_test!r}: choose one of {list(SPLIT_TESTS)}")
+    prior, prior_from = (
+        str(settings.get("prior", DrivePlan.prior)),
+        str(settings.get("prior_from", DrivePlan.prior_from)),
+    )
+    if prior not in PRIORS:
+        raise ConfigError(f"drive.prior={prior!r}: choose one of {list(PRIORS)}")
+    if prior_from not in PRIOR_SOURCES:
+        raise ConfigError(f"drive.prior_from={prior_from!r}: choose one of {list(PRIOR_SOURCES)}")
+    if prior == "once" and weights == "model":
+        raise ConfigError("drive.prior=once needs drive.weights=reported (the sandwich's weights keep each prior)")
     joint = str(settings.get("joint", DrivePlan.joint))
     if joint not in JOINTS:
         raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
@@ -145,6 +159,8 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
         joint=joint,
         split=split_test,
         space=space,
+        prior=prior,
+        prior_from=prior_from,
     )
 
 
@@ -174,7 +190,9 @@ def _candidate_columns(record: Mapping, names: Sequence[str], b: int, n_params: 
     drive_cand_cov [b, C, P, P], drive_cand_status [b, C], drive_cand_fits [b, C], drive_cand_logz [b, C]
     (the evidence, model prior included); drive_cand_cov is the reported covariance (the model-based one scaled
     per parameter by the candidate's robust ratio, as its intervals are) and drive_cand_model_cov the model-based
-    one. A single model: its own estimate and covariances, evidence 0."""
+    one, drive_cand_prior_mean and drive_cand_prior_precision [b, C, P] the prior in it (precision 0: none; NaN:
+    not known, drive.prior=once then assumes the body prior). A single model: its own estimate and covariances,
+    evidence 0, its prior not known."""
     cand = record.get("candidates")
     if cand is None:
         result = record["final"]
@@ -183,7 +201,10 @@ def _candidate_columns(record: Mapping, names: Sequence[str], b: int, n_params: 
         std = result.std[:, :n_params].double()
         model_std = result.model_std[:, :n_params].double() if result.model_std is not None else std
         ratio = torch.where((std > 0) & torch.isfinite(std), model_std / std, torch.ones_like(std))
+        unknown = torch.full((b, 1, n_params), math.nan, dtype=torch.float64)  # a single model's prior is not kept
         return {
+            "drive_cand_prior_mean": unknown,
+            "drive_cand_prior_precision": unknown.clone(),
             "drive_cand_theta": theta[:, None],
             "drive_cand_cov": cov[:, None],
             "drive_cand_model_cov": (cov * ratio.unsqueeze(2) * ratio.unsqueeze(1))[:, None],
@@ -199,6 +220,8 @@ def _candidate_columns(record: Mapping, names: Sequence[str], b: int, n_params: 
         "drive_cand_theta": cand["params"][:, :, :n_params],
         "drive_cand_cov": model_cov * ratio.unsqueeze(3) * ratio.unsqueeze(2),
         "drive_cand_model_cov": model_cov,
+        "drive_cand_prior_mean": cand["prior_mean"][:, :, :n_params],
+        "drive_cand_prior_precision": cand["prior_precision"][:, :, :n_params],
         "drive_cand_status": cand["status"],
         "drive_cand_fits": cand["fits"],
         "drive_cand_logz": logz,
@@ -217,6 +240,8 @@ def drive_skipped_columns(skipped_tables: Callable, n_params: int, n_models: int
         columns["drive_cand_theta"] = torch.full((k, n_models, n_params), math.nan, dtype=torch.float64)
         columns["drive_cand_cov"] = torch.full((k, n_models, n_params, n_params), math.nan, dtype=torch.float64)
         columns["drive_cand_model_cov"] = columns["drive_cand_cov"].clone()
+        columns["drive_cand_prior_mean"] = torch.full((k, n_models, n_params), math.nan, dtype=torch.float64)
+        columns["drive_cand_prior_precision"] = columns["drive_cand_prior_mean"].clone()
         columns["drive_cand_status"] = torch.zeros(k, n_models, dtype=torch.long)
         columns["drive_cand_fits"] = torch.zeros(k, n_models, dtype=torch.bool)
         columns["drive_cand_logz"] = torch.full((k, n_models), -math.inf, dtype=torch.float64)
@@ -239,4 +264,6 @@ __all__ = [
     "WEIGHTS",
     "SCALES",
     "JOINTS",
+    "PRIORS",
+    "PRIOR_SOURCES",
 ]

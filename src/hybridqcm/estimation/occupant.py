@@ -253,23 +253,28 @@ class OccupantSelection:
         """Every candidate's estimate per recording in the common parameter layout (τ last), for a caller that
         pools recordings under one model (aggregate=drive, reports/drive.py): params [b, C, P], the model-based
         covariance [b, C, P, P] after the polish, robust [b, C, P] (the reported standard deviation over it, as
-        the intervals scale it), status [b, C] and fits [b, C] (neither misfit nor diverged); C = self.names,
+        the intervals scale it), prior_mean and prior_precision [b, C, P] (the prior in that covariance, NaN where
+        not polished), status [b, C] and fits [b, C] (neither misfit nor diverged); C = self.names,
         NaN where a candidate has no such parameter or was not fitted."""
         layout = list(self.response.theta_names[: self.response.n_params])
         b, n_c, n_p = next(iter(records.values()))["params"].shape[0], len(self.names), len(layout)
         params = torch.full((b, n_c, n_p), math.nan, dtype=torch.float64)
         covariance = torch.full((b, n_c, n_p, n_p), math.nan, dtype=torch.float64)
         robust = torch.ones(b, n_c, n_p, dtype=torch.float64)
+        prior = {k: torch.full((b, n_c, n_p), math.nan, dtype=torch.float64) for k in ("prior_mean", "prior_precision")}
         status = torch.zeros(b, n_c, dtype=torch.long)
         for j, name in enumerate(self.names):
             rec, n = records[name], self.all_models[name].response.n_params
             cols = torch.tensor([layout.index(x) for x in self.all_models[name].response.theta_names[:n]])
             params[:, j, cols] = rec["params"][:, :n].double()
             robust[:, j, cols] = rec["robust"][:, :n].double()
+            for key, value in prior.items():
+                if key in rec:  # the polish's prior (NaN: a fit not polished)
+                    value[:, j, cols] = rec[key][:, :n].double()
             covariance[:, j, cols[:, None], cols[None, :]] = rec["final"].covariance[:, :n, :n].double()
             status[:, j] = rec["final"].status.long()
         fitted = torch.stack([fits[n] for n in self.names], 1)
-        return {"params": params, "covariance": covariance, "robust": robust, "status": status, "fits": fitted}
+        return {"params": params, "covariance": covariance, "robust": robust, "status": status, "fits": fitted, **prior}
 
     def _compare(self, outputs, records: dict, logz: dict, fits: dict, choice: Tensor, rows: Tensor, names) -> None:
         """In place: the candidates ``names`` of the recordings ``rows`` weighed together (_weigh), the winner

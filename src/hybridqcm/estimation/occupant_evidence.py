@@ -61,7 +61,7 @@ def nest(
         solver.objective(problem, result.params) < solver.objective(problem, mine)
     )
     if bool(better.any()):
-        put_result(records[larger], result, rows[better], result.params[better], subset=better)
+        put_result(records[larger], result, rows[better], result.params[better], subset=better, problem=problem)
 
 
 def polish_and_weigh(
@@ -82,7 +82,7 @@ def polish_and_weigh(
     loss = torch.where(take, after, before)
     if not bool(take.all()):  # the covariance at the kept estimate
         result = evaluation_solver(refinement, 0).solve(problem, params)
-    put_result(record, result, rows, params)
+    put_result(record, result, rows, params, problem=problem)
     n_steps = problem.targets.shape[1]
     free = ~problem.known
     cov = result.covariance[:, free][:, :, free]

@@ -94,6 +94,10 @@ def scatter(into: dict, record: dict, rows: Tensor) -> None:
     into["params"][rows] = record["params"].double()
     into["init"][rows] = record["init"].double()
     into["robust"][rows] = record["robust"].double()
+    for key in ("prior_mean", "prior_precision"):  # the prior in the covariance (put_result); NaN: not known
+        if key in record or key in into:
+            into.setdefault(key, torch.full(into["params"].shape, math.nan, dtype=torch.float64))
+            into[key][rows] = record[key].double() if key in record else math.nan
     if "variances" in record:  # the noise model the sub-batch was weighed under
         b = into["params"].shape[0]
         mine = into.get("variances") or tuple(
@@ -123,17 +127,31 @@ def subset(record: dict, rows: Tensor) -> dict:
         "restarts": record["restarts"][rows].clone(),
         "relative_loss": record["relative_loss"][rows].clone(),
         "robust": record["robust"][rows].clone(),
+        **{k: record[k][rows].clone() for k in ("prior_mean", "prior_precision") if k in record},
     }
 
 
-def put_result(record: dict, result: SolverResult, rows: Tensor, params: Tensor, subset: Tensor | None = None) -> None:
+def put_result(
+    record: dict, result: SolverResult, rows: Tensor, params: Tensor, subset: Tensor | None = None, problem=None
+) -> None:
     """In place: the polished estimates ``params`` [rows] with ``result``'s uncertainty and residual tests
     (under the common noise model, at ``params``; ``result``'s samples ``subset`` where given) into
-    ``record``'s rows."""
+    ``record``'s rows; with ``problem`` (the one ``result`` solved) also its prior, as ``record["prior_mean"]``
+    and ``record["prior_precision"]`` [b, n_theta] (precision 0: none): the prior in that covariance, which a
+    drive takes out again to count it once (estimation/drive_prior.py)."""
     final = record["final"]
     record["params"][rows] = params.to(record["params"].dtype)
     final.params[rows] = params.to(final.params.dtype)
     pick = slice(None) if subset is None else subset
+    if problem is not None:
+        for key in ("prior_mean", "prior_precision"):
+            if key not in record:
+                record[key] = torch.full(record["params"].shape, math.nan, dtype=torch.float64)
+        if problem.prior_mean is None:
+            record["prior_mean"][rows], record["prior_precision"][rows] = 0.0, 0.0
+        else:
+            record["prior_mean"][rows] = problem.prior_mean[pick].double()
+            record["prior_precision"][rows] = problem.prior_precision[pick].double()
     for field in ("std", "covariance", "model_std", "relative_residual", "whiteness", "residual_variance"):
         value = getattr(result, field)
         if value is not None and getattr(final, field) is not None:

@@ -102,6 +102,8 @@ class DriveSettings:
     joint: str = MISSING
     split: str = MISSING
     space: str = MISSING
+    prior: str = MISSING
+    prior_from: str = MISSING
     plots: int = MISSING
 
 
