@@ -1,7 +1,7 @@
 """aggregate=drive again on a finished run's per-window columns, without refitting a window (issue 32).
 
     qcm-estimate experiment=occupant_roadfree data.path=W.h5 aggregate=drive keep_shards=true hydra.run.dir=RUN
-    .venv/bin/python bench/drive_reaggregate.py RUN --data W.h5 --out OUT [--set weights=model scale=none ...]
+    .venv/bin/python bench/drive_reaggregate.py RUN --data W.h5 --out OUT [--set weights=model prior=windows scale=none ...]
     .venv/bin/python bench/foreign_sim.py score-drives OUT --truth data/drives/truth.json --window-s 5
 
 Reads RUN/shards/block-*.pt (the columns every block's windows carry, estimation/drive_plan.drive_columns) and

@@ -182,8 +182,9 @@ def test_a_drive_pools_its_windows_under_the_model_of_most_summed_evidence(tmp_p
     logz[::4, 1] = best_rigid[::4] + 2.0  # two windows on their own prefer body1 either way
     columns["drive_model"] = logz.argmax(1)
     log_prior = {"rigid": -0.2, "body1": 0.0}
-    # in θ (space="linear"): the combination that this test computes independently
-    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",), space="linear")
+    # in θ (space="linear"), the windows summed as they are (prior="windows": these windows carry no prior columns,
+    # which prior="once" would read as the body prior): the combination that this test computes independently
+    plan = _plan([0] * 8, [5.0 * k for k in range(8)], ["D"], per_window=("tau",), space="linear", prior="windows")
     cfg = OmegaConf.create({"K3": K3, "plots": False, "tensorboard": False})
     params = ("p1", "p2", "r1", "k1", "c1", "tau")
     aggregate_drives(cfg, {}, plan, columns, tmp_path, names, params, log_prior)
@@ -307,7 +308,7 @@ def test_drive_plan_checks_the_joint_setting(tmp_path):
     # the combination's defaults (estimation/drive.py) and their one-line refusals
     default = drive_plan(OmegaConf.create({"aggregate": "drive", "drive": settings}), plan)
     assert (default.scale, default.split, default.space) == ("marginal", "pooled", "log")
-    assert (default.prior, default.prior_from) == ("windows", "model")
+    assert (default.prior, default.prior_from) == ("once", "model")
     for key, bad, choices in [
         ("scale", "robust", r"\['none', 'birge', 'marginal'\]"),
         ("split", "chow", r"\['wald', 'pooled'\]"),

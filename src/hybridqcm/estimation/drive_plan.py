@@ -49,7 +49,7 @@ class DrivePlan:
     joint: str = "none"  # none | final | progress: segments (and their prefixes) by a joint fit (drive_fit.py)
     split: str = "pooled"  # wald | pooled: the change-point test (estimation/drive.segment)
     space: str = "log"  # log | linear: positive parameters combined in their logarithm (estimation/drive.py)
-    prior: str = "windows"  # windows | once: the body prior as each window counts it, or once (drive_prior.py)
+    prior: str = "once"  # once | windows: the body prior counted once (drive_prior.py), or as each window counts it
     prior_from: str = "model"  # model | reported: the covariance the prior is taken out of (drive_prior.py)
 
 
@@ -109,7 +109,10 @@ def drive_plan(cfg, plan: Mapping) -> DrivePlan | None:
     if prior_from not in PRIOR_SOURCES:
         raise ConfigError(f"drive.prior_from={prior_from!r}: choose one of {list(PRIOR_SOURCES)}")
     if prior == "once" and weights == "model":
-        raise ConfigError("drive.prior=once needs drive.weights=reported (the sandwich's weights keep each prior)")
+        raise ConfigError(
+            "drive.prior=once needs drive.weights=reported (the sandwich's weights keep each prior): "
+            "set drive.prior=windows for drive.weights=model"
+        )
     joint = str(settings.get("joint", DrivePlan.joint))
     if joint not in JOINTS:
         raise ConfigError(f"drive.joint={joint!r}: choose one of {list(JOINTS)}")
