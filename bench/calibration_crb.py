@@ -114,12 +114,19 @@ def main(argv=None) -> None:
         default="time",
         help="one window's bound: time, the finite window (bench/window_fisher.py); dft, taken as periodic (too small)",
     )
+    ap.add_argument(
+        "--body-prior",
+        action="store_true",
+        help="--domain time: body1 persons' bound with the default's literature body prior as information (at --noise)",
+    )
     args = ap.parse_args(argv)
+    if args.body_prior and args.domain != "time":
+        sys.exit("calibration_crb: --body-prior is for --domain time")
     crb = _occupant_crb()
     accel, h, truth = crb.read_file(Path(args.file))
     if args.first is not None:
         accel, truth = accel[: args.first], crb._first(truth, args.first)
-    per = crb.bounds(accel, h, truth, args.file_noise, args.domain)
+    per = crb.bounds(accel, h, truth, args.file_noise, args.domain, body_prior=args.body_prior, level=args.noise)
     with h5py.File(args.file, "r") as f:
         n = len(accel)
         occupant = f["test/truth_occupant_mass"][()][:n]
