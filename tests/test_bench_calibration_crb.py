@@ -65,3 +65,24 @@ def test_the_calibrations_bound_is_the_inverse_fisher_information_of_its_drives(
     expected = np.linalg.inv(J.T @ (J / sd[:, None] ** 2))
     assert np.allclose(seat.covariance, expected, rtol=1e-4)
     assert seat.K3_ref == pytest.approx(bench.K3_SIM) and seat.exponent == E and seat.pan_mass == PAN
+
+
+def test_the_body_prior_is_refused_for_the_periodic_bound(tmp_path):
+    bench = _module("calibration_crb")
+    path = tmp_path / "foam.h5"
+    make_foreign(path, n=2, noise=0.05, seat_law="power", seat_exponent=E, pan_mass=PAN)
+    with pytest.raises(SystemExit, match="--body-prior is for --domain time"):
+        bench.main(
+            [
+                str(path),
+                "--file-noise",
+                "0.05",
+                "--exponent",
+                str(E),
+                "--pan",
+                str(PAN),
+                "--body-prior",
+                "--domain",
+                "dft",
+            ]
+        )
