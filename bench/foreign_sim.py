@@ -135,19 +135,25 @@ def parameters(v) -> np.ndarray:
     )
 
 
-def draw_persons(v, occupant: str, rng: np.random.Generator):
+BODY1_RANGES = {"rigid_share": (0.2, 0.4), "f_hz": (4.0, 6.0), "zeta": (0.3, 0.5)}  # the literature's (docstring)
+
+
+def draw_persons(v, occupant: str, rng: np.random.Generator, body1: dict | None = None):
     """Seat pan + seated person in place of the rigid occupant of `v` (in place; see the module docstring).
 
     The person's static mass M is the old draw v["m3"]; afterwards v["m3"] = m_pan + M (the static mass on
     the seat spring, so `parameters` gives p1 = C3/(m_pan + M), p2 = K3/(m_pan + M)) and v gains
-    "occupant" (0/1/2), "pan", "m_s" (the pan's body: m_pan + m_r) and PERSON_COLUMNS, each [n]."""
+    "occupant" (0/1/2), "pan", "m_s" (the pan's body: m_pan + m_r) and PERSON_COLUMNS, each [n]. ``body1``:
+    other ranges than BODY1_RANGES for the rigid share and the one-mode body (persons outside the literature's
+    ranges; the same random draws, scaled to them)."""
+    r = {**BODY1_RANGES, **(body1 or {})}
     n = len(v["m3"])
     kind = rng.integers(0, 3, n) if occupant == "mixed" else np.full(n, OCCUPANTS.index(occupant))
     M = v["m3"].copy()
     pan = rng.uniform(3.0, 12.0, n)
-    rigid = np.where(kind == 0, 1.0, rng.uniform(0.2, 0.4, n)) * M
-    f_b = rng.uniform(4.0, 6.0, n)  # body1: natural frequency and damping ratio of the body mode
-    zeta_b = rng.uniform(0.3, 0.5, n)
+    rigid = np.where(kind == 0, 1.0, rng.uniform(*r["rigid_share"], n)) * M
+    f_b = rng.uniform(*r["f_hz"], n)  # body1: natural frequency and damping ratio of the body mode
+    zeta_b = rng.uniform(*r["zeta"], n)
     body = {k: np.zeros(n) for k in PERSON_COLUMNS}
     body["M"], body["m_r"] = M, rigid
     one = kind == 1
@@ -395,6 +401,22 @@ def add_sensor(
     return out + bias * rms * rng.choice([-1.0, 1.0], size=rms.shape)
 
 
+def _body1_ranges(args) -> dict:
+    """make's --body-f-hz / --body-zeta / --body-rigid-share, each two bounds LO < HI (BODY1_RANGES where not given)."""
+    out = {}
+    for key, flag in (("f_hz", "body_f_hz"), ("zeta", "body_zeta"), ("rigid_share", "body_rigid_share")):
+        value = getattr(args, flag, None)
+        if value is None:
+            continue
+        lo, hi = value
+        if not (0 < lo < hi) or (key != "f_hz" and hi >= 1 + (key == "zeta")):
+            sys.exit(
+                f"foreign_sim: --{flag.replace('_', '-')} {lo} {hi}: two bounds 0 < LO < HI (shares < 1, zeta < 2)"
+            )
+        out[key] = (lo, hi)
+    return out
+
+
 def make(args) -> None:
     for key, value, ok in (
         ("--n", args.n, args.n >= 1),
@@ -440,7 +462,7 @@ def make(args) -> None:
     v = draw_vehicles(args.n, rng, seat_rel=args.seat_rel, c1_max=args.c1_max)
     person = args.occupant != "rigid"
     if person:
-        draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]))
+        draw_persons(v, args.occupant, np.random.default_rng([args.seed, 1]), _body1_ranges(args))
     seat = args.seat_law != "linear" or args.pan_mass is not None or args.known_loads is not None
     if seat:
         apply_seat(v, args.seat_law, args.seat_exponent, args.pan_mass, args.known_loads)
@@ -1024,6 +1046,11 @@ def main(argv=None) -> None:
     mk.add_argument("--c1-max", type=float, default=0.0, help="tyre damper C1 ~ U(0, this) [Ns/m]")
     mk.add_argument("--seed", type=int, default=0)
     mk.add_argument("--occupant", choices=(*OCCUPANTS, "mixed"), default="rigid", help="rigid mass or seated person")
+    mk.add_argument("--body-f-hz", type=float, nargs=2, metavar=("LO", "HI"), help="body1's mode [Hz] (default 4 6)")
+    mk.add_argument("--body-zeta", type=float, nargs=2, metavar=("LO", "HI"), help="its damping ratio (0.3 0.5)")
+    mk.add_argument(
+        "--body-rigid-share", type=float, nargs=2, metavar=("LO", "HI"), help="the rigid part of M (0.2 0.4)"
+    )
     mk.add_argument("--delay-ms", type=float, default=0.0, help="a3's logger this many ms behind a2's")
     mk.add_argument("--delay-ms-range", type=float, nargs=2, metavar=("A", "B"), help="a3 late by U(A, B) ms each")
     mk.add_argument("--seat-law", choices=("linear", "power"), default="linear", help="K3, C3 over the static load")

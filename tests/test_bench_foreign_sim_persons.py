@@ -241,3 +241,33 @@ def test_the_persons_table_shows_the_honesty_bound_of_each_row(tmp_path, monkeyp
     assert cell == f"1.00 % ({100 * crb.dishonest_at_bound(x, 0.97):.2f} %)"
     (tmp_path / "crb_mixed_n0.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
     assert table._honesty_bound("mixed_n0", 3, 0.97) is None
+
+
+def test_persons_outside_the_literatures_ranges_are_drawn_where_asked():
+    """draw_persons(body1=...): the same random draws scaled to other ranges (the default ranges give today's
+    persons bit for bit); the mode's frequency, damping ratio and rigid share recomputed from the stored masses,
+    springs and dampers fall inside the asked ranges and outside the literature's."""
+    base = fs.draw_vehicles(50, np.random.default_rng(7))
+    same = fs.draw_persons({k: v.copy() for k, v in base.items()}, "body1", np.random.default_rng(8))
+    explicit = fs.draw_persons(
+        {k: v.copy() for k, v in base.items()}, "body1", np.random.default_rng(8), dict(fs.BODY1_RANGES)
+    )
+    assert all(np.array_equal(same[k], explicit[k]) for k in fs.PERSON_COLUMNS)
+    ranges = {"f_hz": (6.0, 8.0), "zeta": (0.15, 0.3), "rigid_share": (0.05, 0.2)}
+    v = fs.draw_persons({k: v.copy() for k, v in base.items()}, "body1", np.random.default_rng(8), ranges)
+    f = np.sqrt(v["k_b"] / v["m_b"]) / (2 * np.pi)
+    zeta = v["c_b"] / (2 * np.sqrt(v["k_b"] * v["m_b"]))
+    share = v["m_r"] / v["M"]
+    for value, (lo, hi) in ((f, ranges["f_hz"]), (zeta, ranges["zeta"]), (share, ranges["rigid_share"])):
+        assert np.all((value >= lo) & (value <= hi))
+    assert np.all(f > 6.0) and np.all(zeta < 0.3) and np.all(share < 0.2)
+    assert np.allclose(v["M"], base["m3"]) and np.allclose(v["m3"], v["pan"] + v["M"])
+
+
+def test_bounds_of_a_persons_range_that_are_not_lo_below_hi_are_refused(tmp_path):
+    import pytest
+
+    for flag, bounds in (("--body-zeta", ["0.5", "0.3"]), ("--body-rigid-share", ["0.5", "1.2"])):
+        with pytest.raises(SystemExit, match=f"{flag} .*two bounds 0 < LO < HI"):
+            fs.main(["make", "--out", str(tmp_path / "x.h5"), "--n", "2", "--occupant", "body1", flag, *bounds])
+    assert not (tmp_path / "x.h5").exists()
