@@ -1,0 +1,328 @@
+"""Prototype (issue 28): the road-free seat fitted directly in the frequency domain, no time-domain simulation.
+
+    PYTHONPATH=src .venv/bin/python bench/freq_fit.py data/persons/body1_n5.h5 --model body1 [--n 100]
+        [--tile 4] [--noise 0.05] [--start ref|truth] [--prior | --no-prior] [--threads 1] [--max-iter 100]
+
+Per recording, the window's samples 6..505 of a3 and a2 (the 500 the library fits), their DFTs A3_k, A2_k at
+ω_k = 2π k / (N h), k = 1 .. N/2 - 1 (DC and Nyquist dropped), and the residual
+
+    R_k = A3_k - H(θ, s_k) A2_k - T_k(γ),     s_k = j ω_k,
+    T_k = Σ_{i<n} γ_i s̃_k^i / D(s_k)          (s̃ = s / ω_s, ω_s = 2π 10 Hz: only the basis's scale)
+
+with T the window's transient / leakage term of a continuous-time system (Pintelon & Schoukens, System
+Identification, 2nd ed., § 6.3.2), D the denominator of H and n its order, γ real. Models, in log θ (the closed
+forms of bench/occupant_crb.py ``transfer``):
+
+* rigid, θ = (p1, p2):  H = (p1 s + p2) / (s² + p1 s + p2), n = 2;
+* body1, θ = (p1, p2, r, k, c):  q = s² + c s + k,  H = (p1 s + p2) q / D,
+  D = s² (s² + (1 + r)(c s + k)) / (1 + r) + (p1 s + p2) q, n = 4 (= (p1 s + p2)/(s² (1 + r T)/(1 + r) + p1 s + p2),
+  T = (c s + k)/q).
+
+Static mass M = K3 / p2, K3 = 98 935 N/m. The errors-in-variables cost (estimation/noise.py)
+
+    L(θ) = ½ Σ_k |e_k|²,   e_k = sqrt(2 / (N S_k)) R_k (real and imaginary parts stacked),   S_k = σ3² + |H_k|² σ2²,
+
+whose terms at the truth have unit variance. Here σ3, σ2 are *known*: ``--noise`` times each channel's clean RMS
+(measured RMS / sqrt(1 + noise²)); the library fits them. γ is eliminated at every evaluation by weighted linear
+least squares (variable projection: e is the projected residual), so only θ is iterated. ``--prior`` adds the
+library's literature prior on the body parameters (physics/occupant.body_prior: residuals (θ_j - μ_j)/σ_j in
+linear θ, as estimation/plan_occupant.py does). Levenberg-Marquardt per recording; the Jacobian of the projected
+residual in closed form (the full Golub-Pereyra derivative; ``jacobian_ad``: forward-mode AD, the check); recordings that
+have converged (relative cost decrease < 1e-10 on an accepted step, or a step < 1e-8 in log θ) leave the batch.
+
+Prints M's mean |error|, the share within 5 / 10 %, the seconds per iteration at the full batch and to
+convergence, at ``--threads`` threads; ``--tile`` repeats the n recordings (a batch of 400 from 100).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+K3 = 98935.0
+REF_C3, REF_M3 = 615.0, 80.0  # the reference vehicle's seat (bench/foreign_sim.py REF, physics/parameters.py)
+WINDOW = slice(6, 506)  # the 500 samples the library fits of the 512 stored
+OMEGA_SCALE = 2 * math.pi * 10.0
+N_PARAMS = {"rigid": 2, "body1": 5}
+ORDER = {"rigid": 2, "body1": 4}
+
+
+def polynomials(model: str, theta: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Numerator and denominator of H [b, K] for theta [b, P] (linear) at s [K] (complex)."""
+    p1, p2 = theta[:, 0:1], theta[:, 1:2]
+    s = s[None]
+    if model == "rigid":
+        return p1 * s + p2, s * s + p1 * s + p2
+    r, k, c = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
+    q = s * s + c * s + k
+    num = (p1 * s + p2) * q
+    return num, s * s * (s * s + (1 + r) * (c * s + k)) / (1 + r) + num
+
+
+def polynomial_derivatives(model: str, theta: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """d num / d log θ_j and d den / d log θ_j [b, P, K] (the closed forms of ``polynomials``)."""
+    p1, p2 = theta[:, 0:1], theta[:, 1:2]
+    s = s[None]
+    one = torch.ones_like(s)
+    if model == "rigid":
+        dnum = torch.stack([p1 * s, p2 * one], 1)
+        return dnum, dnum
+    r, k, c = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
+    q = s * s + c * s + k
+    lin = p1 * s + p2
+    zero = torch.zeros_like(lin)
+    dnum = torch.stack([p1 * s * q, p2 * q, zero, k * lin, c * lin * s], 1)
+    s2 = s * s
+    extra = torch.stack([zero, zero, -r * s2 * s2 / (1 + r) ** 2, k * s2 * one, c * s2 * s], 1)
+    return dnum, dnum + extra
+
+
+def spectra(a3: np.ndarray, a2: np.ndarray, h: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A3, A2 [b, K] and s [K] of windows a3, a2 [b, N]: bins 1 .. N/2 - 1 (no DC, no Nyquist)."""
+    n = a3.shape[-1]
+    k = np.arange(1, (n - 1) // 2 + 1) if n % 2 else np.arange(1, n // 2)
+    A3 = torch.from_numpy(np.fft.rfft(a3, axis=-1)[:, k])
+    A2 = torch.from_numpy(np.fft.rfft(a2, axis=-1)[:, k])
+    s = torch.from_numpy(1j * 2 * np.pi * k / (n * h))
+    return A3, A2, s
+
+
+class FreqProblem:
+    """The projected, whitened residual e(log θ) [b, 2K (+ prior)] of one batch (module docstring)."""
+
+    def __init__(self, model, A3, A2, s, n_samples, sigma3, sigma2, prior=None, extra: int = 0):
+        self.model, self.A3, self.A2, self.s, self.n = model, A3, A2, s, n_samples
+        self.v3, self.v2 = sigma3[:, None] ** 2, sigma2[:, None] ** 2  # [b, 1]
+        self.prior = prior  # (mean [P], std [P]) in linear θ, inf std: no prior on that parameter
+        order = ORDER[model] + extra
+        self.basis = torch.stack([(s / OMEGA_SCALE) ** i for i in range(order)], -1)  # [K, n]
+
+    def subset(self, idx: torch.Tensor) -> FreqProblem:
+        sub = FreqProblem.__new__(FreqProblem)
+        sub.__dict__ = dict(self.__dict__)
+        sub.A3, sub.A2, sub.v3, sub.v2 = self.A3[idx], self.A2[idx], self.v3[idx], self.v2[idx]
+        return sub
+
+    def _solve(self, log_theta: torch.Tensor):
+        """The pieces of e at log θ [b, P]: θ, num, den, H, w [b, K], X (column-scaled) [b, 2K, n], y [b, 2K], the
+        scaled γ [b, n, 1], its Cholesky factor, the column scales [b, 1, n], and the data part of e [b, 2K]."""
+        theta = torch.exp(log_theta)
+        num, den = polynomials(self.model, theta, self.s)
+        H = num / den
+        S = self.v3 + (H.real**2 + H.imag**2) * self.v2
+        w = torch.sqrt(2.0 / (self.n * S))  # [b, K]
+        b = w * (self.A3 - H * self.A2)
+        Phi = (w / den)[..., None] * self.basis[None]  # [b, K, n]
+        X = torch.cat([Phi.real, Phi.imag], 1)  # [b, 2K, n]
+        y = torch.cat([b.real, b.imag], 1)  # [b, 2K]
+        # column scaling keeps the normal equations conditioned; e does not depend on it
+        scale = X.square().sum(1, keepdim=True).sqrt()
+        Xs = X / scale
+        G = Xs.transpose(1, 2) @ Xs
+        L, info = torch.linalg.cholesky_ex(G)
+        if bool((info != 0).any()):  # a trial step into overflow: its cost is inf, LM rejects it
+            bad = info != 0
+            L = torch.where(bad[:, None, None], torch.eye(G.shape[-1], dtype=G.dtype), L)
+            y = torch.where(bad[:, None], torch.full_like(y, math.inf), y)
+        g = torch.cholesky_solve((Xs.transpose(1, 2) @ y[..., None]), L)  # [b, n, 1]
+        e = y - (Xs @ g)[..., 0]
+        return theta, num, den, H, w, Xs, y, g, L, scale, e
+
+    def _with_prior(self, theta: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+        if self.prior is None:
+            return e
+        mean, std = self.prior
+        finite = torch.isfinite(std)
+        return torch.cat([e, (theta[:, finite] - mean[finite]) / std[finite]], 1)
+
+    def residual(self, log_theta: torch.Tensor, with_transient: bool = False):
+        """e [b, M]; with_transient: also the fitted transient term T_k [b, K] (complex, the units of A3)."""
+        theta, _, den, *_, g, _, scale, e = self._solve(log_theta)
+        e = self._with_prior(theta, e)
+        if with_transient:
+            return e, ((self.basis[None] / den[..., None]) @ (g / scale.transpose(1, 2)).to(den.dtype))[..., 0]
+        return e
+
+    def jacobian(self, log_theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """e [b, M] and de/dlog θ [b, M, P], in closed form: the variable-projection derivative (Golub & Pereyra)
+        de = r' - X G⁻¹ (Xᵀ r' + dXᵀ e), r' = dy - dX γ, with dH = (dnum - H dden)/den,
+        dw = -w Re(conj(H) dH) v2 / S, dy = dw (A3 - H A2) - w dH A2, dΦ = (dw/den - w dden/den²) basis."""
+        theta, num, den, H, w, Xs, y, g, L, scale, e = self._solve(log_theta)
+        dnum, dden = polynomial_derivatives(self.model, theta, self.s)  # [b, P, K], per d log θ_j
+        den_, H_, w_ = den[:, None], H[:, None], w[:, None]
+        dH = (dnum - H_ * dden) / den_
+        S = self.v3 + (H.real**2 + H.imag**2) * self.v2
+        dw = -w_ * (H_.conj() * dH).real * (self.v2 / S)[:, None]
+        dy = dw * (self.A3 - H * self.A2)[:, None] - w_ * dH * self.A2[:, None]
+        coef = dw / den_ - w_ * dden / den_**2  # dΦ = coef basis, never formed: [b, P, K, n] is what costs
+        gamma = (g / scale.transpose(1, 2))[..., 0].to(coef.dtype)  # [b, n], the unscaled columns'
+        dXg = coef * (self.basis @ gamma.T).T[:, None]  # dΦ γ [b, P, K]
+        rp = torch.cat([(dy - dXg).real, (dy - dXg).imag], 2)  # [b, P, 2K]
+        K = self.s.shape[0]
+        E = torch.complex(e[:, :K], e[:, K:])  # [b, K]
+        dXe = ((coef * E.conj()[:, None]) @ self.basis).real / scale  # dXᵀ e [b, P, n], the scaled columns'
+        rhs = rp @ Xs + dXe  # Xᵀ r' + dXᵀ e [b, P, n]
+        dg = torch.cholesky_solve(rhs.transpose(1, 2), L)  # [b, n, P]
+        de = rp - (Xs @ dg).transpose(1, 2)  # [b, P, 2K]
+        if self.prior is not None:
+            _, std = self.prior
+            finite = torch.isfinite(std)
+            dprior = torch.diag_embed(theta / torch.where(finite, std, 1.0))[:, finite]  # [b, n_prior, P]
+            return self._with_prior(theta, e), torch.cat([de.transpose(1, 2), dprior], 1)
+        return e, de.transpose(1, 2)
+
+    def jacobian_ad(self, log_theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The same by forward-mode AD (one jvp per parameter over the whole batch): a check, ~5x slower."""
+        cols = []
+        e = None
+        for j in range(log_theta.shape[1]):
+            t = torch.zeros_like(log_theta)
+            t[:, j] = 1.0
+            e, d = torch.func.jvp(self.residual, (log_theta,), (t,))
+            cols.append(d)
+        return e, torch.stack(cols, -1)
+
+
+def cost(e: torch.Tensor) -> torch.Tensor:
+    return 0.5 * e.square().sum(-1)
+
+
+def levenberg_marquardt(
+    problem: FreqProblem, x0: torch.Tensor, max_iter: int = 100, tol: float = 1e-10, step_tol=1e-8, decrement=1e-6
+):
+    """Per-recording LM from log θ x0 [b, P]. Returns log θ [b, P], iterations to convergence [b] (max_iter + 1:
+    not converged), and the timings {'iter_s': the median over the iterations at the full batch, 'total_s'}.
+    A recording has converged after an accepted step with a relative cost decrease < tol or a step < step_tol,
+    or when the Gauss-Newton decrement ½ gᵀ (JᵀJ)⁻¹ g at its point is < decrement (the cost has unit noise
+    variance per term, so that is the likelihood still to gain: 1e-6 leaves θ ~1e-3 standard deviations from
+    the minimum); decrement=0 turns that test off."""
+    x = x0.clone()
+    b = x.shape[0]
+    lam = torch.full((b,), 1e-3, dtype=x.dtype)
+    f = cost(problem.residual(x))
+    iters = torch.full((b,), max_iter + 1, dtype=torch.long)
+    active = torch.arange(b)
+    problem.subset(active[:2]).jacobian(x[:2])  # warm-up: torch.func's first call is slow, not the method's cost
+    t0 = time.perf_counter()
+    full = []  # seconds of the iterations at the full batch
+    for it in range(1, max_iter + 1):
+        ti = time.perf_counter()
+        n_active = len(active)
+        sub = problem.subset(active)
+        xa, la, fa = x[active], lam[active], f[active]
+        e, J = sub.jacobian(xa)
+        A = J.transpose(1, 2) @ J
+        grad = (J.transpose(1, 2) @ e[..., None])[..., 0]
+        diag = torch.diagonal(A, dim1=1, dim2=2).clamp_min(1e-30)
+        step = -torch.linalg.solve(A + torch.diag_embed(la[:, None] * diag), grad)
+        newton = torch.linalg.solve(A + torch.diag_embed(1e-12 * diag), grad[..., None])[..., 0]
+        near = 0.5 * (grad * newton).sum(1) < decrement
+        trial = xa + step
+        ft = cost(sub.residual(trial))
+        ok = torch.isfinite(ft) & (ft < fa)
+        x[active] = torch.where(ok[:, None], trial, xa)
+        decrease = (fa - torch.where(ok, ft, fa)) / fa.clamp_min(1e-300)
+        f[active] = torch.where(ok, ft, fa)
+        lam[active] = torch.where(ok, (la / 10).clamp_min(1e-12), la * 8)
+        done = near | (ok & ((decrease < tol) | (step.abs().amax(1) < step_tol)))
+        iters[active[done]] = it
+        active = active[~done]
+        if n_active == b:
+            full.append(time.perf_counter() - ti)
+        if len(active) == 0:
+            break
+    return x, iters, {"iter_s": float(np.median(full)), "total_s": time.perf_counter() - t0}
+
+
+def read(path: Path, n: int):
+    """a3, a2 windows [n, 500], h, truth m3 [n] and (for body1 persons) the true body1 θ [n, 5] (else None)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        g = f["test"]
+        accel = g["accel"][:n]
+        h = float(f.attrs["h"])
+        m3 = g["truth_m3"][:n]
+        theta = None
+        if "truth_body" in g:
+            cols = g["truth_body"].attrs["columns"]
+            cols = (cols.decode() if isinstance(cols, bytes) else cols).split(",")
+            body = {c: g["truth_body"][:n, j] for j, c in enumerate(cols)}
+            C3 = g["params"][:n, 0] * m3
+            m_s = g["truth_pan"][:n] + body["m_r"]
+            theta = np.stack(
+                [C3 / m3, K3 / m3, body["m_b"] / m_s, body["k_b"] / body["m_b"], body["c_b"] / body["m_b"]]
+            )
+            theta = theta.T
+    return accel[:, WINDOW, 0], accel[:, WINDOW, 1], h, m3, theta
+
+
+def body_prior_tensors():
+    from hybridqcm.physics.occupant import body_prior
+
+    return body_prior(1)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("path", type=Path)
+    ap.add_argument("--model", choices=tuple(N_PARAMS), default="body1")
+    ap.add_argument("--n", type=int, default=100, help="recordings read from the file's test split")
+    ap.add_argument("--tile", type=int, default=1, help="repeat the n recordings (a batch of tile * n)")
+    ap.add_argument("--noise", type=float, default=0.05, help="σ as a fraction of each channel's clean RMS")
+    ap.add_argument("--start", choices=("ref", "truth"), default="ref", help="reference vehicle or truth x 1.1")
+    ap.add_argument("--prior", action=argparse.BooleanOptionalAction, default=True)
+    ap.add_argument("--extra", type=int, default=2, help="degrees added to the transient's polynomial (edge terms)")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--max-iter", type=int, default=100)
+    ap.add_argument("--decrement", type=float, default=1e-6, help="stop at this Gauss-Newton decrement; 0: off")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    a3, a2, h, m3, theta_true = read(args.path, args.n)
+    a3, a2, m3 = (np.tile(a, (args.tile,) + (1,) * (a.ndim - 1)) for a in (a3, a2, m3))
+    clean = math.sqrt(1 + args.noise**2)
+    level = args.noise if args.noise > 0 else 0.05  # noise-free data: the 5 % weighting, only a weighting
+    sig3 = torch.from_numpy(level * np.sqrt(np.mean(a3**2, 1)) / clean)
+    sig2 = torch.from_numpy(level * np.sqrt(np.mean(a2**2, 1)) / clean)
+    A3, A2, s = spectra(a3, a2, h)
+    prior = None
+    if args.model == "body1" and args.prior:
+        mean, std = body_prior_tensors()
+        prior = (torch.cat([torch.ones(2, dtype=torch.float64), mean]), torch.cat([torch.full((2,), math.inf), std]))
+    problem = FreqProblem(args.model, A3, A2, s, a3.shape[1], sig3, sig2, prior, args.extra)
+
+    b = len(m3)
+    if args.start == "truth":
+        if args.model == "body1":
+            if theta_true is None:
+                raise SystemExit(f"freq_fit: {args.path}: no truth_body for --start truth")
+            start = np.tile(theta_true, (args.tile, 1)) * 1.1
+        else:
+            start = np.stack([np.full(b, REF_C3 / REF_M3), K3 / m3], 1) * 1.1  # C3 unknown per file: REF's
+    else:
+        start = np.tile([REF_C3 / REF_M3, K3 / REF_M3], (b, 1))
+        if args.model == "body1":
+            start = np.concatenate([start, np.tile(body_prior_tensors()[0].numpy(), (b, 1))], 1)
+    x, iters, timing = levenberg_marquardt(
+        problem, torch.log(torch.from_numpy(start)), args.max_iter, decrement=args.decrement
+    )
+    M = K3 / torch.exp(x[:, 1]).numpy()
+    err = np.abs(M / m3 - 1)
+    conv = iters <= args.max_iter
+    print(
+        f"{args.path.name} model={args.model} batch={b} threads={args.threads} start={args.start} prior={prior is not None}"
+        f" noise={args.noise} extra={args.extra}: M mean |error| {100 * err.mean():.2f} % (median {100 * np.median(err):.2f} %),"
+        f" within 5 % {100 * (err <= 0.05).mean():.0f} %, within 10 % {100 * (err <= 0.10).mean():.0f} %;"
+        f" converged {int(conv.sum())}/{b}, iterations mean {iters[conv].float().mean():.1f} max {int(iters.max())};"
+        f" s/iteration at the full batch {timing['iter_s']:.3f}, to convergence {timing['total_s']:.2f} s"
+    )
+
+
+if __name__ == "__main__":
+    main()
