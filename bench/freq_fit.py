@@ -1,16 +1,23 @@
 """Prototype (issue 28): the road-free seat fitted directly in the frequency domain, no time-domain simulation.
 
     PYTHONPATH=src .venv/bin/python bench/freq_fit.py data/persons/body1_n5.h5 --model body1 [--n 100]
-        [--tile 4] [--noise 0.05] [--start ref|truth] [--prior | --no-prior] [--threads 1] [--max-iter 100]
+        [--tile 4] [--noise 0.05] [--start ref|truth] [--prior | --no-prior] [--extra 2] [--threads 1]
+        [--max-iter 100] [--decrement 1e-6]
+    ... data/persons/rigid_n5.h5 --model rigid          ... data/persons/body1_n0.h5 --noise 0 --no-prior
 
 Per recording, the window's samples 6..505 of a3 and a2 (the 500 the library fits), their DFTs A3_k, A2_k at
 ω_k = 2π k / (N h), k = 1 .. N/2 - 1 (DC and Nyquist dropped), and the residual
 
     R_k = A3_k - H(θ, s_k) A2_k - T_k(γ),     s_k = j ω_k,
-    T_k = Σ_{i<n} γ_i s̃_k^i / D(s_k)          (s̃ = s / ω_s, ω_s = 2π 10 Hz: only the basis's scale)
+    T_k = Σ_{i<n+e} γ_i s̃_k^i / D(s_k)          (s̃ = s / ω_s, ω_s = 2π 10 Hz: only the basis's scale)
 
 with T the window's transient / leakage term of a continuous-time system (Pintelon & Schoukens, System
-Identification, 2nd ed., § 6.3.2), D the denominator of H and n its order, γ real. Models, in log θ (the closed
+Identification, 2nd ed., § 6.3.2), D the denominator of H and n its order, γ real. The textbook term (e = 0)
+is exact for the Fourier integral over the window, not for the DFT of its samples: the rectangle rule errs at the
+window's ends by the Euler-Maclaurin terms (h/2)(x(T) - x(0)), (h²/12)(x'(T) - x'(0)), ... of both channels, real
+polynomials in s which over D are more degrees of the same term. ``--extra`` e = 2 (the default) takes the
+first two orders: on 100 noise-free body1 windows the static mass's mean error falls from 8 % (e = 0) to 0.03 %
+(started at the truth). Models, in log θ (the closed
 forms of bench/occupant_crb.py ``transfer``):
 
 * rigid, θ = (p1, p2):  H = (p1 s + p2) / (s² + p1 s + p2), n = 2;
@@ -27,8 +34,10 @@ whose terms at the truth have unit variance. Here σ3, σ2 are *known*: ``--nois
 least squares (variable projection: e is the projected residual), so only θ is iterated. ``--prior`` adds the
 library's literature prior on the body parameters (physics/occupant.body_prior: residuals (θ_j - μ_j)/σ_j in
 linear θ, as estimation/plan_occupant.py does). Levenberg-Marquardt per recording; the Jacobian of the projected
-residual in closed form (the full Golub-Pereyra derivative; ``jacobian_ad``: forward-mode AD, the check); recordings that
-have converged (relative cost decrease < 1e-10 on an accepted step, or a step < 1e-8 in log θ) leave the batch.
+residual in closed form (the full Golub-Pereyra derivative; ``jacobian_ad``: forward-mode AD, the check,
+~5x slower); recordings that have converged (``levenberg_marquardt``: a Gauss-Newton decrement < 1e-6, or a
+relative cost decrease < 1e-10 on an accepted step, or a step < 1e-8 in log θ) leave the batch. One start, no
+restarts, no bounds (a few fits run off along p1 -> 0: the tail of the iteration counts).
 
 Prints M's mean |error|, the share within 5 / 10 %, the seconds per iteration at the full batch and to
 convergence, at ``--threads`` threads; ``--tile`` repeats the n recordings (a batch of 400 from 100).
