@@ -2,7 +2,7 @@
 
     PYTHONPATH=src .venv/bin/python bench/freq_fit.py data/persons/body1_n5.h5 --model body1 [--n 100]
         [--tile 4] [--noise 0.05] [--start ref|truth] [--prior | --no-prior] [--extra 2] [--threads 1]
-        [--max-iter 100] [--decrement 1e-6]
+        [--max-iter 100] [--decrement 1e-6] [--sigma known|fit] [--sigma-start 0.02]
     ... data/persons/rigid_n5.h5 --model rigid          ... data/persons/body1_n0.h5 --noise 0 --no-prior
 
 Per recording, the window's samples 6..505 of a3 and a2 (the 500 the library fits), their DFTs A3_k, A2_k at
@@ -30,7 +30,9 @@ Static mass M = K3 / p2, K3 = 98 935 N/m. The errors-in-variables cost (estimati
     L(θ) = ½ Σ_k |e_k|²,   e_k = sqrt(2 / (N S_k)) R_k (real and imaginary parts stacked),   S_k = σ3² + |H_k|² σ2²,
 
 whose terms at the truth have unit variance. Here σ3, σ2 are *known*: ``--noise`` times each channel's clean RMS
-(measured RMS / sqrt(1 + noise²)); the library fits them. γ is eliminated at every evaluation by weighted linear
+(measured RMS / sqrt(1 + noise²)); the library fits them. ``--sigma fit`` fits them here too: a first fit with
+σ = ``--sigma-start`` x each channel's RMS, then (``FreqProblem.fit_variances``) Whittle's likelihood of the
+residual's periodogram, S linear in (σ3², σ2²), then the fit again from the first's θ. γ is eliminated at every evaluation by weighted linear
 least squares (variable projection: e is the projected residual), so only θ is iterated. ``--prior`` adds the
 library's literature prior on the body parameters (physics/occupant.body_prior: residuals (θ_j - μ_j)/σ_j in
 linear θ, as estimation/plan_occupant.py does). Levenberg-Marquardt per recording; the Jacobian of the projected
@@ -116,6 +118,34 @@ class FreqProblem:
         sub.__dict__ = dict(self.__dict__)
         sub.A3, sub.A2, sub.v3, sub.v2 = self.A3[idx], self.A2[idx], self.v3[idx], self.v2[idx]
         return sub
+
+    def with_variances(self, v3: torch.Tensor, v2: torch.Tensor) -> FreqProblem:
+        """The same problem with per-sample noise variances v3, v2 [b]."""
+        new = FreqProblem.__new__(FreqProblem)
+        new.__dict__ = dict(self.__dict__)
+        new.v3, new.v2 = v3[:, None], v2[:, None]
+        return new
+
+    def fit_variances(self, log_theta: torch.Tensor, iterations: int = 20) -> tuple[torch.Tensor, torch.Tensor]:
+        """v3, v2 [b] by Whittle's likelihood Σ_k log S_k + P_k / S_k of the residual's periodogram
+        P_k = |R_k|² / N at log θ (R with the fitted transient taken off, divided by 1 - its leverage), S_k = v3 + |H_k|² v2 linear in v:
+        Fisher scoring (estimation/noise.py estimate_variances, here for one output and one input)."""
+        _, _, _, H, w, Xs, _, _, L, _, e = self._solve(log_theta)
+        K = self.s.shape[0]
+        # the transient takes n + e degrees of freedom, most of them from the few low bins that carry v2's
+        # information (1/D is large there): E P_k = S_k (1 - leverage_k), so P_k is divided by that (about 9 % on
+        # v2 on 500-sample windows otherwise)
+        lev = (Xs * torch.cholesky_solve(Xs.transpose(1, 2), L).transpose(1, 2)).sum(2)  # [b, 2K]
+        keep = (1 - 0.5 * (lev[:, :K] + lev[:, K:])).clamp_min(1e-3)
+        P = (e[:, :K].square() + e[:, K:].square()) / w.square() / self.n / keep  # [b, K]
+        a = torch.stack([torch.ones_like(P), H.real.square() + H.imag.square()], -1)  # dS/dv [b, K, 2]
+        v = torch.stack([P[:, -K // 4 :].mean(1), P[:, : K // 4].mean(1) / a[:, : K // 4, 1].mean(1)], -1) * 0.5
+        for _ in range(iterations):
+            S = (a @ v[..., None])[..., 0]
+            grad = (a * ((P - S) / S.square())[..., None]).sum(1)
+            F = (a[..., :, None] * a[..., None, :] / S.square()[..., None, None]).sum(1)
+            v = (v + torch.linalg.solve(F, grad)).clamp_min(1e-12 * v.amax(1, keepdim=True))
+        return v[:, 0], v[:, 1]
 
     def _solve(self, log_theta: torch.Tensor):
         """The pieces of e at log θ [b, P]: θ, num, den, H, w [b, K], X (column-scaled) [b, 2K, n], y [b, 2K], the
@@ -287,6 +317,10 @@ def main(argv=None) -> None:
     ap.add_argument("--start", choices=("ref", "truth"), default="ref", help="reference vehicle or truth x 1.1")
     ap.add_argument("--prior", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--extra", type=int, default=2, help="degrees added to the transient's polynomial (edge terms)")
+    ap.add_argument(
+        "--sigma", choices=("known", "fit"), default="known", help="σ3, σ2 given (--noise) or fitted (Whittle)"
+    )
+    ap.add_argument("--sigma-start", type=float, default=0.02, help="--sigma fit: the first fit's σ / channel RMS")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-iter", type=int, default=100)
     ap.add_argument("--decrement", type=float, default=1e-6, help="stop at this Gauss-Newton decrement; 0: off")
@@ -297,6 +331,8 @@ def main(argv=None) -> None:
     a3, a2, m3 = (np.tile(a, (args.tile,) + (1,) * (a.ndim - 1)) for a in (a3, a2, m3))
     clean = math.sqrt(1 + args.noise**2)
     level = args.noise if args.noise > 0 else 0.05  # noise-free data: the 5 % weighting, only a weighting
+    if args.sigma == "fit":
+        level, clean = args.sigma_start, 1.0
     sig3 = torch.from_numpy(level * np.sqrt(np.mean(a3**2, 1)) / clean)
     sig2 = torch.from_numpy(level * np.sqrt(np.mean(a2**2, 1)) / clean)
     A3, A2, s = spectra(a3, a2, h)
@@ -321,12 +357,23 @@ def main(argv=None) -> None:
     x, iters, timing = levenberg_marquardt(
         problem, torch.log(torch.from_numpy(start)), args.max_iter, decrement=args.decrement
     )
+    if args.sigma == "fit":  # the variances at the first fit, then the fit again from there
+        t0 = time.perf_counter()
+        v3, v2 = problem.fit_variances(x)
+        problem = problem.with_variances(v3, v2)
+        t_var = time.perf_counter() - t0
+        x, iters2, timing2 = levenberg_marquardt(problem, x, args.max_iter, decrement=args.decrement)
+        ratio = torch.sqrt(torch.stack([v3, v2], 1)).numpy() / np.stack([sig3.numpy(), sig2.numpy()], 1)
+        ratio *= args.sigma_start * math.sqrt(1 + args.noise**2) / args.noise if args.noise > 0 else 1.0
+        print(f"fitted σ over the true (--noise) σ, a3 and a2: median {np.median(ratio, 0).round(3)}")
+        timing = {"iter_s": timing["iter_s"], "total_s": timing["total_s"] + t_var + timing2["total_s"]}
+        iters = torch.where((iters <= args.max_iter) & (iters2 <= args.max_iter), iters + iters2, args.max_iter + 1)
     M = K3 / torch.exp(x[:, 1]).numpy()
     err = np.abs(M / m3 - 1)
     conv = iters <= args.max_iter
     print(
         f"{args.path.name} model={args.model} batch={b} threads={args.threads} start={args.start} prior={prior is not None}"
-        f" noise={args.noise} extra={args.extra}: M mean |error| {100 * err.mean():.2f} % (median {100 * np.median(err):.2f} %),"
+        f" noise={args.noise} sigma={args.sigma} extra={args.extra}: M mean |error| {100 * err.mean():.2f} % (median {100 * np.median(err):.2f} %),"
         f" within 5 % {100 * (err <= 0.05).mean():.0f} %, within 10 % {100 * (err <= 0.10).mean():.0f} %;"
         f" converged {int(conv.sum())}/{b}, iterations mean {iters[conv].float().mean():.1f} max {int(iters.max())};"
         f" s/iteration at the full batch {timing['iter_s']:.3f}, to convergence {timing['total_s']:.2f} s"

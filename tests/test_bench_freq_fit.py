@@ -110,3 +110,21 @@ def test_jacobian_matches_finite_differences(ff):
         dx[:, j] = step
         fd = (problem.residual(x + dx) - problem.residual(x - dx)) / (2 * step)
         np.testing.assert_allclose(J[..., j].numpy(), fd.numpy(), rtol=1e-5, atol=1e-6 * float(fd.abs().max()))
+
+
+def test_fit_variances_recovers_white_noise(ff):
+    """White noise of known variance on both channels of a periodic steady state: Whittle's fit at the true θ
+    returns it: the mean over 200 recordings within 6 % (standard errors 0.5 % on a3's, 1.8 % on a2's, fewer
+    bins carry it). Without the leverage correction a2's came out 9 % low (the transient's degrees of freedom)."""
+    a2 = _multisine(2)
+    a3, a2s = _simulate(BODY1, a2, 40.0 + N * H)
+    a3, a2s = a3[-N:], a2s[-N:]
+    rng = np.random.default_rng(4)
+    sd3, sd2 = 0.05 * np.sqrt(np.mean(a3**2)), 0.05 * np.sqrt(np.mean(a2s**2))
+    b = 200
+    A3, A2, s = ff.spectra(a3 + sd3 * rng.standard_normal((b, N)), a2s + sd2 * rng.standard_normal((b, N)), H)
+    ones = torch.ones(b, dtype=torch.float64)
+    problem = ff.FreqProblem("body1", A3, A2, s, N, ones * sd3 * 3, ones * sd2 / 3, None, 2)  # wrong weights
+    v3, v2 = problem.fit_variances(torch.log(torch.tensor(BODY1)).repeat(b, 1))
+    assert abs(float(v3.mean()) / sd3**2 - 1) < 0.06
+    assert abs(float(v2.mean()) / sd2**2 - 1) < 0.06
