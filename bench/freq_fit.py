@@ -23,7 +23,10 @@ forms of bench/occupant_crb.py ``transfer``):
 * rigid, θ = (p1, p2):  H = (p1 s + p2) / (s² + p1 s + p2), n = 2;
 * body1, θ = (p1, p2, r, k, c):  q = s² + c s + k,  H = (p1 s + p2) q / D,
   D = s² (s² + (1 + r)(c s + k)) / (1 + r) + (p1 s + p2) q, n = 4 (= (p1 s + p2)/(s² (1 + r T)/(1 + r) + p1 s + p2),
-  T = (c s + k)/q).
+  T = (c s + k)/q);
+* body2, θ = (p1, p2, r1, k1, c1, r2, k2, c2), two parallel modes (physics/occupant.py): g_i = c_i s + k_i,
+  q_i = s² + g_i, H = (p1 s + p2) q1 q2 / D, D = s² (q1 q2 + r1 g1 q2 + r2 g2 q1) / (1 + r1 + r2) + (p1 s + p2) q1 q2,
+  n = 6 (no truth in these files: cost only).
 
 Static mass M = K3 / p2, K3 = 98 935 N/m. The errors-in-variables cost (estimation/noise.py)
 
@@ -59,8 +62,9 @@ K3 = 98935.0
 REF_C3, REF_M3 = 615.0, 80.0  # the reference vehicle's seat (bench/foreign_sim.py REF, physics/parameters.py)
 WINDOW = slice(6, 506)  # the 500 samples the library fits of the 512 stored
 OMEGA_SCALE = 2 * math.pi * 10.0
-N_PARAMS = {"rigid": 2, "body1": 5}
-ORDER = {"rigid": 2, "body1": 4}
+N_PARAMS = {"rigid": 2, "body1": 5, "body2": 8}
+ORDER = {"rigid": 2, "body1": 4, "body2": 6}
+N_MODES = {"rigid": 0, "body1": 1, "body2": 2}
 
 
 def polynomials(model: str, theta: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -69,6 +73,13 @@ def polynomials(model: str, theta: torch.Tensor, s: torch.Tensor) -> tuple[torch
     s = s[None]
     if model == "rigid":
         return p1 * s + p2, s * s + p1 * s + p2
+    if model == "body2":
+        r1, k1, c1, r2, k2, c2 = (theta[:, j : j + 1] for j in range(2, 8))
+        g1, g2 = c1 * s + k1, c2 * s + k2
+        q1, q2 = s * s + g1, s * s + g2
+        num = (p1 * s + p2) * q1 * q2
+        B = q1 * q2 + r1 * g1 * q2 + r2 * g2 * q1
+        return num, s * s * B / (1 + r1 + r2) + num
     r, k, c = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
     q = s * s + c * s + k
     num = (p1 * s + p2) * q
@@ -83,6 +94,8 @@ def polynomial_derivatives(model: str, theta: torch.Tensor, s: torch.Tensor) -> 
     if model == "rigid":
         dnum = torch.stack([p1 * s, p2 * one], 1)
         return dnum, dnum
+    if model == "body2":
+        return _body2_derivatives(theta, s)
     r, k, c = theta[:, 2:3], theta[:, 3:4], theta[:, 4:5]
     q = s * s + c * s + k
     lin = p1 * s + p2
@@ -91,6 +104,28 @@ def polynomial_derivatives(model: str, theta: torch.Tensor, s: torch.Tensor) -> 
     s2 = s * s
     extra = torch.stack([zero, zero, -r * s2 * s2 / (1 + r) ** 2, k * s2 * one, c * s2 * s], 1)
     return dnum, dnum + extra
+
+
+def _body2_derivatives(theta: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """body2 (two parallel modes, physics/occupant.py): num = L q1 q2, den = s² B / R + num with L = p1 s + p2,
+    g_i = c_i s + k_i, q_i = s² + g_i, B = q1 q2 + r1 g1 q2 + r2 g2 q1, R = 1 + r1 + r2; d / d log θ_j."""
+    p1, p2 = theta[:, 0:1], theta[:, 1:2]
+    r1, k1, c1, r2, k2, c2 = (theta[:, j : j + 1] for j in range(2, 8))
+    g1, g2 = c1 * s + k1, c2 * s + k2
+    q1, q2 = s * s + g1, s * s + g2
+    lin, R = p1 * s + p2, 1 + r1 + r2
+    B = q1 * q2 + r1 * g1 * q2 + r2 * g2 * q1
+    s2 = s * s
+    zero = torch.zeros_like(lin)
+    # a mode's k or c moves g_i and q_i alike by dg: dQ = dg q_other, dB = dg (q_other (1 + r_i) + r_other g_other)
+    dg = [k1 * torch.ones_like(s), c1 * s, k2 * torch.ones_like(s), c2 * s]
+    other_q, dB_per = [q2, q2, q1, q1], [q2 * (1 + r1) + r2 * g2] * 2 + [q1 * (1 + r2) + r1 * g1] * 2
+    dnum = [p1 * s * q1 * q2, p2 * q1 * q2, zero, lin * dg[0] * other_q[0], lin * dg[1] * other_q[1], zero]
+    dnum += [lin * dg[2] * other_q[2], lin * dg[3] * other_q[3]]
+    dden_extra = [zero, zero, s2 * r1 * (g1 * q2 - B / R) / R, s2 * dg[0] * dB_per[0] / R, s2 * dg[1] * dB_per[1] / R]
+    dden_extra += [s2 * r2 * (g2 * q1 - B / R) / R, s2 * dg[2] * dB_per[2] / R, s2 * dg[3] * dB_per[3] / R]
+    dnum = torch.stack(dnum, 1)  # p1, p2, r1, k1, c1, r2, k2, c2
+    return dnum, dnum + torch.stack(dden_extra, 1)
 
 
 def spectra(a3: np.ndarray, a2: np.ndarray, h: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -301,10 +336,11 @@ def read(path: Path, n: int):
     return accel[:, WINDOW, 0], accel[:, WINDOW, 1], h, m3, theta
 
 
-def body_prior_tensors():
+def body_prior_tensors(model: str = "body1"):
+    """(mean, std) [3 n_modes] of the library's literature prior on the body parameters."""
     from hybridqcm.physics.occupant import body_prior
 
-    return body_prior(1)
+    return body_prior(N_MODES[model])
 
 
 def main(argv=None) -> None:
@@ -337,23 +373,23 @@ def main(argv=None) -> None:
     sig2 = torch.from_numpy(level * np.sqrt(np.mean(a2**2, 1)) / clean)
     A3, A2, s = spectra(a3, a2, h)
     prior = None
-    if args.model == "body1" and args.prior:
-        mean, std = body_prior_tensors()
+    if args.model != "rigid" and args.prior:
+        mean, std = body_prior_tensors(args.model)
         prior = (torch.cat([torch.ones(2, dtype=torch.float64), mean]), torch.cat([torch.full((2,), math.inf), std]))
     problem = FreqProblem(args.model, A3, A2, s, a3.shape[1], sig3, sig2, prior, args.extra)
 
     b = len(m3)
     if args.start == "truth":
-        if args.model == "body1":
-            if theta_true is None:
-                raise SystemExit(f"freq_fit: {args.path}: no truth_body for --start truth")
+        if args.model != "rigid":
+            if theta_true is None or args.model != "body1":
+                raise SystemExit(f"freq_fit: {args.path}: --start truth: no body1 truth for --model {args.model}")
             start = np.tile(theta_true, (args.tile, 1)) * 1.1
         else:
             start = np.stack([np.full(b, REF_C3 / REF_M3), K3 / m3], 1) * 1.1  # C3 unknown per file: REF's
     else:
         start = np.tile([REF_C3 / REF_M3, K3 / REF_M3], (b, 1))
-        if args.model == "body1":
-            start = np.concatenate([start, np.tile(body_prior_tensors()[0].numpy(), (b, 1))], 1)
+        if args.model != "rigid":
+            start = np.concatenate([start, np.tile(body_prior_tensors(args.model)[0].numpy(), (b, 1))], 1)
     x, iters, timing = levenberg_marquardt(
         problem, torch.log(torch.from_numpy(start)), args.max_iter, decrement=args.decrement
     )

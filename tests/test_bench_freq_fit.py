@@ -17,6 +17,7 @@ H = 0.01
 N = 500  # one period of the multisine: 5 s
 BODY1 = np.array([6.0, 1100.0, 1.8, 1000.0, 25.0])  # p1, p2, r, k (5 Hz), c
 RIGID = np.array([7.0, 1150.0])
+BODY2 = np.array([6.0, 1100.0, 1.8, 1000.0, 25.0, 0.5, 4000.0, 40.0])  # the second mode at 10 Hz
 
 
 @pytest.fixture(scope="module")
@@ -37,22 +38,27 @@ def _multisine(seed: int = 0):
 
 
 def _simulate(theta: np.ndarray, a2, t_end: float) -> tuple[np.ndarray, np.ndarray]:
-    """a3, a2 sampled at H on [0, t_end) from rest: the seat (+ one body mode) of physics/occupant.py's docstring,
-    a_pan = R (-p1 ż - p2 z) + r (c ẏ + k y), z̈ = a_pan - a2, ÿ = -(c ẏ + k y) - a_pan (rigid: r = 0)."""
+    """a3, a2 sampled at H on [0, t_end) from rest: the seat with parallel body modes of physics/occupant.py's
+    docstring, a_pan = R (-p1 ż - p2 z) + Σ r_i (c_i ẏ_i + k_i y_i), z̈ = a_pan - a2, ÿ_i = -(c_i ẏ_i + k_i y_i) - a_pan,
+    R = 1 + Σ r_i (rigid: no modes)."""
     p1, p2 = theta[:2]
-    r, k, c = theta[2:] if len(theta) > 2 else (0.0, 1.0, 1.0)
-    R = 1 + r
+    modes = np.asarray(theta[2:]).reshape(-1, 3)
+    R = 1 + modes[:, 0].sum()
 
     def pan(x):
-        z, dz, y, dy = x
-        return R * (-p1 * dz - p2 * z) + r * (c * dy + k * y)
+        y, dy = x[2::2], x[3::2]
+        return R * (-p1 * x[1] - p2 * x[0]) + np.sum(modes[:, 0] * (modes[:, 2] * dy + modes[:, 1] * y))
 
     def rhs(t, x):
         a = pan(x)
-        return [x[1], a - a2(t)[0], x[3], -(c * x[3] + k * x[2]) - a]
+        out = [x[1], a - a2(t)[0]]
+        for i, (_, k, c) in enumerate(modes):
+            out += [x[3 + 2 * i], -(c * x[3 + 2 * i] + k * x[2 + 2 * i]) - a]
+        return out
 
     t = np.arange(int(round(t_end / H))) * H
-    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), [0.0] * 4, t_eval=t, rtol=1e-11, atol=1e-13, method="DOP853")
+    x0 = [0.0] * (2 + 2 * len(modes))
+    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), x0, t_eval=t, rtol=1e-11, atol=1e-13, method="DOP853")
     return np.array([pan(x) for x in sol.y.T]), a2(t)
 
 
@@ -64,7 +70,7 @@ def _fit(ff, model, a3, a2, start, extra=2):
     return torch.exp(x[0]).numpy(), problem, x
 
 
-@pytest.mark.parametrize("model, theta", [("rigid", RIGID), ("body1", BODY1)])
+@pytest.mark.parametrize("model, theta", [("rigid", RIGID), ("body1", BODY1), ("body2", BODY2)])
 def test_steady_state_fit_recovers_theta(ff, model, theta):
     """Noise-free, periodic and band-limited: A3 = H A2 holds exactly on every bin, the fit from 10 % off
     recovers θ to 1e-6 and the transient term vanishes."""
@@ -90,22 +96,24 @@ def test_transient_term_takes_a_start_from_rest(ff):
     assert errors[2] < 1e-5
 
 
-def test_jacobian_matches_finite_differences(ff):
+@pytest.mark.parametrize("model, theta", [("body1", BODY1), ("body2", BODY2)])
+def test_jacobian_matches_finite_differences(ff, model, theta):
     """The closed-form Jacobian of the projected residual (γ re-solved inside) against central differences and
     forward-mode AD."""
     rng = np.random.default_rng(3)
     a3, a2 = rng.standard_normal((2, 3, N))
     A3, A2, s = ff.spectra(a3, a2, H)
     sig = torch.full((3,), 0.1, dtype=torch.float64)
-    mean, std = torch.ones(5, dtype=torch.float64), torch.tensor([np.inf, np.inf, 1.0, 300.0, 10.0])
-    problem = ff.FreqProblem("body1", A3, A2, s, N, sig, sig, (mean, std), 2)
-    x = torch.log(torch.tensor(BODY1)).repeat(3, 1) + 0.05 * torch.tensor(rng.standard_normal((3, 5)))
+    P = len(theta)
+    mean, std = torch.ones(P, dtype=torch.float64), torch.tensor([np.inf, np.inf] + [1.0, 300.0, 10.0] * (P // 3))
+    problem = ff.FreqProblem(model, A3, A2, s, N, sig, sig, (mean, std), 2)
+    x = torch.log(torch.tensor(theta)).repeat(3, 1) + 0.05 * torch.tensor(rng.standard_normal((3, P)))
     _, J = problem.jacobian(x)
     np.testing.assert_allclose(
         J.numpy(), problem.jacobian_ad(x)[1].numpy(), rtol=1e-9, atol=1e-12 * float(J.abs().max())
     )
     step = 1e-6
-    for j in range(5):
+    for j in range(P):
         dx = torch.zeros_like(x)
         dx[:, j] = step
         fd = (problem.residual(x + dx) - problem.residual(x - dx)) / (2 * step)
