@@ -180,24 +180,10 @@ class InformationCombiner:
         focus: int | None = None,
         log: Tensor | None = None,
     ):
-        if theta.ndim != 2 or covariance.shape != (*theta.shape, theta.shape[1]):
-            raise ValueError(
-                f"theta [W, d] and covariance [W, d, d], got {tuple(theta.shape)}, {tuple(covariance.shape)}"
-            )
-        if scale not in SCALES:
-            raise ValueError(f"scale={scale!r}: choose one of {list(SCALES)}")
-        if focus is not None and not 0 <= int(focus) < theta.shape[1]:
-            raise ValueError(f"focus={focus}: not one of the {theta.shape[1]} parameters")
-        if scale == "marginal" and focus is None:
-            raise ValueError("scale='marginal' needs the focus parameter's index")
-        self.focus = None if focus is None else int(focus)
-        self.log = torch.zeros(theta.shape[1], dtype=torch.bool) if log is None else log.bool()
-        if bool(self.log.any()) and not bool((theta[:, self.log] > 0).all()):
-            raise ValueError("log: a parameter combined in logarithm must be positive in every window")
+        self.focus, self.log = checked_inputs(theta, covariance, scale, focus, log)
         # combined in log θ_i where log[i] (the delta method: Σ_w,ij / (θ_w,i θ_w,j)), answered in θ
-        factor = torch.where(self.log, theta.double(), torch.ones_like(theta.double()))  # [W, d]
+        self.theta, factor = to_coordinates(theta, self.log)  # factor: dθ/dx [W, d]
         jacobian = factor.unsqueeze(2) * factor.unsqueeze(1)
-        self.theta = torch.where(self.log, theta.double().clamp_min(1e-300).log(), theta.double())
         self.covariance = covariance.double() / jacobian
         self.precision = torch.linalg.inv(self.covariance)
         self.weights = (
@@ -241,19 +227,49 @@ class InformationCombiner:
         return in_theta(g, self.log, self.focus)
 
 
+def checked_inputs(
+    theta: Tensor, covariance: Tensor, scale: str, focus: int | None, log: Tensor | None
+) -> tuple[int | None, Tensor]:
+    """The combiners' common checks of their windows (one-line ValueErrors): theta [W, d], covariance [W, d, d],
+    scale one of SCALES, focus an index (needed by "marginal"), every parameter combined in its logarithm positive.
+    Returns (focus as int or None, log [d] bool)."""
+    if theta.ndim != 2 or covariance.shape != (*theta.shape, theta.shape[1]):
+        raise ValueError(f"theta [W, d] and covariance [W, d, d], got {tuple(theta.shape)}, {tuple(covariance.shape)}")
+    if scale not in SCALES:
+        raise ValueError(f"scale={scale!r}: choose one of {list(SCALES)}")
+    if focus is not None and not 0 <= int(focus) < theta.shape[1]:
+        raise ValueError(f"focus={focus}: not one of the {theta.shape[1]} parameters")
+    if scale == "marginal" and focus is None:
+        raise ValueError("scale='marginal' needs the focus parameter's index")
+    log = torch.zeros(theta.shape[1], dtype=torch.bool) if log is None else log.bool()
+    if bool(log.any()) and not bool((theta[:, log] > 0).all()):
+        raise ValueError("log: a parameter combined in logarithm must be positive in every window")
+    return (None if focus is None else int(focus)), log
+
+
+def to_coordinates(theta: Tensor, log: Tensor) -> tuple[Tensor, Tensor]:
+    """(x, dθ/dx) [..., d] of θ [..., d]: x = log θ where ``log`` [d], else θ (the combiners' coordinates)."""
+    theta = theta.double()
+    return torch.where(log, theta.clamp_min(1e-300).log(), theta), torch.where(log, theta, torch.ones_like(theta))
+
+
+def to_theta(x: Tensor, log: Tensor) -> tuple[Tensor, Tensor]:
+    """(θ, dθ/dx) [..., d] of the combiners' coordinates x [..., d]: the inverse of :func:`to_coordinates`."""
+    theta = torch.where(log, x.exp(), x)
+    return theta, torch.where(log, theta, torch.ones_like(theta))
+
+
 def in_theta(g: Gaussian, log: Tensor, focus: int | None = None) -> Gaussian:
     """A combination in the combiner's coordinates answered in θ: the parameters ``log`` [d] bool combined in
     their logarithm mapped back (θ = exp, covariances D C D with D = diag θ, the focus's scatter likewise)."""
     if not bool(log.any()):
         return g
-    value = torch.where(log, g.mean.exp(), g.mean)
-    d = torch.where(log, value, torch.ones_like(value))
+    value, d = to_theta(g.mean, log)
     jac = d.unsqueeze(1) * d.unsqueeze(0)
     scatter = g.focus_scatter * float(d[focus]) ** 2 if focus is not None else math.nan
     flat = None
     if g.flat is not None:
-        flat_value = torch.where(log, g.flat[0].exp(), g.flat[0])
-        e = torch.where(log, flat_value, torch.ones_like(flat_value))
+        flat_value, e = to_theta(g.flat[0], log)
         flat = (flat_value, g.flat[1] * e.unsqueeze(1) * e.unsqueeze(0))
     return Gaussian(value, g.covariance * jac, g.chi2, g.dof, g.n, g.raw * jac, g.focus_chi2, scatter, flat)
 
@@ -427,6 +443,9 @@ __all__ = [
     "pooled_f",
     "scaled",
     "in_theta",
+    "checked_inputs",
+    "to_coordinates",
+    "to_theta",
     "SCALES",
     "SPLIT_TESTS",
     "isolated_outliers",

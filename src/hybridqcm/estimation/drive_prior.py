@@ -54,7 +54,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from hybridqcm.estimation.drive import SCALES, Gaussian, in_theta, scaled
+from hybridqcm.estimation.drive import Gaussian, checked_inputs, in_theta, scaled, to_coordinates, to_theta
 
 FLOOR = 1e-3  # a direction keeps at least this share of its information as the window's likelihood
 
@@ -79,26 +79,14 @@ class PriorOnceCombiner:
         log: Tensor | None = None,
         floor: float = FLOOR,
     ):
-        if theta.ndim != 2 or covariance.shape != (*theta.shape, theta.shape[1]):
-            raise ValueError(
-                f"theta [W, d] and covariance [W, d, d], got {tuple(theta.shape)}, {tuple(covariance.shape)}"
-            )
+        self.focus, self.log = checked_inputs(theta, covariance, scale, focus, log)
         if prior_mean.shape != theta.shape or prior_precision.shape != theta.shape:
             raise ValueError(f"prior_mean and prior_precision must be [W, d] = {list(theta.shape)}")
         if not bool((prior_precision >= 0).all()) or not bool(torch.isfinite(prior_mean).all()):
             raise ValueError("prior_precision must be >= 0 and prior_mean finite")
-        if scale not in SCALES:
-            raise ValueError(f"scale={scale!r}: choose one of {list(SCALES)}")
-        if scale == "marginal" and focus is None:
-            raise ValueError("scale='marginal' needs the focus parameter's index")
-        d = theta.shape[1]
-        self.dim, self.scale, self.focus = int(d), scale, None if focus is None else int(focus)
-        self.log = torch.zeros(d, dtype=torch.bool) if log is None else log.bool()
+        self.dim, self.scale = int(theta.shape[1]), scale
         theta = theta.double()
-        if bool(self.log.any()) and not bool((theta[:, self.log] > 0).all()):
-            raise ValueError("log: a parameter combined in logarithm must be positive in every window")
-        self.x = torch.where(self.log, theta.clamp_min(1e-300).log(), theta)
-        slope = self._slope(theta)  # dθ/dx [W, d]
+        self.x, slope = to_coordinates(theta, self.log)  # slope: dθ/dx [W, d]
         outer = slope.unsqueeze(2) * slope.unsqueeze(1)
         self.posterior = torch.linalg.inv(covariance.double() / outer)  # Λ_w in x
         self.mu, self.lam = prior_mean.double(), prior_precision.double()
@@ -118,13 +106,9 @@ class PriorOnceCombiner:
         self.L = 0.5 * (self.L + self.L.transpose(1, 2))
         self.optimum = torch.linalg.solve(self.L, self.eta)  # x̃_w: each window's likelihood optimum
 
-    def _slope(self, theta: Tensor) -> Tensor:
-        return torch.where(self.log, theta, torch.ones_like(theta))
-
     def _prior_terms(self, x: Tensor, lam: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
         """(P(x) [d], g(x) [d]): the prior's curvature and slope in x at x [d]."""
-        theta = torch.where(self.log, x.exp(), x)
-        slope = self._slope(theta)
+        theta, slope = to_theta(x, self.log)
         return lam * slope.square(), -lam * (theta - mu) * slope
 
     def combine(self, windows: Sequence[int]) -> Gaussian:
