@@ -127,38 +127,35 @@ def score(name: str, method: str, runs: Path | None = None) -> dict | None:
     }
 
 
+def _bound_cell(stem: str, level: float) -> str | None:
+    """data/persons/<stem>.json's mean E|error| at the noise ``level`` (every recording's own model, τ unknown), as
+    a table cell; None where the file or the level is not there."""
+    path = DATA / f"{stem}.json"
+    if not path.is_file():
+        return None
+    entry = json.loads(path.read_text())["noise"]
+    entry = entry.get(str(level)) or entry.get(f"{level:g}")
+    cell = None if entry is None else (entry.get("matched_unknown") or next(iter(entry.values())))
+    return None if cell is None else f"{100 * cell['mean_abs_error']:.2f} %"
+
+
 def _bound(name: str) -> str:
     """The finite window's bound (data/persons/crb_<file>.json, `occupant_crb.py --domain time`) and, in brackets,
     the periodic one the table stood beside before (crb_dft_<file>.json, `--domain dft`) where that file exists."""
     level = NOISE[name.rsplit("_", 1)[-1]]
-    cells = []
-    for stem in (f"crb_{name}", f"crb_dft_{name}"):
-        path = DATA / f"{stem}.json"
-        if not path.is_file():
-            cells.append(None)
-            continue
-        entry = json.loads(path.read_text())["noise"]
-        entry = entry.get(str(level)) or entry.get(f"{level:g}")
-        cell = None if entry is None else (entry.get("matched_unknown") or next(iter(entry.values())))
-        cells.append(None if cell is None else f"{100 * cell['mean_abs_error']:.2f} %")
-    if level == 0 and cells[0] is not None:
+    finite, periodic = _bound_cell(f"crb_{name}", level), _bound_cell(f"crb_dft_{name}", level)
+    if level == 0 and finite is not None:
         return "0 (noise-free)"
-    if cells[0] is None:
+    if finite is None:
         return "—"
-    return cells[0] + ("" if cells[1] is None else f" ({cells[1]})")
+    return finite + ("" if periodic is None else f" ({periodic})")
 
 
 def _prior_bound(name: str) -> str:
     """The finite window's bound with the default's literature body prior as information (crb_prior_<file>.json,
     `occupant_crb.py --domain time --body-prior` at the file's noise), where that file exists."""
-    path = DATA / f"crb_prior_{name}.json"
     level = NOISE[name.rsplit("_", 1)[-1]]
-    if level == 0 or not path.is_file():
-        return "—"
-    entry = json.loads(path.read_text())["noise"]
-    entry = entry.get(str(level)) or entry.get(f"{level:g}")
-    cell = None if entry is None else entry.get("matched_unknown")
-    return "—" if cell is None else f"{100 * cell['mean_abs_error']:.2f} %"
+    return (level != 0 and _bound_cell(f"crb_prior_{name}", level)) or "—"
 
 
 def _honesty_bound(name: str, n: int, coverage: float) -> float | None:
