@@ -307,3 +307,22 @@ def test_experiments_compose(name):
     cfg = _cfg([f"experiment={name}"])
     assert cfg.task_name == name and cfg.experiment_name == name.split("_")[0]
     assert len(cfg.stages) >= 1 and cfg.solver.method == "gauss_newton"
+
+
+def test_the_jackknife_test_reaches_the_rigid_candidate_and_not_the_body_ones(tiny_dataset):
+    """intervals.jackknife_test applies to the rigid model (plain, and as a candidate of the selection with and
+    without the delay, restarts too); a body model keeps the uncorrected jackknife (plan_occupant._surplus_kept)."""
+    from hybridqcm.estimation.runner import build_refinement
+
+    cfg = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "intervals.jackknife_test=0.01"])
+    selection = build_refinement(cfg, validate(cfg))
+    refinements = {**selection.all_models, **{f"{k} rescue": v for k, v in selection.rescue.items()}}
+    assert len(refinements) == 12
+    for name, refinement in refinements.items():
+        wanted = 0.01 if name.startswith("rigid") else None
+        last = refinement.stages[-1].solver.config  # the stage whose intervals are reported
+        assert (last.covariance, last.jackknife_test) == ("robust_jackknife", wanted), name
+        assert all(s.solver.config.jackknife_test in (wanted, 0.05) for s in refinement.stages[:-1])  # not used there
+    plain = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "occupant.models=[rigid]"])
+    plain.delay = None
+    assert build_refinement(plain, validate(plain)).stages[-1].solver.config.jackknife_test == 0.05

@@ -138,6 +138,78 @@ def test_student_t_widening_follows_the_effective_degrees_of_freedom():
     assert (ratio_few >= lower * (1 - 1e-9)).all()
 
 
+def _concentrated_design(g):
+    """[64, 2]: a fast decay and a narrow bump, the information in a few time steps (a large Efron-Stein excess)."""
+    t = torch.arange(64, dtype=torch.float64)
+    bump = torch.exp(-(((t - 20) / 3) ** 2)) + 0.05 * torch.randn(64, generator=g, dtype=torch.float64)
+    return torch.stack([torch.exp(-t / 4), bump], 1)
+
+
+def _jackknife_draws(X, data, band):
+    """score_groups' (meat, groups, moments) and σ̂² of the least-squares fits of ``data`` [draws, T] on X."""
+    from hybridqcm.estimation.uncertainty import score_groups
+
+    fisher = X.T @ X
+    residual = data - torch.linalg.solve(fisher, X.T @ data.T).T @ X.T
+    stack = torch.cat([residual[..., None, None], X.expand(data.shape[0], *X.shape)[:, :, None, :]], -1)  # (e | J)
+    meat, groups, moments = score_groups(stack, band, spectral=False, jackknife=True)
+    sigma2 = residual.square().sum(1) / (X.shape[0] - X.shape[1])
+    return fisher.expand(data.shape[0], 2, 2), meat, groups, moments, sigma2
+
+
+def test_jackknife_moments_match_monte_carlo():
+    """White noise on the concentrated design: over 4 000 draws each parameter's jackknife variance V_k has
+    the mean excess_k σ² (XᵀX)⁻¹_kk (+39 % / +18 % here: Efron-Stein) and the spread 2 E[V]² / Var V = ν that
+    score_groups reports (Bell-McCaffrey, from X alone: the same in every draw)."""
+    g = torch.Generator().manual_seed(5)
+    X = _concentrated_design(g)
+    eps = torch.randn(4000, 64, generator=g, dtype=torch.float64)
+    for band in (1, 4):
+        fisher, meat, groups, moments, _ = _jackknife_draws(X, eps, band)
+        _, nu, excess = moments.unbind(-1)
+        V = meat.diagonal(dim1=1, dim2=2)
+        assert groups == 64 // band and torch.allclose(nu, nu[:1].expand_as(nu))
+        assert torch.allclose(V.mean(0), excess[0] * torch.linalg.inv(fisher[0]).diagonal(), rtol=0.06)
+        assert (excess[0] > 1.1).all()  # the excess the test divides out is real here
+        assert torch.allclose(nu[0], 2 * V.mean(0).square() / V.var(0), rtol=0.1)  # measured 2.73 / 4.25, 1.06 / 1.17
+
+
+def test_jackknife_excess_is_divided_out_only_where_the_working_model_holds():
+    """With white noise the test passes for about 1 − α of the draws and the corrected variance's mean is
+    σ² (XᵀX)⁻¹ (the uncorrected +18-39 % gone); with a misfit the model does not hold (a coherent error on the
+    bump's flank, the same in every draw) the jackknife stays as it was in (nearly) every draw."""
+    from types import SimpleNamespace
+
+    from hybridqcm.estimation.uncertainty import _unbiased_where_consistent
+
+    cfg = SimpleNamespace(jackknife_test=0.05, rcond=1e-12)
+    g = torch.Generator().manual_seed(7)
+    X = _concentrated_design(g)
+    t = torch.arange(64, dtype=torch.float64)
+    eps = torch.randn(4000, 64, generator=g, dtype=torch.float64)
+    fisher, meat, _, moments, sigma2 = _jackknife_draws(X, eps, 1)
+    corrected, dof = _unbiased_where_consistent(cfg, fisher, meat, moments, sigma2)
+    kept = corrected.diagonal(dim1=1, dim2=2) == meat.diagonal(dim1=1, dim2=2)
+    assert 0.02 < kept.double().mean() < 0.10  # about α of the draws fail the test
+    assert torch.equal(dof[kept], moments[..., 0][kept]) and torch.equal(dof[~kept], moments[..., 1][~kept])
+    expected = torch.linalg.inv(fisher[0]).diagonal()
+    assert torch.allclose(corrected.diagonal(dim1=1, dim2=2)[~kept].view(-1, 1).mean(), expected.mean(), rtol=0.5)
+    for k in range(2):  # per parameter, the draws that passed: their variance has the working model's mean
+        passed = ~kept[:, k]
+        ratio = corrected[passed, k, k].mean() / expected[k]
+        assert 0.8 < float(ratio) < 1.02  # measured below 1: the test removes the draws of the upper tail
+    # heteroscedastic noise, 4x where the bump is: the working model's σ̂² (XᵀX)⁻¹ under-states the bump's
+    # coefficient 6x; its jackknife sees it, fails the test in most draws and keeps its surplus
+    data = eps * (1 + 3 * torch.exp(-(((t - 20) / 4) ** 2)))
+    fisher, meat, _, moments, sigma2 = _jackknife_draws(X, data, 1)
+    corrected, _ = _unbiased_where_consistent(cfg, fisher, meat, moments, sigma2)
+    kept = corrected.diagonal(dim1=1, dim2=2) == meat.diagonal(dim1=1, dim2=2)
+    assert kept[:, 1].double().mean() > 0.8  # measured 0.86; the decay's coefficient, not under-stated: 0.003
+    monte_carlo = torch.linalg.solve(fisher[0], X.T @ data.T).T.var(0)
+    mean = corrected.diagonal(dim1=1, dim2=2).mean(0)
+    assert (mean >= 0.98 * monte_carlo).all() and (mean <= 1.3 * monte_carlo).all()  # measured 1.01, 1.23
+
+
 def _fit_small(noise_t, band, dof):
     design = _design()
     b = noise_t.shape[0]
@@ -152,6 +224,8 @@ def _fit_small(noise_t, band, dof):
 def test_bad_covariance_settings_are_one_line_errors():
     with pytest.raises(ValueError, match="covariance='hc3'"):
         GaussNewton(SolverConfig(covariance="hc3"))
+    with pytest.raises(ValueError, match="jackknife_test=0"):
+        GaussNewton(SolverConfig(covariance="jackknife", jackknife_test=0))
     with pytest.raises(ValueError, match="covariance_band=0"):
         GaussNewton(SolverConfig(covariance="sandwich", covariance_band=0))
 
@@ -163,12 +237,16 @@ def test_app_interval_settings_map_to_the_solver_and_reject_bad_values():
     from hybridqcm.estimation.plan_settings import interval_settings
 
     cfg = OmegaConf.create({"intervals": {"covariance": "jackknife", "band": 4, "student_t": False}})
-    assert interval_settings(cfg) == {"covariance": "jackknife", "covariance_band": 4, "covariance_dof": False}
+    assert interval_settings(cfg) == {
+        "covariance": "jackknife", "covariance_band": 4, "covariance_dof": False, "jackknife_test": 0.05,
+    }  # fmt: skip
     assert interval_settings(OmegaConf.create({})) == {}
     for key, value, message in (
         ("covariance", "hc3", "intervals.covariance='hc3'"),
         ("band", 0, "intervals.band=0"),
         ("student_t", "yes", "intervals.student_t='yes'"),
+        ("jackknife_test", 1.5, "intervals.jackknife_test=1.5"),
+        ("jackknife_test", "often", "intervals.jackknife_test='often'"),
     ):
         bad = OmegaConf.create({"intervals": {"covariance": "model", key: value}})
         with pytest.raises(ConfigError, match=message.replace("(", r"\(")) as error:

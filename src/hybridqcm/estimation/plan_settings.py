@@ -94,7 +94,10 @@ def interval_settings(cfg) -> dict:
     student_t = intervals.get("student_t", True)
     if not isinstance(student_t, bool):
         raise ConfigError(f"intervals.student_t={student_t!r}: must be true or false")
-    return {"covariance": covariance, "covariance_band": band, "covariance_dof": student_t}
+    test = intervals.get("jackknife_test", 0.05)
+    if test is not None and (isinstance(test, bool) or not isinstance(test, (int, float)) or not 0 < test < 1):
+        raise ConfigError(f"intervals.jackknife_test={test!r}: a level in (0, 1), or null")
+    return {"covariance": covariance, "covariance_band": band, "covariance_dof": student_t, "jackknife_test": test}
 
 
 def resolve_covariance(cfg, model: str, base_excitation: str | None) -> str:

@@ -49,6 +49,7 @@ class IntervalSettings:
     covariance: str = MISSING
     band: int = MISSING
     student_t: bool = MISSING
+    jackknife_test: Optional[float] = MISSING
 
 
 @dataclass

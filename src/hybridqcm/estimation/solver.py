@@ -126,6 +126,9 @@ class SolverConfig:
     uncertainty: bool = True
     covariance_band: int = 1
     covariance_dof: bool = True  # jackknife: Student-t quantile at its Satterthwaite degrees of freedom
+    # jackknife: the level α of the test under which a parameter's jackknife variance is consistent with the
+    # working model, and then divided by its Efron–Stein excess (uncertainty.robust_covariance); None: never
+    jackknife_test: float | None = 0.05
     lm_initial_damping: float = 1e-3  # Levenberg-Marquardt only
     lm_min_damping: float = 1e-12
     lm_max_damping: float = 1e8
@@ -209,6 +212,9 @@ class NonlinearLeastSquares(ABC):
             raise ValueError(f"solver covariance={self.config.covariance!r}: choose one of {list(COVARIANCES)}")
         if int(self.config.covariance_band) < 1:
             raise ValueError(f"solver covariance_band={self.config.covariance_band!r}: must be an integer >= 1")
+        test = self.config.jackknife_test
+        if test is not None and (isinstance(test, bool) or not isinstance(test, (int, float)) or not 0 < test < 1):
+            raise ValueError(f"solver jackknife_test={test!r}: a level in (0, 1), or None")
 
     # --- method hooks -------------------------------------------------------------------
     def init_state(self, batch: int, dtype) -> None:  # noqa: B027 (a hook: most methods keep no state)
