@@ -731,24 +731,68 @@ def test_outputs_from_a_batch_first_held_input_equal_the_time_first_ones(case):
 
 
 def test_an_eigen_decomposition_that_fails_to_converge_is_one_not_ok_sample(monkeypatch):
-    """LAPACK raises for the whole batch when one matrix's QR iteration fails (seen on a trial step with torch
-    2.11's LAPACK): the others keep their decomposition, that one is not ok (the step recursion takes it)."""
+    """LAPACK raises for the whole batch when one matrix's QR iteration fails (seen on trial steps): the others keep
+    their decomposition, that one is not ok (the step recursion takes it)."""
+    import numpy as np
+
     from hybridqcm.estimation import _modal
 
-    real_eig = torch.linalg.eig
+    real_eig = np.linalg.eig
     sentinel = 12345.0
 
     def eig(M):
         if bool((M[..., 0, 0] == sentinel).any()):
-            raise torch.linalg.LinAlgError("torch.linalg.eig: The algorithm failed to converge (error code: 4).")
+            raise np.linalg.LinAlgError("Eigenvalues did not converge")
         return real_eig(M)
 
     A = torch.randn(3, 4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     scale = torch.ones(3, 4, dtype=torch.float64)
     lam_all, *_ = _modal._eigen(A, scale)
     A[1, 0, 0] = sentinel
-    monkeypatch.setattr(_modal.torch.linalg, "eig", eig)
+    monkeypatch.setattr(_modal.np.linalg, "eig", eig)
     lam, V, V_inv, cond, ok = _modal._eigen(A, scale)
     assert ok.tolist() == [True, False, True]
     torch.testing.assert_close(lam[[0, 2]], lam_all[[0, 2]])
     torch.testing.assert_close(V[[0, 2]] @ torch.diag_embed(lam[[0, 2]]) @ V_inv[[0, 2]], A[[0, 2]].to(lam.dtype))
+
+
+# A line search's trial matrix (body1 + seat, log-space step) on which MKL's dgeev, through torch.linalg.eig,
+# fails to converge and corrupts the heap: a loop of torch.linalg.eig on it aborted the process within 20 calls
+# (`double free or corruption`), as qcm-estimate did on data/persons/body1_n5.h5's block 5 in about half its runs.
+_HEAP_BREAKER = [
+    ["-0x1.13f584f7794c2p+573", "0x1.ad6c71afd888cp+244", "-0x1.1e431906c8eb0p-12", "0x1.6e06f7c33ab58p+125"],
+    ["0x1.13f584f7794c2p+334", "-0x1.2ed8478a1f184p+6", "0x1.1e431906c8eb0p-251", "-0x1.0222ac91385a1p-113"],
+    ["0x1.0000000000000p+25", "0x0.0p+0", "0x0.0p+0", "0x0.0p+0"],
+    ["0x0.0p+0", "0x1.0000000000000p+125", "0x0.0p+0", "0x0.0p+0"],
+]
+
+
+def test_the_modal_eigen_decomposition_survives_the_matrix_that_broke_mkl_geev():
+    """_eig on that matrix, 200 times with allocations between, in a child process (a corrupted heap would take
+    pytest with it): the child exits cleanly, and the dominant eigenvalue, the one double precision can resolve
+    next to it (backward error ~ eps x 1e172), is mpmath's at 400 digits."""
+    import subprocess
+    import sys
+    import textwrap
+
+    import mpmath
+
+    code = textwrap.dedent(
+        f"""
+        import torch
+        from hybridqcm.estimation._modal import _eig
+        M = torch.tensor([[float.fromhex(x) for x in row] for row in {_HEAP_BREAKER!r}], dtype=torch.float64)[None]
+        for _ in range(200):
+            lam, V, ok = _eig(M)
+            junk = [torch.randn(64, 64) for _ in range(20)]
+        print(*[f"{{z.real!r}} {{z.imag!r}}" for z in lam[0].tolist()])
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-500:]
+    words = [float(w) for w in run.stdout.split()]
+    lam = np.array([complex(words[2 * i], words[2 * i + 1]) for i in range(4)])
+    with mpmath.workdps(400):
+        exact, _ = mpmath.eig(mpmath.matrix([[float.fromhex(x) for x in row] for row in _HEAP_BREAKER]))
+        dominant = complex(max(exact, key=abs))
+    assert abs(lam[np.argmax(np.abs(lam))] - dominant) <= 1e-12 * abs(dominant)

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -121,29 +122,35 @@ def _real_times_complex(real: Tensor, cplx: Tensor) -> Tensor:
 
 
 def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """torch.linalg.eig of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]). LAPACK's QR iteration
-    can fail to converge on a trial step's ill-conditioned matrix, and torch raises for the whole batch
-    then; such a matrix is one not-ok sample (identity eigenvectors, zero eigenvalues), not an error.
-    On another device the decomposition runs on the CPU: torch's CUDA eig is MAGMA's geev, a host
-    routine called once per matrix, and the batch's copy costs less than those calls."""
+    """The eigen-decomposition of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]), by numpy's LAPACK
+    (OpenBLAS' dgeev), not torch.linalg.eig: MKL's, which torch's CPU build calls, failed to converge on a line
+    search's trial matrix with entries from 1e-76 to 1e172 and corrupted the heap as it did (the process
+    aborted with `double free or corruption` a few calls later: tests/test_modal.py keeps that matrix);
+    OpenBLAS' decomposes it. The QR iteration can still fail to converge on a trial step's ill-conditioned
+    matrix, and the call raises for the whole batch then; such a matrix is one not-ok sample (identity
+    eigenvectors, zero eigenvalues), not an error. Samples on another device are decomposed on the CPU:
+    torch's CUDA eig is MAGMA's geev, a host routine called once per matrix, and the batch's copy costs less."""
     if M.device.type != "cpu":
         lam, V, converged = _eig(M.cpu())
         return lam.to(M.device), V.to(M.device), converged.to(M.device)
+    values = M.detach().numpy()
+    kind = np.result_type(values.dtype, np.complex64)
     try:
-        lam, V = torch.linalg.eig(M)
-        return lam, V, torch.ones(M.shape[0], dtype=torch.bool, device=M.device)
-    except torch.linalg.LinAlgError:
-        n = M.shape[-1]
-        lam = torch.zeros(M.shape[:-1], dtype=torch.complex128 if M.dtype == torch.float64 else torch.complex64)
-        V = torch.eye(n, dtype=lam.dtype).expand(M.shape[0], n, n).clone()
-        converged = torch.zeros(M.shape[0], dtype=torch.bool)
-        for i in range(M.shape[0]):
+        lam, V = np.linalg.eig(values)
+        converged = np.ones(values.shape[0], dtype=bool)
+    except np.linalg.LinAlgError:
+        n = values.shape[-1]
+        lam = np.zeros(values.shape[:-1], dtype=kind)
+        V = np.broadcast_to(np.eye(n, dtype=kind), values.shape).copy()
+        converged = np.zeros(values.shape[0], dtype=bool)
+        for i in range(values.shape[0]):
             try:
-                lam[i], V[i] = torch.linalg.eig(M[i])
+                lam[i], V[i] = np.linalg.eig(values[i])
                 converged[i] = True
-            except torch.linalg.LinAlgError:
+            except np.linalg.LinAlgError:
                 pass
-        return lam.to(M.device), V.to(M.device), converged.to(M.device)
+    # numpy returns real arrays where every eigenvalue of the stack is real
+    return torch.from_numpy(lam.astype(kind)), torch.from_numpy(V.astype(kind)), torch.from_numpy(converged)
 
 
 def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
