@@ -208,6 +208,10 @@ def test_bench_tables_are_included_under_their_own_heading(tmp_path):
     (tmp_path / "results" / "persons.md").write_text("# Seated persons\n\n| a | b |\n|---|---|\n| 1 | 2 |\n")
     parts = _generated_tables(tmp_path)
     assert parts[0] == "## Seated persons" and "| 1 | 2 |" in parts and "bench/persons_table.py" in parts[2]
+    (tmp_path / "results" / "calibration.md").write_text("# Seat calibration\n\n| c |\n|---|\n| 3 |\n")
+    parts = _generated_tables(tmp_path)
+    assert parts.index("## Seated persons") < parts.index("## Seat calibration") and "| 3 |" in parts
+    assert "bench/calibration_table.py" in parts[parts.index("## Seat calibration") + 2]
 
 
 def test_stages_appear_in_their_pipelines_order(tmp_path):
