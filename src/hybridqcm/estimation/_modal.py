@@ -125,7 +125,7 @@ def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The eigen-decomposition of [b, n, n] -> (lambda [b, n], V [b, n, n], converged [b]), by numpy's LAPACK
     (OpenBLAS' dgeev), not torch.linalg.eig: MKL's, which torch's CPU build calls, failed to converge on a line
     search's trial matrix with entries from 1e-76 to 1e172 and corrupted the heap as it did (the process
-    aborted with `double free or corruption` a few calls later: tests/test_modal.py keeps that matrix);
+    aborted with `double free or corruption` a few calls later: tests/test_exact.py keeps that matrix);
     OpenBLAS' decomposes it. The QR iteration can still fail to converge on a trial step's ill-conditioned
     matrix, and the call raises for the whole batch then; such a matrix is one not-ok sample (identity
     eigenvectors, zero eigenvalues), not an error. Samples on another device are decomposed on the CPU:

@@ -225,7 +225,7 @@ class ProblemEvaluation:
     def data_normal_equations(self, params, index, band: int | None = None):
         """F = JᵀJ [b, n_free, n_free], JᵀR [b, n_free], L [b] for the samples ``index``; with ``band``
         also the score matrix of :func:`~hybridqcm.estimation.uncertainty.score_groups` [b, n_free, n_free]
-        and (G, Satterthwaite degrees of freedom [b, n_free] or None).
+        and (G, the jackknife's moments [b, n_free, 3] or None: uncertainty.score_groups).
 
         The sensitivities come batch-major as [b, T, 3, 11] = (prediction | J); subtracting the
         targets from column 0 turns it into A = (R | J) and one bmm gives AᵀA = [[RᵀR, RᵀJ], [JᵀR, JᵀJ]].
@@ -282,8 +282,8 @@ class ProblemEvaluation:
                     scores[2][redo] = parts[-1][1][2]
         fisher, gradient, loss = gram[:, 1:, 1:].contiguous(), gram[:, 1:, 0].contiguous(), 0.5 * gram[:, 0, 0]
         if band is not None:
-            meat, n_groups, dof = scores
-            return fisher, gradient, loss, meat, (n_groups, dof)
+            meat, n_groups, moments = scores
+            return fisher, gradient, loss, meat, (n_groups, moments)
         return fisher, gradient, loss
 
     def loss_at(self, trial_params, index) -> Tensor:
@@ -312,8 +312,8 @@ class ProblemEvaluation:
 
 
 def _cat_scores(scores: list) -> tuple | None:
-    """score_groups' (meat, n_groups, dof or None) of several chunks joined; None without scores."""
+    """score_groups' (meat, n_groups, moments or None) of several chunks joined; None without scores."""
     if not scores or scores[0] is None:
         return None
-    dof = None if scores[0][2] is None else torch.cat([part[2] for part in scores])
-    return torch.cat([part[0] for part in scores]), scores[-1][1], dof
+    moments = None if scores[0][2] is None else torch.cat([part[2] for part in scores])
+    return torch.cat([part[0] for part in scores]), scores[-1][1], moments

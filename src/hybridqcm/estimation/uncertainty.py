@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
+from scipy.stats import chi2
 from scipy.stats import t as student_t
 from torch import Tensor
 
@@ -190,16 +191,13 @@ def robust_covariance(
     """
     cfg = config
     n_free = fisher.shape[-1]
-    n_groups, dof = groups
-    moments = dof if dof is not None and dof.dim() == 3 else None
-    if dof is not None and dof.dim() == 2:  # realised dof only (a caller of score_groups' older layout)
-        dof = dof.unsqueeze(-1)
+    n_groups, moments = groups  # moments [b, n, 3] of score_groups (jackknife), else None
     if n_groups <= n_free:  # fewer groups than unknowns (a short window, a wide band): nothing to estimate from
         return model_cov
     if cfg.covariance.endswith("jackknife"):
         data_cov = meat
-        dof = dof[..., 0]  # the realised squares' degrees of freedom
-        if cfg.jackknife_test and moments is not None and sigma2 is not None:
+        dof = moments[..., 0]  # the realised squares' degrees of freedom
+        if cfg.jackknife_test and sigma2 is not None:
             data_cov, dof = _unbiased_where_consistent(cfg, fisher, meat, moments, sigma2)
         if cfg.covariance_dof:
             # The variance is estimated from few effective groups: widen to the Student-t quantile.
@@ -226,8 +224,6 @@ def _unbiased_where_consistent(cfg, fisher: Tensor, meat: Tensor, moments: Tenso
     """(data covariance, dof [b, n]): the jackknife ``meat`` over its working-model mean and Bell-McCaffrey's ν
     per parameter where its variance passes the χ² test of :func:`robust_covariance`, else as it was with the
     realised squares' dof. ``moments`` [b, n, 3]: realised dof, ν, excess (:func:`score_groups`)."""
-    from scipy.stats import chi2
-
     realised, nu, excess = moments.unbind(-1)
     inverse, _, _, _ = pseudo_inverse(fisher, cfg.rcond)
     expected = excess * sigma2.unsqueeze(1) * inverse.diagonal(dim1=1, dim2=2)  # E V_k under the working model
@@ -254,7 +250,9 @@ def score_groups(
     ``jackknife``: instead the delete-a-group jackknife covariance (G − 1)/G Σ_g (d_g − d̄)(d_g − d̄)ᵀ of
     the one-step shifts d_g = (F − F_g)⁻¹ s_g that leaving group g out makes (F = JᵀJ, F_g = J_gᵀJ_g):
     the sandwich with each score taken at its own leave-out fit, so a group that carries much of the
-    information (a sharp resonance) is not under-weighted (the cluster "CR3" estimator)."""
+    information (a sharp resonance) is not under-weighted (the cluster "CR3" estimator), and its moments
+    [b, n, 3] per parameter: the realised squares' degrees of freedom, and Bell-McCaffrey's ν and the
+    Efron-Stein excess under the working model (:func:`jackknife_moments`); None for the sandwich."""
     J = augmented[..., 1:]
     contributions = (J * augmented[..., :1]).sum(2)  # [b, rows, n]
     outer = torch.einsum("broi,broj->brij", J, J) if jackknife else None  # [b, rows, n, n]
