@@ -115,7 +115,8 @@ class SolverConfig:
     #               (time-domain loss) — Huber-White, band-averaged so that model error coherent
     #               over neighbouring frequencies is seen;
     #   "jackknife": the delete-a-group jackknife over the same groups (the sandwich with leverage
-    #               correction), at the Student-t quantile of its effective degrees of freedom;
+    #               correction), at the Student-t quantile of its effective degrees of freedom (its
+    #               Efron–Stein excess divided out where ``jackknife_test`` passes);
     #   "robust_sandwich" / "robust_jackknife": per parameter the larger of "model" and that variance
     #               (correlations of "model"). The app chooses per model (intervals.covariance: auto in
     #               configs/estimate.yaml; estimation/plan_settings.resolve_covariance).
