@@ -409,7 +409,8 @@ def main(argv=None) -> None:
     conv = iters <= args.max_iter
     print(
         f"{args.path.name} model={args.model} batch={b} threads={args.threads} start={args.start} prior={prior is not None}"
-        f" noise={args.noise} sigma={args.sigma} extra={args.extra}: M mean |error| {100 * err.mean():.2f} % (median {100 * np.median(err):.2f} %),"
+        f" noise={args.noise} sigma={args.sigma} extra={args.extra}: M mean |error| {100 * err.mean():.2f} % (median {100 * np.median(err):.2f} %,"
+        f" signed {100 * np.mean(M / m3 - 1):+.3f} %),"
         f" within 5 % {100 * (err <= 0.05).mean():.0f} %, within 10 % {100 * (err <= 0.10).mean():.0f} %;"
         f" converged {int(conv.sum())}/{b}, iterations mean {iters[conv].float().mean():.1f} max {int(iters.max())};"
         f" s/iteration at the full batch {timing['iter_s']:.3f}, to convergence {timing['total_s']:.2f} s"
