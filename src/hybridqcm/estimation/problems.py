@@ -163,7 +163,8 @@ class ProblemEvaluation:
     """A problem as one solve evaluates it, repeatedly: the observed targets [batch, time, n_obs] in float64
     (the layout the recursion writes, so residuals need no permute), the window's inputs prepared once
     (``road``; the exact model holds them), the observed channels' weights [batch, n_obs] or None,
-    ``chunk_size`` samples per Jacobian pass, and whether the score groups are the jackknife's.
+    ``chunk_size`` samples per Jacobian pass, whether the score groups are the jackknife's and, with ``moments``,
+    whether they carry the jackknife's working-model moments (uncertainty.score_groups).
 
     ``workers`` > 1: the chunks of a pass run on that many threads at once (CPU tensors only; the
     caller sets torch's intra-op threads to 1). The chunks are independent and their results are
@@ -172,7 +173,14 @@ class ProblemEvaluation:
     small per-chunk operations (each op on two intra-op threads waits for the second one more than
     it gains; docs/measurements/roofline.md)."""
 
-    def __init__(self, problem: LeastSquaresProblem, chunk_size: int, jackknife: bool = False, workers: int = 1):
+    def __init__(
+        self,
+        problem: LeastSquaresProblem,
+        chunk_size: int,
+        jackknife: bool = False,
+        workers: int = 1,
+        moments: bool = False,
+    ):
         dtype = torch.float64
         obs = problem.observed_index
         self.problem = problem
@@ -182,6 +190,7 @@ class ProblemEvaluation:
         self.weights = None if problem.weights is None else problem.weights[:, obs].to(dtype).contiguous()
         self.chunk_size = chunk_size
         self.jackknife = jackknife
+        self.moments = moments
         self.workers = max(1, int(workers)) if self.targets.device.type == "cpu" else 1
 
     @property
@@ -257,7 +266,7 @@ class ProblemEvaluation:
                 gram = gram[:, cols][:, :, cols]
             scores = None
             if band is not None:
-                scores = score_groups(out[..., cols], band, problem.noise is not None, self.jackknife)
+                scores = score_groups(out[..., cols], band, problem.noise is not None, self.jackknife, self.moments)
             return gram, scores, redo
 
         chunks = list(index.split(self.chunk_size))

@@ -283,7 +283,13 @@ class NonlinearLeastSquares(ABC):
         # others (initial states) have any sign.
         self._positive = problem.model.positive[free]
         jackknife = self.config.covariance.endswith("jackknife")
-        evaluation = ProblemEvaluation(problem, self.config.chunk_size, jackknife, chunk_workers(self.config))
+        evaluation = ProblemEvaluation(
+            problem,
+            self.config.chunk_size,
+            jackknife,
+            chunk_workers(self.config),
+            moments=jackknife and self.config.jackknife_test is not None,  # the test's moments: only where used
+        )
         targets, weights = evaluation.targets, evaluation.weights
         if problem.noise is not None:  # the targets as the loss sees them (at the start's p)
             weighted_targets = problem.noise.whiten_residual(targets, params, torch.arange(batch))

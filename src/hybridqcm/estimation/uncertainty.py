@@ -238,7 +238,7 @@ def _unbiased_where_consistent(cfg, fisher: Tensor, meat: Tensor, moments: Tenso
 
 
 def score_groups(
-    augmented: Tensor, band: int, spectral: bool, jackknife: bool = False
+    augmented: Tensor, band: int, spectral: bool, jackknife: bool = False, moments: bool = True
 ) -> tuple[Tensor, int, Tensor | None]:
     """Σ_g s_g s_gᵀ [b, n, n] of the per-group scores s_g = Σ_{rows in g} J_rᵀ e_r of the (whitened)
     stack ``augmented`` = (e | J) [b, rows, o, 1 + n], and the number of groups G. Spectral stack
@@ -252,7 +252,8 @@ def score_groups(
     the sandwich with each score taken at its own leave-out fit, so a group that carries much of the
     information (a sharp resonance) is not under-weighted (the cluster "CR3" estimator), and its moments
     [b, n, 3] per parameter: the realised squares' degrees of freedom, and Bell-McCaffrey's ν and the
-    Efron-Stein excess under the working model (:func:`jackknife_moments`); None for the sandwich."""
+    Efron-Stein excess under the working model (:func:`jackknife_moments`; NaN without ``moments``, which
+    costs a factorisation per group); None for the sandwich."""
     J = augmented[..., 1:]
     contributions = (J * augmented[..., :1]).sum(2)  # [b, rows, n]
     outer = torch.einsum("broi,broj->brij", J, J) if jackknife else None  # [b, rows, n, n]
@@ -279,10 +280,28 @@ def score_groups(
     # Satterthwaite: a sum of G independent squares a_g² has (Σ a_g²)² / Σ a_g⁴ degrees of freedom.
     squares = centred.square()
     dof = squares.sum(1).square() / squares.square().sum(1).clamp_min(1e-300)  # [b, n]
-    pair = scale.unsqueeze(-1) * scale.unsqueeze(-2)  # [b, 1, n, n]
-    nu, excess = jackknife_moments((fisher / pair).squeeze(1), scaled, group_fisher / pair)
-    moments = torch.stack([dof, nu, excess], -1)  # [b, n, 3]
-    return (groups - 1) / groups * torch.bmm(centred.transpose(1, 2), centred), groups, moments
+    if moments:
+        pair = scale.unsqueeze(-1) * scale.unsqueeze(-2)  # [b, 1, n, n]
+        nu, excess = jackknife_moments((fisher / pair).squeeze(1), scaled, group_fisher / pair)
+    else:
+        nu = excess = torch.full_like(dof, math.nan)
+    covariance = (groups - 1) / groups * torch.bmm(centred.transpose(1, 2), centred)
+    return covariance, groups, torch.stack([dof, nu, excess], -1)
+
+
+def _psd_inverse(matrix: Tensor, rcond: float) -> Tensor:
+    """(Pseudo-)inverse [b, n, n] of symmetric PSD ``matrix``: by Cholesky where it is well conditioned (as
+    _linalg.pseudo_inverse_solve decides), the eigenvalue cutoff of _linalg.pseudo_inverse elsewhere."""
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    pivots = factor.diagonal(dim1=1, dim2=2)
+    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
+    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
+    inverse = torch.empty_like(matrix)
+    if bool(well.any()):
+        inverse[well] = torch.cholesky_inverse(factor[well])
+    if bool((~well).any()):
+        inverse[~well] = pseudo_inverse(matrix[~well], rcond)[0]
+    return inverse
 
 
 def jackknife_moments(fisher: Tensor, left: Tensor, group_fisher: Tensor, rcond: float = 1e-7) -> tuple[Tensor, Tensor]:
@@ -298,8 +317,7 @@ def jackknife_moments(fisher: Tensor, left: Tensor, group_fisher: Tensor, rcond:
     O(G n²) through Γ = diag q − W F⁻¹ Wᵀ. The realised squares' (Σ a_g²)² / Σ a_g⁴ scatters and runs low
     (G/3 for G equal groups: a normal's fourth moment is 3σ⁴)."""
     b, groups, n, _ = left.shape
-    inverse, _, _, _ = pseudo_inverse(left.reshape(b * groups, n, n), rcond)
-    inverse = inverse.view(b, groups, n, n)  # P_g = (F − F_g)⁻¹: column k is v_g for parameter k
+    inverse = _psd_inverse(left.reshape(b * groups, n, n), rcond).view(b, groups, n, n)  # P_g = (F − F_g)⁻¹
     weighted = group_fisher @ inverse  # [b, G, n, k]: column k is w_g
     q = (inverse * weighted).sum(2)  # [b, G, k]: v_gᵀ F_g v_g (P_g symmetric)
     f_inv, _, _, _ = pseudo_inverse(fisher, rcond)  # [b, n, n]
