@@ -39,6 +39,29 @@ def pseudo_inverse(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor, Tensor
     return pinv, unidentified, eigval.sqrt().flip(1), rank_deficient
 
 
+def _cholesky_where_well(matrix: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
+    """(Cholesky factor [b, n, n], well [b]): the samples whose factor is safe to use. The smallest Cholesky
+    pivot² bounds the smallest eigenvalue from above: a cheap test for which samples need the (slower)
+    eigen-decomposition with its cutoff."""
+    factor, info = torch.linalg.cholesky_ex(matrix)
+    pivots = factor.diagonal(dim1=1, dim2=2)
+    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
+    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
+    return factor, well
+
+
+def psd_inverse(matrix: Tensor, rcond: float) -> Tensor:
+    """(Pseudo-)inverse [b, n, n] of symmetric PSD ``matrix``: by Cholesky where it is well conditioned (the
+    test of :func:`pseudo_inverse_solve`), :func:`pseudo_inverse`'s eigenvalue cutoff elsewhere."""
+    factor, well = _cholesky_where_well(matrix, rcond)
+    inverse = torch.empty_like(matrix)
+    if bool(well.any()):
+        inverse[well] = torch.cholesky_inverse(factor[well])
+    if bool((~well).any()):
+        inverse[~well] = pseudo_inverse(matrix[~well], rcond)[0]
+    return inverse
+
+
 def pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Tensor, Tensor]:
     """Solve matrix [b, n, n] x = rhs [b, n] (symmetric PSD); Cholesky where well conditioned,
     eigen-decomposition with cutoff rcond² on the eigenvalues elsewhere. Returns (x, rank_deficient)."""
@@ -46,12 +69,7 @@ def pseudo_inverse_solve(matrix: Tensor, rhs: Tensor, rcond: float) -> tuple[Ten
     rank_deficient = torch.zeros(rhs.shape[0], dtype=torch.bool)
     if rhs.shape[0] == 0:
         return x, rank_deficient
-    factor, info = torch.linalg.cholesky_ex(matrix)
-    pivots = factor.diagonal(dim1=1, dim2=2)
-    # The smallest Cholesky pivot² bounds the smallest eigenvalue from above: a cheap test for
-    # which samples need the (slower) eigen-decomposition.
-    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
-    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
+    factor, well = _cholesky_where_well(matrix, rcond)
     if bool(well.any()):
         x[well] = torch.cholesky_solve(rhs[well].unsqueeze(2), factor[well]).squeeze(2)
     if bool((~well).any()):

@@ -14,7 +14,7 @@ from scipy.stats import chi2
 from scipy.stats import t as student_t
 from torch import Tensor
 
-from ._linalg import pseudo_inverse, pseudo_inverse_solve
+from ._linalg import psd_inverse, pseudo_inverse, pseudo_inverse_solve
 from .boundary import without_held
 from .diagnostics import residual_tests
 
@@ -289,21 +289,6 @@ def score_groups(
     return covariance, groups, torch.stack([dof, nu, excess], -1)
 
 
-def _psd_inverse(matrix: Tensor, rcond: float) -> Tensor:
-    """(Pseudo-)inverse [b, n, n] of symmetric PSD ``matrix``: by Cholesky where it is well conditioned (as
-    _linalg.pseudo_inverse_solve decides), the eigenvalue cutoff of _linalg.pseudo_inverse elsewhere."""
-    factor, info = torch.linalg.cholesky_ex(matrix)
-    pivots = factor.diagonal(dim1=1, dim2=2)
-    max_diag = matrix.diagonal(dim1=1, dim2=2).amax(1).clamp_min(1e-300)
-    well = (info == 0) & torch.isfinite(pivots).all(1) & (pivots.square().amin(1) > 1e3 * rcond**2 * max_diag)
-    inverse = torch.empty_like(matrix)
-    if bool(well.any()):
-        inverse[well] = torch.cholesky_inverse(factor[well])
-    if bool((~well).any()):
-        inverse[~well] = pseudo_inverse(matrix[~well], rcond)[0]
-    return inverse
-
-
 def jackknife_moments(fisher: Tensor, left: Tensor, group_fisher: Tensor, rcond: float = 1e-7) -> tuple[Tensor, Tensor]:
     """(ν, excess) [b, n] of each parameter's delete-a-group jackknife variance under the working model (the
     whitened residual white, variance σ²; Bell & McCaffrey 2002): V_k = c Σ_g (d_gk − d̄_k)² (c = (G − 1)/G)
@@ -317,7 +302,7 @@ def jackknife_moments(fisher: Tensor, left: Tensor, group_fisher: Tensor, rcond:
     O(G n²) through Γ = diag q − W F⁻¹ Wᵀ. The realised squares' (Σ a_g²)² / Σ a_g⁴ scatters and runs low
     (G/3 for G equal groups: a normal's fourth moment is 3σ⁴)."""
     b, groups, n, _ = left.shape
-    inverse = _psd_inverse(left.reshape(b * groups, n, n), rcond).view(b, groups, n, n)  # P_g = (F − F_g)⁻¹
+    inverse = psd_inverse(left.reshape(b * groups, n, n), rcond).view(b, groups, n, n)  # P_g = (F − F_g)⁻¹
     weighted = group_fisher @ inverse  # [b, G, n, k]: column k is w_g
     q = (inverse * weighted).sum(2)  # [b, G, k]: v_gᵀ F_g v_g (P_g symmetric)
     f_inv, _, _, _ = pseudo_inverse(fisher, rcond)  # [b, n, n]
