@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from hybridqcm.estimation import noise
 from hybridqcm.estimation.exact import exact_outputs
 from hybridqcm.estimation.noise import (
     SpectralNoise,
@@ -19,7 +20,13 @@ from hybridqcm.estimation.noise import (
 from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import base_excitation_response
 from hybridqcm.estimation.solver import GaussNewton, SolverStatus
-from hybridqcm.physics.linear_models import SeatBaseExcitation, SprungBaseExcitation
+from hybridqcm.physics.linear_models import (
+    QuarterCarOccupantRoad,
+    SeatBaseExcitation,
+    SeatOccupantBaseExcitation,
+    SprungBaseExcitation,
+)
+from hybridqcm.physics.parameters import PhysicalConstants
 from hybridqcm.testing import seat_recordings
 
 H_STEP = 0.01
@@ -76,6 +83,74 @@ def test_frequency_response_is_the_seat_transmissibility():
     assert torch.allclose(dH[:, 1, :, 0, 0], d_p2, rtol=1e-10, atol=1e-14)
     alone, none = frequency_response(SeatBaseExcitation(), p, omega)  # the path without derivatives
     assert none is None and torch.allclose(alone, H, rtol=1e-13, atol=0)
+
+
+def _persons(n_modes: int, b: int, seed: int = 0) -> torch.Tensor:
+    """b seat + body parameter sets around 80 kg on the reference seat, modes 4-6 (8-12) Hz, damping 0.3-0.5."""
+    g = torch.Generator().manual_seed(seed)
+
+    def u(lo, hi):
+        return lo + (hi - lo) * torch.rand(b, generator=g, dtype=torch.float64)
+
+    cols = [615.0 / u(60, 100), 98935.0 / u(60, 100)]
+    for f_lo, f_hi in [(4.0, 6.0), (8.0, 12.0)][:n_modes]:
+        w, zeta = 2 * math.pi * u(f_lo, f_hi), u(0.3, 0.5)
+        cols += [u(0.5, 3.0), w * w, 2 * zeta * w]
+    return torch.stack(cols, 1)
+
+
+@pytest.mark.parametrize("n_modes, vehicle", [(1, False), (2, False), (1, True)])
+def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_modes, vehicle, monkeypatch):
+    """The eigen form of H and dH against the per-frequency LU solve (a different code path) for persons on the
+    seat and in the road-driven quarter car (three outputs, B depending on p), against central differences of H
+    in the seat's parameters, and the same numbers when some samples are handed to the LU path (a batch split by the
+    conditioning limit)."""
+    model = SeatOccupantBaseExcitation(n_modes)
+    p = _persons(n_modes, 12)
+    if vehicle:
+        model = QuarterCarOccupantRoad(n_modes)
+        car = PhysicalConstants(C1=300.0).to_params()[None].expand(p.shape[0], -1)
+        p = torch.cat([p[:, :2], car[:, 2:], p[:, 2:]], 1)
+    omega = 2 * math.pi * torch.fft.rfftfreq(500, d=0.01, dtype=torch.float64)
+    H, dH = frequency_response(model, p, omega, derivatives=True)
+    A, B, C, E = model.matrices(p)
+    H_lu, dH_lu = noise._response_lu(model, p, (A, B, C, E), (1j * omega).to(torch.complex128), True)
+    torch.testing.assert_close(H, H_lu, rtol=1e-11, atol=1e-12 * float(H_lu.abs().max()))
+    torch.testing.assert_close(dH, dH_lu, rtol=1e-10, atol=1e-12 * float(dH_lu.abs().max()))
+    for j in range(0 if not vehicle else p.shape[1], p.shape[1]):  # the seat's (the car's spans 1e-6..1e5 in H)
+        step = 1e-6 * p[:, j : j + 1]
+        up, _ = frequency_response(model, p + step * (torch.arange(p.shape[1]) == j), omega)
+        down, _ = frequency_response(model, p - step * (torch.arange(p.shape[1]) == j), omega)
+        fd = (up - down) / (2 * step[:, :, None, None])
+        torch.testing.assert_close(dH[:, j], fd, rtol=1e-6, atol=1e-7 * float(dH[:, j].abs().max()))
+    alone, none = frequency_response(model, p, omega)
+    assert none is None and torch.allclose(alone, H, rtol=1e-13, atol=0)
+    # a conditioning limit between the samples' own: half of them by LU, scattered back in place
+    _, _, _, cond, _ = noise._eigen(A, noise.balance(A))
+    monkeypatch.setattr(noise, "_RESPONSE_COND", float(cond.median()))
+    mixed, dmixed = frequency_response(model, p, omega, derivatives=True)
+    torch.testing.assert_close(mixed, H, rtol=1e-11, atol=1e-12 * float(H.abs().max()))
+    torch.testing.assert_close(dmixed, dH, rtol=1e-10, atol=1e-12 * float(dH.abs().max()))
+
+
+def test_a_pole_on_the_axis_gives_no_response():
+    """A trial step to a singular A (the seat spring at zero and the body's at zero): NaN at DC on either path,
+    as the line search expects (not a finite number from an infinite one)."""
+    model = SeatOccupantBaseExcitation(1)
+    p = _persons(1, 2)
+    p[0, 1] = 0.0
+    p[0, 3] = 0.0
+    omega = torch.linspace(0.0, 50.0, 6, dtype=torch.float64)
+    H, _ = frequency_response(model, p, omega)
+    assert torch.isnan(H[0, 0]).all() and torch.isfinite(H[1]).all() and torch.isfinite(H[0, 1:]).all()
+    monkeypatch = pytest.MonkeyPatch()
+    monkeypatch.setattr(noise, "_RESPONSE_COND", 0.0)  # every sample by LU
+    try:
+        H_lu, _ = frequency_response(model, p, omega)
+    finally:
+        monkeypatch.undo()
+    assert torch.isnan(H_lu[0, 0]).all()
+    torch.testing.assert_close(H_lu[1], H[1], rtol=1e-12, atol=0)
 
 
 def _eiv_noise(b: int, T: int, sigma_in: float, sigma_out: float, seed: int = 0):
