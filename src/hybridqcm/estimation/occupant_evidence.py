@@ -105,16 +105,23 @@ def polish_and_weigh(
     return torch.where(torch.isfinite(value) & ~diverged, value, torch.full_like(value, -math.inf))
 
 
-def evaluation_solver(refinement: GaussNewtonRefinement, max_iterations: int, parametrization: str | None = None):
+def evaluation_solver(
+    refinement: GaussNewtonRefinement,
+    max_iterations: int,
+    parametrization: str | None = None,
+    uncertainty: bool = True,
+):
     """The refinement's last-stage solver with the model-based covariance, ``max_iterations`` and, where given,
     another ``parametrization`` (a profile's points: "log", so that a step cannot take a body mass near zero
-    through it and end the constrained solve `diverged`)."""
+    through it and end the constrained solve `diverged`). ``uncertainty`` False: no final Jacobian pass, for
+    solves whose estimate and `diverged` status alone are read (its covariance and residual tests are not)."""
     solver = refinement.stages[-1].solver
     config = dataclasses.replace(
         solver.config,
         covariance="model",
         max_iterations=int(max_iterations),
         parametrization=parametrization or solver.config.parametrization,
+        uncertainty=uncertainty,
     )
     return type(solver)(config)
 

@@ -71,7 +71,8 @@ def profile_p2(
     variances = None if v_out is None else (v_out[rows], None if v_in is None else v_in[rows])
     problem = refinement.final_problem(outputs, params, variances=variances)
     evaluated = evaluation_solver(refinement, 0).solve(problem, params)
-    solver = evaluation_solver(refinement, selection.profile_iterations, "log")
+    # the profile's points read each solve's estimate and whether it diverged, never its covariance or misfit test
+    solver = evaluation_solver(refinement, selection.profile_iterations, "log", uncertainty=False)
     # in units of the residual variance where it exceeds the noise model's (as the Laplace covariance)
     scale = evaluated.residual_variance.double().clamp_min(1.0)
     low, high, reached = profile_interval(solver, problem, params, evaluated.covariance, 1, scale=scale)
@@ -83,7 +84,7 @@ def profile_p2(
     delta = 0.5
     shifted = problem.noise.subset(torch.arange(rows.numel()))
     shifted.v_in = shifted.v_in * math.exp(delta)
-    moved = evaluation_solver(refinement, selection.polish_iterations).solve(
+    moved = evaluation_solver(refinement, selection.polish_iterations, uncertainty=False).solve(
         dataclasses.replace(problem, noise=shifted), params
     )
     slope = (moved.params[:, 1] - params[:, 1]) / delta
