@@ -30,8 +30,12 @@ install: $(STAMP)
 demo: install
 	$(BIN)/qcm-pipeline demo
 
+# the suite's files spread over TEST_WORKERS processes (pytest-xdist), each file whole on one of them, so that
+# a module's fixtures are built once; TEST_WORKERS=0 runs it in this process
+TEST_WORKERS ?= 2
+
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 lint: install
 	$(BIN)/ruff check src tests bench
