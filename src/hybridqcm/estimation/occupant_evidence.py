@@ -14,6 +14,7 @@ from torch import Tensor
 
 from .occupant_records import put_result, select_rows
 from .refinement import GaussNewtonRefinement
+from .restarts import take_samples
 from .solver import SolverStatus
 
 if TYPE_CHECKING:
@@ -80,8 +81,10 @@ def polish_and_weigh(
     take = (result.status != SolverStatus.DIVERGED) & (after <= before)
     params = torch.where(take[:, None], result.params, params)
     loss = torch.where(take, after, before)
-    if not bool(take.all()):  # the covariance at the kept estimate
-        result = evaluation_solver(refinement, 0).solve(problem, params)
+    if not bool(take.all()):  # the covariance at the kept estimate, where the polish did not move it
+        kept = (~take).nonzero().squeeze(1)
+        again = evaluation_solver(refinement, 0).solve(problem.subset(kept), params[kept])
+        take_samples(result, again, torch.ones(kept.numel(), dtype=torch.bool), rows=kept)
     put_result(record, result, rows, params, problem=problem)
     n_steps = problem.targets.shape[1]
     free = ~problem.known

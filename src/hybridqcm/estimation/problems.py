@@ -4,6 +4,7 @@ equations F = JᵀJ, JᵀR with the Gaussian prior's terms (SPEC §8)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -157,6 +158,25 @@ class LeastSquaresProblem:
     def n_residuals(self) -> int:
         # The spectral noise model leaves out the DC term of every channel.
         return (self.targets.shape[1] - (self.noise is not None)) * len(self.observed_index)
+
+    def subset(self, rows: Tensor) -> LeastSquaresProblem:
+        """The problem of the samples ``rows`` (every per-sample field indexed)."""
+        b = self.targets.shape[0]
+
+        def pick(value):
+            if value is None:
+                return None
+            return value[rows] if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == b else value
+
+        return dataclasses.replace(
+            self,
+            targets=self.targets[rows],
+            inputs=self.inputs[rows],
+            weights=pick(self.weights),
+            prior_mean=pick(self.prior_mean),
+            prior_precision=pick(self.prior_precision),
+            noise=None if self.noise is None else self.noise.subset(rows),
+        )
 
 
 class ProblemEvaluation:

@@ -83,7 +83,7 @@ def profile_interval(
             bad = (start[:, positive] <= 0).any(1) | ~torch.isfinite(start).all(1)  # left the physical domain
             start[bad] = here[bad]
             start[bad, column] = target[bad]
-            sub = _rows(fixed, rows)
+            sub = fixed.subset(rows)
             result = solver.solve(sub, start)
             loss = solver.objective(sub, result.params)
             failed = (result.status == SolverStatus.DIVERGED) | ~torch.isfinite(loss)
@@ -132,26 +132,3 @@ def _end(history: list[tuple[Tensor, Tensor]], z: float, max_sigmas: float, b: i
     single = ~ok & torch.isfinite(r_b) & (r_b >= z)
     end_t = torch.where(single, t_b * z / r_b.clamp_min(1e-300), end_t)
     return end_t, ok | single
-
-
-def _rows(problem: LeastSquaresProblem, rows: Tensor) -> LeastSquaresProblem:
-    """The problem of the samples ``rows`` (every per-sample field indexed)."""
-    b = problem.targets.shape[0]
-
-    def pick(value):
-        if value is None:
-            return None
-        return value[rows] if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == b else value
-
-    noise = problem.noise
-    if noise is not None:
-        noise = noise.subset(rows)
-    return dataclasses.replace(
-        problem,
-        targets=problem.targets[rows],
-        inputs=problem.inputs[rows],
-        weights=pick(problem.weights),
-        prior_mean=pick(problem.prior_mean),
-        prior_precision=pick(problem.prior_precision),
-        noise=noise,
-    )
