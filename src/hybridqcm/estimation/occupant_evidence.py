@@ -56,13 +56,17 @@ def nest(
     variances = (v_out[rows], None if v_in is None else v_in[rows])
     mine = records[larger]["params"][rows].double()
     problem = refinement.final_problem(sub, mine, variances=variances)
-    solver = evaluation_solver(refinement, 3 * selection.polish_iterations)
+    # the uncertainty pass only where the embedded start wins (most recordings keep their own fit)
+    solver = evaluation_solver(refinement, 3 * selection.polish_iterations, uncertainty=False)
     result = solver.solve(problem, embedded)
     better = (result.status != SolverStatus.DIVERGED) & (
         solver.objective(problem, result.params) < solver.objective(problem, mine)
     )
     if bool(better.any()):
-        put_result(records[larger], result, rows[better], result.params[better], subset=better, problem=problem)
+        won = better.nonzero().squeeze(1)
+        sub = problem.subset(won)
+        final = evaluation_solver(refinement, 0).solve(sub, result.params[won])
+        put_result(records[larger], final, rows[won], result.params[won], problem=sub)
 
 
 def polish_and_weigh(
