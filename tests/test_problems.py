@@ -124,3 +124,31 @@ def test_unobserved_channels_take_no_part_in_the_residual():
     assert torch.allclose(fisher, gram[:, 1:, 1:], rtol=1e-12, atol=0)
     assert torch.allclose(gradient, gram[:, 1:, 0], rtol=1e-10, atol=1e-12 * float(gradient.abs().max()))
     assert torch.allclose(loss, 0.5 * gram[:, 0, 0], rtol=1e-12, atol=0)
+
+
+def test_a_subset_is_the_problem_of_those_samples():
+    """LeastSquaresProblem.subset: its loss at the rows' θ is the whole problem's loss of those rows, with the
+    errors-in-variables noise model and a prior (both per sample) indexed along, in any order of the rows."""
+    from hybridqcm.estimation.noise import SpectralNoise
+    from hybridqcm.estimation.solver import GaussNewton, SolverConfig
+
+    problem, theta = _seat_problem()
+    b = theta.shape[0]
+    g = torch.Generator().manual_seed(7)
+    noise = SpectralNoise(
+        0.5 + torch.rand(b, 1, generator=g, dtype=F64),
+        0.1 + torch.rand(b, 1, generator=g, dtype=F64),
+        SeatBaseExcitation(),
+        0.01,
+    )
+    problem = LeastSquaresProblem(
+        problem.targets, problem.inputs, 0.01, model=problem.model, input_offset=8, observed=(True,), noise=noise,
+        prior_mean=theta * (1 + 0.1 * torch.rand(theta.shape, generator=g, dtype=F64)),
+        prior_precision=torch.rand(theta.shape, generator=g, dtype=F64),
+    )  # fmt: skip
+    solver = GaussNewton(SolverConfig())
+    rows = torch.tensor([17, 3, 4, 22])
+    whole = solver.objective(problem, theta)
+    part = solver.objective(problem.subset(rows), theta[rows])
+    torch.testing.assert_close(part, whole[rows], rtol=1e-12, atol=0)
+    assert not torch.allclose(part, whole[torch.tensor([3, 17, 4, 22])])  # the rows' own, in their order
