@@ -169,18 +169,27 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
     [b, K, o, n] and w = diag(g) V^-1 B [b, K, n, m] are Y's and X's modal coordinates, and every product runs over
     (K, o, m) rows at once."""
     B, C, E = (x.to(_COMPLEX) for x in matrices)
-    # g = 1 / (j w - lam) [b, K, n], by real arithmetic (2x faster than torch's complex division)
+    # g = 1 / (j w - lam) = (re - j im) / (re² + im²) [b, K, n], by real arithmetic (torch's complex division: 2x)
     re = (-lam.real)[:, None, :].expand(-1, jw.numel(), -1)
     im = jw.imag[None, :, None] - lam.imag[:, None, :]
     inv = 1.0 / (re * re + im * im)
-    g = torch.complex(re * inv, -im * inv)
     CV, WB = C @ V, V_inv @ B  # [b, o, n], [b, n, m]
-    u = CV[:, None] * g[:, :, None, :]  # [b, K, o, n]
-    H = u @ WB[:, None] + E[:, None]
+    o, m = CV.shape[1], WB.shape[2]
+    if o * m == 1:  # H = E + Σ_i r_i g_i with the residues r = (C V)_i (V^-1 B)_i, elementwise in real arithmetic
+        r = CV[:, 0] * WB[..., 0]  # [b, n]
+        real = ((r.real[:, None] * re + r.imag[:, None] * im) * inv).sum(-1)
+        imag = ((r.imag[:, None] * re - r.real[:, None] * im) * inv).sum(-1)
+        H = (torch.complex(real, imag)[..., None, None] + E[:, None]).contiguous()
+    else:  # the residues [b, n, (o, m)] times g
+        residues = (CV.transpose(1, 2)[..., :, None] * WB[:, :, None, :]).reshape(CV.shape[0], -1, o * m)
+        g = torch.complex(re * inv, -im * inv)
+        H = (g @ residues).view(*g.shape[:2], o, m) + E[:, None]
     # an eigenvalue on the axis (a trial step to a singular A): no response there, NaN as the LU path gives
     H = torch.where(torch.isfinite(H), H, torch.full_like(H, complex(math.nan, math.nan)))
     if not derivatives:
         return H, None
+    g = torch.complex(re * inv, -im * inv)
+    u = CV[:, None] * g[:, :, None, :]  # [b, K, o, n]
     dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
     b, K, o, n = u.shape
     m, P = B.shape[-1], dA.shape[1]
