@@ -312,6 +312,20 @@ def speed(args) -> None:
                 f"{p['wall'] / r['wall']:.1f}× ({p['cpu'] / r['cpu']:.1f}×) | {args.n / r['wall']:.1f} | "
                 f"{args.n / p['wall']:.2f} |"
             )
+    if len(trees) > 1:  # each tree's time over the first one's, measured in the same run
+        print("\n| tree | file | rigid / tree0 | default / tree0 (cpu) |")
+        print("|---|---|---|---|")
+        for t in range(1, len(trees)):
+            for name in args.files:
+                ratio = {
+                    m: {k: np.median([x[k] for x in times[(t, name, m)]]) / np.median([x[k] for x in times[(0, name, m)]])
+                        for k in ("wall", "cpu")}
+                    for m in METHODS
+                }  # fmt: skip
+                print(
+                    f"| tree{t} | {name} | {ratio['rigid']['wall']:.2f} | "
+                    f"{ratio['persons']['wall']:.2f} ({ratio['persons']['cpu']:.2f}) |"
+                )
 
 
 def import_run(args) -> None:
