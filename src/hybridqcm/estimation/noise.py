@@ -97,8 +97,8 @@ def frequency_response(
     rows = torch.nonzero(good).flatten()
     if rows.numel() == A.shape[0]:
         return _response_modal(model, params, lam, V, V_inv, (B, C, E), jw, derivatives)
-    H = torch.empty(A.shape[0], jw.numel(), C.shape[-2], B.shape[-1], dtype=_COMPLEX)
-    dH = torch.empty(A.shape[0], model.n_params, *H.shape[1:], dtype=_COMPLEX) if derivatives else None
+    H = torch.empty(A.shape[0], jw.numel(), C.shape[-2], B.shape[-1], dtype=_COMPLEX, device=A.device)
+    dH = torch.empty(A.shape[0], model.n_params, *H.shape[1:], dtype=_COMPLEX, device=A.device) if derivatives else None
     rest = torch.nonzero(~good).flatten()
     parts = [(rest, _response_lu(model, params[rest], (A[rest], B[rest], C[rest], E[rest]), jw, derivatives))]
     if rows.numel():
