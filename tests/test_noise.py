@@ -117,7 +117,8 @@ def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_
     H_lu, dH_lu = noise._response_lu(model, p, (A, B, C, E), (1j * omega).to(torch.complex128), True)
     torch.testing.assert_close(H, H_lu, rtol=1e-11, atol=1e-12 * float(H_lu.abs().max()))
     torch.testing.assert_close(dH, dH_lu, rtol=1e-10, atol=1e-12 * float(dH_lu.abs().max()))
-    for j in range(0 if not vehicle else p.shape[1], p.shape[1]):  # the seat's (the car's spans 1e-6..1e5 in H)
+    differenced = range(0) if vehicle else range(p.shape[1])  # the seat's: the car's H spans too many decades
+    for j in differenced:
         step = 1e-6 * p[:, j : j + 1]
         up, _ = frequency_response(model, p + step * (torch.arange(p.shape[1]) == j), omega)
         down, _ = frequency_response(model, p - step * (torch.arange(p.shape[1]) == j), omega)
@@ -133,7 +134,7 @@ def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_
     torch.testing.assert_close(dmixed, dH, rtol=1e-10, atol=1e-12 * float(dH.abs().max()))
 
 
-def test_a_pole_on_the_axis_gives_no_response():
+def test_a_pole_on_the_axis_gives_no_response(monkeypatch):
     """A trial step to a singular A (the seat spring at zero and the body's at zero): NaN at DC on either path,
     as the line search expects (not a finite number from an infinite one)."""
     model = SeatOccupantBaseExcitation(1)
@@ -143,12 +144,8 @@ def test_a_pole_on_the_axis_gives_no_response():
     omega = torch.linspace(0.0, 50.0, 6, dtype=torch.float64)
     H, _ = frequency_response(model, p, omega)
     assert torch.isnan(H[0, 0]).all() and torch.isfinite(H[1]).all() and torch.isfinite(H[0, 1:]).all()
-    monkeypatch = pytest.MonkeyPatch()
     monkeypatch.setattr(noise, "_RESPONSE_COND", 0.0)  # every sample by LU
-    try:
-        H_lu, _ = frequency_response(model, p, omega)
-    finally:
-        monkeypatch.undo()
+    H_lu, _ = frequency_response(model, p, omega)
     assert torch.isnan(H_lu[0, 0]).all()
     torch.testing.assert_close(H_lu[1], H[1], rtol=1e-12, atol=0)
 
