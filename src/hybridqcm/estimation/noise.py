@@ -64,6 +64,9 @@ from ._expm import balance
 from ._modal import _eigen
 
 _COMPLEX = torch.complex128
+# cond(V) (balanced, 1-norm) above which frequency_response solves per frequency: the modal form's rounding is
+# about cond(V) eps, 2e-10 relative here (the noise model's weights need far less)
+_RESPONSE_COND = 1e6
 
 
 def parseval_weights(n_steps: int, dtype=torch.float64) -> Tensor:
@@ -111,11 +114,6 @@ def frequency_response(
         if derivatives:
             dH[index] = dh
     return H, dH
-
-
-# cond(V) (balanced, 1-norm) above which frequency_response solves per frequency: the modal form's rounding is
-# about cond(V) eps, 2e-10 relative here (the noise model's weights need far less)
-_RESPONSE_COND = 1e6
 
 
 def _response_2x2(model, params, A, B, C, E, jw, derivatives):
@@ -175,6 +173,7 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
     inv = 1.0 / (re * re + im * im)
     CV, WB = C @ V, V_inv @ B  # [b, o, n], [b, n, m]
     o, m = CV.shape[1], WB.shape[2]
+    g = torch.complex(re * inv, -im * inv) if derivatives or o * m > 1 else None
     if o * m == 1:  # H = E + Σ_i r_i g_i with the residues r = (C V)_i (V^-1 B)_i, elementwise in real arithmetic
         r = CV[:, 0] * WB[..., 0]  # [b, n]
         real = ((r.real[:, None] * re + r.imag[:, None] * im) * inv).sum(-1)
@@ -182,13 +181,11 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
         H = (torch.complex(real, imag)[..., None, None] + E[:, None]).contiguous()
     else:  # the residues [b, n, (o, m)] times g
         residues = (CV.transpose(1, 2)[..., :, None] * WB[:, :, None, :]).reshape(CV.shape[0], -1, o * m)
-        g = torch.complex(re * inv, -im * inv)
         H = (g @ residues).view(*g.shape[:2], o, m) + E[:, None]
     # an eigenvalue on the axis (a trial step to a singular A): no response there, NaN as the LU path gives
     H = torch.where(torch.isfinite(H), H, torch.full_like(H, complex(math.nan, math.nan)))
     if not derivatives:
         return H, None
-    g = torch.complex(re * inv, -im * inv)
     u = CV[:, None] * g[:, :, None, :]  # [b, K, o, n]
     dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
     b, K, o, n = u.shape
