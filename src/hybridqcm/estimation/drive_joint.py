@@ -105,6 +105,11 @@ def joint_normal_equations(fisher, gradient, shared, group, n_groups, prior_prec
     return S, r, back
 
 
+# converged where the Gauss-Newton decrement is below this fraction of the loss: the loss's rounding level (a few
+# float64 ulps summed over its terms), not a tolerance on the fit
+_ROUNDING = 1e-15
+
+
 def joint_gauss_newton(
     evaluation,
     params: Tensor,
@@ -168,7 +173,9 @@ def joint_gauss_newton(
             decrement = decrement + (d_s * lam * dev).sum(1)
         nan = torch.full_like(loss, math.nan)
         history.append(torch.stack([torch.where(active, loss, nan), torch.where(active, decrement, nan)]))
-        done = active & (decrement <= decrement_tol)
+        # ... or the decrease it predicts is at the loss's rounding level: there a full step changes the loss by
+        # rounding, and on some CPUs every such step passes the Armijo test, for ever (max_iterations)
+        done = active & ((decrement <= decrement_tol) | (decrement <= _ROUNDING * loss.abs()))
         status[done] = int(SolverStatus.CONVERGED)
         active &= ~done
         bad = active & ~torch.isfinite(loss)
