@@ -112,6 +112,8 @@ def _app(tmp_path, *overrides):
         ("occupant.models=[rigid,giant]", "unknown"),
         ("delay=abc", "delay='abc'"),
         ("delay_max_ms=abc", "delay_max_ms="),
+        ("occupant.workers=0", "occupant.workers=0: give auto or a number of threads >= 1"),
+        ("occupant.workers=many", "occupant.workers='many'"),
         ("n_steps=512", "reads the input beyond the window's ends"),  # the whole recording: no input around it
     ],
 )

@@ -1,10 +1,12 @@
 """Batched small matrix products on the CPU through numpy (OpenBLAS), for the many tiny
-per-sample matrices of the estimation layers, where torch's batched products are 2-4x slower; and
-torch's thread count for those small per-step operations."""
+per-sample matrices of the estimation layers, where torch's batched products are 2-4x slower;
+torch's thread count for those small per-step operations; and independent solves on threads."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 import numpy as np
@@ -63,3 +65,38 @@ def chunk_workers(config) -> int:
 def op_threads(config) -> int | None:
     """torch's intra-op threads inside a solve: one per chunk worker, else SolverConfig.num_threads."""
     return 1 if chunk_workers(config) > 1 else config.num_threads
+
+
+def available_cores() -> int:
+    """The CPU cores this process may use: those it may run on, shared among the processes of a distributed run
+    on this machine (LOCAL_WORLD_SIZE where the launcher sets it, else the initialised process group's size)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        cores = os.cpu_count() or 1
+    local = int(os.environ.get("LOCAL_WORLD_SIZE") or 0)
+    if not local and torch.distributed.is_available() and torch.distributed.is_initialized():
+        local = torch.distributed.get_world_size()
+    return max(1, cores // max(1, local))
+
+
+def parallel_map(function: Callable, items: Iterable, workers: int) -> list:
+    """[function(item) for item in items], on up to ``workers`` threads (in order; at most one thread per item).
+
+    For independent solves whose operations are small: torch's ops and numpy's products release the GIL, so
+    two solves on two threads take about the longer one's time where one thread would take their sum. torch
+    runs one intra-op thread per op meanwhile (set here, restored after), so each result is the sequential
+    one bit for bit: a thread count other than one would change the order of torch's reductions (callers
+    run sequentially where their solvers ask for more, ``op_threads``). An exception in any call is raised
+    here after the calls already running have finished."""
+    items = list(items)
+    if workers <= 1 or len(items) < 2:
+        return [function(item) for item in items]
+    with torch_threads(1), ThreadPoolExecutor(min(int(workers), len(items))) as pool:
+        futures = [pool.submit(function, item) for item in items]
+        try:
+            return [future.result() for future in futures]
+        except BaseException:
+            for future in futures:
+                future.cancel()
+            raise

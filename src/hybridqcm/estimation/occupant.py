@@ -56,6 +56,7 @@ from torch import Tensor
 
 from hybridqcm.physics.occupant import MODE_PARAMS, derived
 
+from ._blas import available_cores, op_threads, parallel_map
 from .occupant_evidence import nest, polish_and_weigh
 from .occupant_interval import static_mass_interval
 from .occupant_records import empty_like, fit_candidate, merge, record_fits, scatter, select_rows, subset
@@ -100,7 +101,11 @@ class OccupantSelection:
     ``starts``: name -> extra start values [k] appended to the batch's (p1, p2) for that candidate
     (its body parameters). ``delayed``: name -> the refinement of that candidate with the channel delay
     (θ = its parameters, then τ), fitted where that candidate wins. ``K3``: the seat stiffness
-    (M = K3 / p2). ``profile``: the winner's interval by profile likelihood (else its Laplace one)."""
+    (M = K3 / p2). ``profile``: the winner's interval by profile likelihood (else its Laplace one).
+    ``workers``: threads that run the independent solves of a batch at once — the candidates' fits, the
+    delay variants', each candidate's polish under a noise model, the winners' profiles (_blas.parallel_map:
+    the same numbers as one thread); None: the cores this process may use (_blas.available_cores, judged at
+    each batch); always one where a candidate's solver runs torch on several threads itself."""
 
     def __init__(
         self,
@@ -114,6 +119,7 @@ class OccupantSelection:
         polish_iterations: int = 5,
         model_prior: Mapping[str, float] | None = None,
         rescue: Mapping[str, GaussNewtonRefinement] | None = None,
+        workers: int | None = 1,
     ) -> None:
         if not candidates:
             raise ValueError("occupant models: the list of candidate models is empty")
@@ -139,6 +145,14 @@ class OccupantSelection:
         total = sum(prior.values())
         self.log_prior = {n: math.log(v / total) for n, v in prior.items()}
         self.all_models = {**self.candidates, **{f"{n}+delay": r for n, r in self.delayed.items()}}
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+            raise ValueError(f"workers must be an integer >= 1 or None (the available cores), got {workers!r}")
+        threaded = any(
+            (op_threads(stage.solver.config) or 1) > 1
+            for r in [*self.all_models.values(), *self.rescue.values()]
+            for stage in r.stages
+        )
+        self._workers = 1 if threaded else workers
         self.response = _union_layout(self.all_models)
         self.max_modes = max((self._modes(r) for r in self.all_models.values()), default=0)
         # the rigid model's parameters, before the body's: (p1, p2) of the seat, p1..pN of a vehicle
@@ -157,6 +171,11 @@ class OccupantSelection:
             + ["rigid_kg"]
             + [c for i in range(1, self.max_modes + 1) for c in (f"f{i}_hz", f"zeta{i}", f"mass{i}_kg")]
         )
+
+    @property
+    def workers(self) -> int:
+        """Threads for the batch's independent solves (the constructor's ``workers``)."""
+        return available_cores() if self._workers is None else self._workers
 
     def collapsed(self, name: str, params: Tensor) -> Tensor:
         """[b] bool: candidate ``name``'s fits ``params`` [b, n_theta] that hold a body mode at r_i = 0 (the
@@ -180,12 +199,16 @@ class OccupantSelection:
     def refine(self, outputs: Mapping, module=None) -> dict:
         init = outputs["init"].double()[:, : self.n_lead]  # the batch's own vehicle per recording
         b = init.shape[0]
-        records = {}
-        for name, refinement in self.candidates.items():
+
+        def fit(name: str) -> dict:
             extra = self.starts.get(name, torch.zeros(0, dtype=torch.float64))
-            records[name] = fit_candidate(
-                refinement, {**outputs, "init": torch.cat([init, extra.expand(b, -1)], 1)}, module
-            )
+            start = torch.cat([init, extra.expand(b, -1)], 1)
+            return fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
+
+        # the largest models first: on two threads the body models' fits overlap the smaller ones'
+        order = sorted(self.candidates, key=lambda n: -self._modes(self.candidates[n]))
+        records = dict(zip(order, parallel_map(fit, order, self.workers)))
+        records = {name: records[name] for name in self.candidates}
         logz, fits = self._weigh(outputs, records, list(self.candidates))
         choice = self._choose(logz, fits, list(self.candidates))
         # The winner once more, with the channel delay. Where a candidate the data reject (misfit) has more
@@ -197,6 +220,9 @@ class OccupantSelection:
         fits1 = torch.stack([fits[n] for n in self.candidates], 1)
         winner_logz = logz1.gather(1, phase1[:, None])
         every = (~fits1 & (logz1 > winner_logz)).any(1) | ~fits1.any(1)
+        # Each variant's fit reads its candidate's estimates on the recordings it won or on `every`; a compare
+        # writes only the recordings its candidate won (not `every`): the fits run first, all at once.
+        jobs = []
         for name, refinement in self.delayed.items():
             variant = f"{name}+delay"
             records[variant] = empty_like(records[name], refinement.response.n_theta, refinement.response.n_params)
@@ -208,11 +234,12 @@ class OccupantSelection:
                 continue
             own = records[name]["params"][rows, : self.candidates[name].response.n_params].double()
             start = torch.cat([own, torch.zeros(rows.numel(), 1, dtype=torch.float64)], 1)
-            scatter(
-                records[variant],
-                fit_candidate(refinement, {**select_rows(outputs, rows, b), "init": start}, module),
-                rows,
-            )
+            jobs.append((name, rows, won, {**select_rows(outputs, rows, b), "init": start}))
+        jobs.sort(key=lambda job: -job[1].numel() * (1 + self._modes(self.delayed[job[0]])))
+        done = parallel_map(lambda job: fit_candidate(self.delayed[job[0]], job[3], module), jobs, self.workers)
+        for (name, rows, won, _), record in sorted(zip(jobs, done), key=lambda pair: self.names.index(pair[0][0])):
+            variant = f"{name}+delay"
+            scatter(records[variant], record, rows)
             rows = won.nonzero().squeeze(1)
             if rows.numel() == 0:
                 continue
@@ -301,6 +328,7 @@ class OccupantSelection:
             return
         # where every one of ``names`` diverged, no noise was fitted (_weigh's placeholder): nothing to weigh under
         noise = torch.stack([records[n]["final"].status[rows] != SolverStatus.DIVERGED for n in names]).any(0)
+        jobs = []
         for key in self.names:
             if key in names or key not in logz:  # a delay variant not set up yet: not fitted
                 continue
@@ -309,13 +337,18 @@ class OccupantSelection:
                 continue
             record = subset(records[key], rows[local])
             record["variances"] = tuple(None if v is None else v[local] for v in (v_out, v_in, log_std))
-            here = torch.arange(local.numel())
-            weighed = polish_and_weigh(
-                self, key, select_rows(outputs, rows[local], b), record, here, record["variances"][:2]
-            )
-            scatter(records[key], record, rows[local])
-            logz[key][rows[local]] = weighed + self.log_prior[key.split("+")[0]]
-            fits[key][rows[local]] = record_fits(record)
+            jobs.append((key, rows[local], record))
+        jobs.sort(key=lambda job: -job[1].numel() * (1 + self._modes(self.all_models[job[0]])))
+
+        def polished(job) -> Tensor:  # a copy of the candidate's record (subset), in place
+            key, at, record = job
+            here = torch.arange(at.numel())
+            return polish_and_weigh(self, key, select_rows(outputs, at, b), record, here, record["variances"][:2])
+
+        for (key, at, record), weighed in zip(jobs, parallel_map(polished, jobs, self.workers)):
+            scatter(records[key], record, at)
+            logz[key][at] = weighed + self.log_prior[key.split("+")[0]]
+            fits[key][at] = record_fits(record)
 
     def _rescue(self, outputs, records: dict, logz: dict, fits: dict, choice: Tensor, module) -> None:
         """In place: where the chosen candidate's fit is `misfit` or `diverged` (a wrong basin), its refinement
@@ -373,15 +406,27 @@ class OccupantSelection:
         for smaller, larger in zip(names, names[1:]):
             nest(self, outputs, records, smaller, larger, v_out, v_in, assigned)
         held = {n: self.collapsed(n, records[n]["params"]) for n in names}  # a nest may have moved a fit
+        weigh = {
+            name: (assigned & (records[name]["final"].status != SolverStatus.DIVERGED) & ~held[name])
+            .nonzero()
+            .squeeze(1)
+            for name in names
+        }
+        # the largest models first (their polish costs the most): the others fill the second thread meanwhile
+        jobs = sorted((n for n in names if weigh[n].numel()), key=lambda n: -self._modes(self.all_models[n]))
+
+        def polished(name: str) -> Tensor:  # each candidate's own record, in place
+            rows = weigh[name]
+            variances = (v_out[rows], None if v_in is None else v_in[rows])
+            return polish_and_weigh(self, name, select_rows(outputs, rows, b), records[name], rows, variances)
+
+        weighed = dict(zip(jobs, parallel_map(polished, jobs, self.workers)))
         logz, fits = {}, {}
         for name in names:
             record = records[name]
             logz[name] = torch.full((b,), -math.inf, dtype=torch.float64)
-            rows = (assigned & (record["final"].status != SolverStatus.DIVERGED) & ~held[name]).nonzero().squeeze(1)
-            if rows.numel():
-                variances = (v_out[rows], None if v_in is None else v_in[rows])
-                weighed = polish_and_weigh(self, name, select_rows(outputs, rows, b), record, rows, variances)
-                logz[name][rows] = weighed + self.log_prior[name.split("+")[0]]
+            if name in weighed:
+                logz[name][weigh[name]] = weighed[name] + self.log_prior[name.split("+")[0]]
             record["variances"] = (v_out, v_in, log_std)
             fits[name] = record_fits(record) & ~held[name]
         return logz, fits

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from ._blas import parallel_map
 from .occupant_evidence import evaluation_solver
 from .occupant_records import select_rows
 from .profile import profile_interval
@@ -37,11 +38,18 @@ def static_mass_interval(
     low, high = torch.stack(lows, 1), torch.stack(highs, 1)  # [b, C] (NaN where a candidate did not run)
     profiled = torch.zeros(b, dtype=torch.bool)
     if selection.profile:
+        jobs = []
         for j, name in enumerate(selection.names):
             rows = ((choice == j) & (records[name]["final"].status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
-            if rows.numel() == 0:
-                continue
-            p2_low, p2_high, _ = profile_p2(selection, name, select_rows(outputs, rows, b), records[name], rows)
+            if rows.numel():
+                jobs.append((j, name, rows))
+        jobs.sort(key=lambda job: -job[2].numel() * (1 + selection._modes(selection.all_models[job[1]])))
+        profiles = parallel_map(
+            lambda job: profile_p2(selection, job[1], select_rows(outputs, job[2], b), records[job[1]], job[2]),
+            jobs,
+            selection.workers,
+        )
+        for (j, name, rows), (p2_low, p2_high, _) in zip(jobs, profiles):
             ok = torch.isfinite(p2_low) & torch.isfinite(p2_high) & (p2_high > 0)
             rows, p2_low, p2_high = rows[ok], p2_low[ok], p2_high[ok]
             # widened as the jackknife widened the candidate's own interval (the residual's spread)

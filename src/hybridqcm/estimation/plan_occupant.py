@@ -7,6 +7,8 @@
     occupant.boundary_hold: false            hold a body mode the data do not resolve at r = 0 (its nested model)
     occupant.rigid_prior: 0.05               prior probability of a rigid occupant (ballast); the body
                                              models share the rest
+    occupant.workers: auto                   threads for a batch's independent solves (auto: the cores this
+                                             process may use; the same numbers on any count)
     delay: auto | estimate | <ms> | null     a3 behind its driving channel: the winner refitted with the
                                              delay estimated (evidence decides), estimated in every
                                              candidate, known, or none
@@ -80,6 +82,7 @@ def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
         "profile": _flag(occupant, "profile", True),
         "boundary_hold": _flag(occupant, "boundary_hold", False),
         "rigid_prior": _probability(occupant, "rigid_prior", 0.05),
+        "workers": _workers(occupant),
         "delay_prior": _delay_prior(cfg),
     }
 
@@ -88,6 +91,16 @@ def _flag(group, key: str, default: bool) -> bool:
     value = group.get(key, default)
     if not isinstance(value, bool):
         raise ConfigError(f"occupant.{key}={value!r}: give true or false")
+    return value
+
+
+def _workers(group) -> int | None:
+    """occupant.workers: None for auto (the available cores, judged where the fits run), else a count >= 1."""
+    value = group.get("workers", "auto")
+    if value == "auto":
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"occupant.workers={value!r}: give auto or a number of threads >= 1")
     return value
 
 
@@ -250,4 +263,5 @@ def build_selection(cfg, plan, occupant: dict, make_refinement):
         profile=occupant["profile"],
         model_prior=model_prior,
         rescue=rescue,
+        workers=occupant["workers"],
     )

@@ -88,6 +88,7 @@ class OccupantSettings:
     profile: bool = MISSING
     rigid_prior: float = MISSING
     boundary_hold: bool = MISSING
+    workers: Any = MISSING  # auto | an integer >= 1 (plan_occupant checks it)
 
 
 @dataclass
