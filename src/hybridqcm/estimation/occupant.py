@@ -150,7 +150,7 @@ class OccupantSelection:
         threaded = any(
             (op_threads(stage.solver.config) or 1) > 1
             for r in [*self.all_models.values(), *self.rescue.values()]
-            for stage in r.stages
+            for stage in getattr(r, "stages", ())
         )
         self._workers = 1 if threaded else workers
         self.response = _union_layout(self.all_models)
