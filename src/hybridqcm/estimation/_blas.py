@@ -83,12 +83,13 @@ def available_cores() -> int:
 def parallel_map(function: Callable, items: Iterable, workers: int) -> list:
     """[function(item) for item in items], on up to ``workers`` threads (in order; at most one thread per item).
 
-    For independent solves whose operations are small: torch's ops and numpy's products release the GIL, so
-    two solves on two threads take about the longer one's time where one thread would take their sum. torch
-    runs one intra-op thread per op meanwhile (set here, restored after), so each result is the sequential
-    one bit for bit: a thread count other than one would change the order of torch's reductions (callers
-    run sequentially where their solvers ask for more, ``op_threads``). An exception in any call is raised
-    here after the calls already running have finished."""
+    For independent solves: torch's ops and numpy's products release the GIL, so the solves overlap, though
+    only partly where their operations are small (the Python between kernels holds it: the occupant
+    selection on two threads takes 0.85-0.92x one thread's wall time, docs/measurements/persons.md). torch runs
+    one intra-op thread per op meanwhile (set here, restored after), so each result is the sequential one bit
+    for bit: another thread count would change the order of torch's reductions (callers run sequentially where
+    their solvers ask for more, ``op_threads``). An exception in any call is raised here once the calls already
+    running have ended; a stop request (Ctrl-C) ends them at their solver's next iteration (interrupt.check_stop)."""
     items = list(items)
     if workers <= 1 or len(items) < 2:
         return [function(item) for item in items]

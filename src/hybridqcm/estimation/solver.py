@@ -29,6 +29,8 @@ from enum import IntEnum
 import torch
 from torch import Tensor
 
+from hybridqcm.interrupt import check_stop
+
 from ._blas import chunk_workers, op_threads, torch_threads
 from ._linalg import pseudo_inverse_solve
 from .boundary import applies, boundary_test, initial_held, without_held
@@ -251,6 +253,8 @@ class NonlinearLeastSquares(ABC):
         cfg = self.config
         run = self._start(problem, initial_params)
         for iteration in range(cfg.max_iterations + 1):
+            # a stop request (Ctrl-C) reaches a solve on a worker thread here, at the latest one iteration later
+            check_stop()
             t0 = time.perf_counter()
             index = run.active.nonzero().squeeze(1)
             if iteration == cfg.max_iterations or index.numel() == 0:
