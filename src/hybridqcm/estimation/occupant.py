@@ -188,6 +188,11 @@ class OccupantSelection:
             return torch.zeros(params.shape[0], dtype=torch.bool)
         return (params[:, cols].double() == 0).any(1)
 
+    def cost(self, name: str, rows: int) -> int:
+        """A solve of candidate ``name`` on ``rows`` recordings, relative to the others' (the body modes' states make
+        it dearer): independent solves are handed to the threads largest first, so the small ones fill in."""
+        return rows * (1 + self._modes(self.all_models[name]))
+
     @staticmethod
     def _modes(refinement) -> int:
         return sum(1 for n in refinement.response.theta_names if n.startswith("r") and n[1:].isdigit())
@@ -205,8 +210,7 @@ class OccupantSelection:
             start = torch.cat([init, extra.expand(b, -1)], 1)
             return fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
 
-        # the largest models first: on two threads the body models' fits overlap the smaller ones'
-        order = sorted(self.candidates, key=lambda n: -self._modes(self.candidates[n]))
+        order = sorted(self.candidates, key=lambda n: -self.cost(n, b))
         records = dict(zip(order, parallel_map(fit, order, self.workers)))
         records = {name: records[name] for name in self.candidates}
         logz, fits = self._weigh(outputs, records, list(self.candidates))
@@ -235,7 +239,7 @@ class OccupantSelection:
             own = records[name]["params"][rows, : self.candidates[name].response.n_params].double()
             start = torch.cat([own, torch.zeros(rows.numel(), 1, dtype=torch.float64)], 1)
             jobs.append((name, rows, won, {**select_rows(outputs, rows, b), "init": start}))
-        jobs.sort(key=lambda job: -job[1].numel() * (1 + self._modes(self.delayed[job[0]])))
+        jobs.sort(key=lambda job: -self.cost(f"{job[0]}+delay", job[1].numel()))
         done = parallel_map(lambda job: fit_candidate(self.delayed[job[0]], job[3], module), jobs, self.workers)
         for (name, rows, won, _), record in sorted(zip(jobs, done), key=lambda pair: self.names.index(pair[0][0])):
             variant = f"{name}+delay"
@@ -338,7 +342,7 @@ class OccupantSelection:
             record = subset(records[key], rows[local])
             record["variances"] = tuple(None if v is None else v[local] for v in (v_out, v_in, log_std))
             jobs.append((key, rows[local], record))
-        jobs.sort(key=lambda job: -job[1].numel() * (1 + self._modes(self.all_models[job[0]])))
+        jobs.sort(key=lambda job: -self.cost(job[0], job[1].numel()))
 
         def polished(job) -> Tensor:  # a copy of the candidate's record (subset), in place
             key, at, record = job
@@ -412,8 +416,7 @@ class OccupantSelection:
             .squeeze(1)
             for name in names
         }
-        # the largest models first (their polish costs the most): the others fill the second thread meanwhile
-        jobs = sorted((n for n in names if weigh[n].numel()), key=lambda n: -self._modes(self.all_models[n]))
+        jobs = sorted((n for n in names if weigh[n].numel()), key=lambda n: -self.cost(n, weigh[n].numel()))
 
         def polished(name: str) -> Tensor:  # each candidate's own record, in place
             rows = weigh[name]

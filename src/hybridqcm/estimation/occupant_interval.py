@@ -43,7 +43,7 @@ def static_mass_interval(
             rows = ((choice == j) & (records[name]["final"].status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
             if rows.numel():
                 jobs.append((j, name, rows))
-        jobs.sort(key=lambda job: -job[2].numel() * (1 + selection._modes(selection.all_models[job[1]])))
+        jobs.sort(key=lambda job: -selection.cost(job[1], job[2].numel()))
         profiles = parallel_map(
             lambda job: profile_p2(selection, job[1], select_rows(outputs, job[2], b), records[job[1]], job[2]),
             jobs,
