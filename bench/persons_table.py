@@ -45,6 +45,7 @@ FILES = (
     "body1_n5",
     "body1_n10",
     "body2_n0",
+    "body2_n5",
     "mixed_n5",
 )
 # before: the rigid occupant on one clock (the old default); after: occupant_roadfree's default (persons, delay auto)

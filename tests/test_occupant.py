@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import re
 import subprocess
@@ -237,6 +238,26 @@ def test_the_interval_joins_close_candidates_and_better_rejected_ones():
     assert members.tolist() == [[True, True, False], [True, True, False]]
     logz[1, 1] = -math.inf  # a candidate that did not run
     assert interval_members(logz, fits, torch.tensor([0, 0]), 0.05)[1].tolist() == [True, False, False]
+
+
+def test_the_default_window_drops_a_candidate_only_on_very_strong_evidence():
+    """Kass & Raftery's scale (1995): 2 ln B from 6 to 10 is "strong", beyond 10 "very strong". At the default
+    a candidate 4.9 nats (2 ln B = 9.8) below the winner still widens m3's interval, one 5.1 nats below does not;
+    the configuration's default is the library's (qcm-estimate and OccupantSelection agree)."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.occupant import OccupantSelection
+    from hybridqcm.estimation.occupant_interval import VERY_STRONG, interval_members
+
+    default = inspect.signature(OccupantSelection).parameters["interval_weight"].default
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        configured = compose("estimate", ["experiment=occupant_roadfree"]).occupant.interval_weight
+    assert default == VERY_STRONG and configured == pytest.approx(VERY_STRONG, rel=0.01)
+    logz = torch.tensor([[0.0, -4.9, -5.1]], dtype=torch.float64)
+    fits = torch.ones(1, 3, dtype=torch.bool)
+    assert interval_members(logz, fits, torch.tensor([0]), default).tolist() == [[True, True, False]]
+    assert interval_members(logz, fits, torch.tensor([0]), 0.05).tolist() == [[True, False, False]]  # e^-3
 
 
 def test_a_person_outside_the_model_set_is_never_a_converged_wrong_answer(tmp_path):

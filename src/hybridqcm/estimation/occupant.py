@@ -36,9 +36,9 @@ The static mass M = K3 / p2 is the winner's. Its 95 % interval is the profile-li
 of p2 under the winner (estimation/profile.py: under sensor noise the posterior of a person's static
 mass and the share of the body that resonates is a banana, and the Laplace interval misses on one
 side), joined with the Laplace intervals of the other candidates that fit and whose evidence weight
-exp(log Z_c − log Z_max) is at least ``interval_weight``, and with those the residual tests reject that
-have more evidence than the winner: two models the data cannot tell apart give an interval that holds
-both answers.
+exp(log Z_c − log Z_max) is at least ``interval_weight`` (default e^-5: only evidence that Kass and Raftery
+call very strong rules a candidate out), and with those the residual tests reject that have more evidence
+than the winner: two models the data cannot tell apart give an interval that holds both answers.
 
 Results are in one layout whatever the winner (``SelectionLayout``): the largest model's
 parameters, τ and initial state, with NaN for what the chosen model has not (a rigid occupant has
@@ -58,7 +58,7 @@ from hybridqcm.physics.occupant import MODE_PARAMS, derived
 
 from ._blas import available_cores, op_threads, parallel_map
 from .occupant_evidence import nest, polish_and_weigh
-from .occupant_interval import static_mass_interval
+from .occupant_interval import VERY_STRONG, static_mass_interval
 from .occupant_records import empty_like, fit_candidate, merge, record_fits, scatter, select_rows, subset
 from .refinement import GaussNewtonRefinement
 from .solver import SolverStatus
@@ -112,7 +112,7 @@ class OccupantSelection:
         candidates: Mapping[str, GaussNewtonRefinement],
         starts: Mapping[str, Tensor],
         K3: float,
-        interval_weight: float = 0.05,
+        interval_weight: float = VERY_STRONG,
         delayed: Mapping[str, GaussNewtonRefinement] | None = None,
         profile: bool = True,
         profile_iterations: int = 8,

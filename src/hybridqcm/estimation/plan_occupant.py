@@ -1,7 +1,8 @@
 """qcm-estimate's occupant settings: which occupant models to fit and the channel delay (SPEC § 10).
 
     occupant.models: [rigid, body1, body2]   candidates; several: per recording the highest evidence
-    occupant.interval_weight: 0.05           candidates this close (evidence weight) widen m3's interval
+    occupant.interval_weight: 0.0067         candidates this close (evidence weight; e^-5, Kass and Raftery's
+                                             'very strong') widen m3's interval
     occupant.body_prior: true                the literature's ranges as a weak prior on body modes
     occupant.profile: true                   the winner's m3 interval by profile likelihood (else Laplace)
     occupant.boundary_hold: false            hold a body mode the data do not resolve at r = 0 (its nested model)
@@ -28,6 +29,8 @@ import torch
 from hybridqcm.errors import ConfigError
 from hybridqcm.physics.occupant import N_MODES, OCCUPANT_MODELS, body_prior, body_start
 
+from .occupant_interval import VERY_STRONG
+
 
 def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
     """The validated occupant and delay settings, or None when the plain rigid model is asked for.
@@ -53,7 +56,7 @@ def occupant_plan(cfg, base: str | None, model: str = "exact") -> dict | None:
             raise ConfigError(f"delay={delay!r}: give auto, estimate, null (none) or the known delay in ms (a number)")
         if abs(delay) > max_ms:
             raise ConfigError(f"delay={delay} ms lies beyond delay_max_ms={max_ms}")
-    weight = occupant.get("interval_weight", 0.05)
+    weight = occupant.get("interval_weight", VERY_STRONG)
     if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0 < weight <= 1:
         raise ConfigError(f"occupant.interval_weight={weight!r}: give a number in (0, 1]")
     plain = models == ["rigid"] and (delay is None or (str(delay) not in ("estimate", "auto") and float(delay) == 0.0))
