@@ -137,7 +137,8 @@ def _bound_cell(stem: str, level: float) -> str | None:
     entry = json.loads(path.read_text())["noise"]
     entry = entry.get(str(level)) or entry.get(f"{level:g}")
     cell = None if entry is None else (entry.get("matched_unknown") or next(iter(entry.values())))
-    return None if cell is None else f"{100 * cell['mean_abs_error']:.2f} %"
+    # the periodic bound has no series chain (body2): its body1-fit cell carries no mean
+    return None if cell is None or cell["mean_abs_error"] is None else f"{100 * cell['mean_abs_error']:.2f} %"
 
 
 def _bound(name: str) -> str:
