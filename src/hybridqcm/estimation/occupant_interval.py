@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 # A candidate leaves m3's interval only where the evidence against it is "very strong", 2 ln B > 10 (Kass &
 # Raftery 1995, J. Am. Stat. Assoc. 90: 773-795): Occam's window (Madigan & Raftery 1994) with C = e^5 ≈ 148,
 # not the "strong" 20 (e^-3). A seated person is none of the candidates, and under such model error the
-# evidence of the simpler, biased model is over-confident (docs/design/persons.md, "The interval").
+# evidence of the simpler, biased model is over-confident (docs/design/persons.md, "The interval's window").
 VERY_STRONG = math.exp(-5.0)
 
 
