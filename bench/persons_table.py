@@ -4,6 +4,7 @@
     .venv/bin/python bench/persons_table.py run   [--n 100] [--files rigid_n0 body1_n5 ...]   # the runs
     .venv/bin/python bench/persons_table.py import --csv RUN/estimates.csv --file body1_n5      # a run made elsewhere
     .venv/bin/python bench/persons_table.py table [--out docs/results/persons.md]              # the table
+    .venv/bin/qcm-results --tables-only                                # and into docs/RESULTS.md
     .venv/bin/python bench/persons_table.py speed --n 32 --files rigid_n5 [--trees OLD .]      # the time ratio
 
 The recordings come from the second simulator (bench/foreign_sim.py; data/persons/*.h5, made as its

@@ -2,6 +2,11 @@
 
     qcm-results                                   # outputs/{reproduce,demo,noise}/manifest.json -> docs/RESULTS.md
     qcm-results --manifest outputs/demo/manifest.json --output /tmp/R.md
+    qcm-results --tables-only                     # docs/results/*.md (bench tables) into the existing page
+
+``--tables-only`` re-includes the bench-generated tables (bench/persons_table.py, bench/calibration_table.py:
+docs/results/*.md) into the page as they are now, and leaves the rest of it as it was: for a table remade on a
+machine without the pipelines' run folders.
 
 Every table of the source (reference/thesis_tables.csv) that a run answers is shown row by row
 with ours beside it, and a verdict per row: we beat the source when our mean error is lower,
@@ -19,7 +24,7 @@ import sys
 from pathlib import Path
 
 from hybridqcm.pipelines.catalog import stage_order
-from hybridqcm.reports.results import render
+from hybridqcm.reports.results import refresh_generated_tables, render
 
 DEFAULT_MANIFESTS = ("outputs/reproduce/manifest.json", "outputs/demo/manifest.json", "outputs/noise/manifest.json")
 
@@ -35,7 +40,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--output", default="docs/RESULTS.md", help="page to write (default docs/RESULTS.md)")
     parser.add_argument("--no-plots", action="store_true", help="do not copy sorted-prediction plots next to the page")
+    parser.add_argument(
+        "--tables-only",
+        action="store_true",
+        help="only re-include the bench-generated tables (docs/results/*.md) into the existing page",
+    )
     args = parser.parse_args(argv)
+    if args.tables_only:
+        try:
+            names = refresh_generated_tables(Path(args.output))
+        except (FileNotFoundError, ValueError) as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
+        print(f"refreshed {args.output}: {', '.join(names) or 'no bench table found beside it'}")
+        return 0
     manifests = [Path(m) for m in (args.manifest or [m for m in DEFAULT_MANIFESTS if Path(m).exists()])]
     if not manifests:
         print(

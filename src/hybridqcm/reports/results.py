@@ -293,15 +293,52 @@ GENERATED_TABLES = (
 
 def _generated_tables(docs: Path) -> list[str]:
     """The bench-generated tables that exist beside the page, each under its own heading."""
-    parts = []
+    return [line for name, script in GENERATED_TABLES for line in _generated_block(docs, name, script) or []]
+
+
+def _source_line(name: str, script: str) -> str:
+    """The line under a generated table's heading that names where it comes from (and finds it on a page)."""
+    return f"(from `{script}`; also [results/{name}](results/{name}))"
+
+
+def _generated_block(docs: Path, name: str, script: str) -> list[str] | None:
+    """docs/results/<name> as the page's section (its heading, the source line, the table), None where absent."""
+    path = docs / "results" / name
+    if not path.is_file():
+        return None
+    lines = path.read_text().splitlines()
+    title = lines[0].lstrip("# ") if lines and lines[0].startswith("#") else name
+    return [f"## {title}", "", _source_line(name, script), ""] + lines[1:] + [""]
+
+
+def refresh_generated_tables(page: Path) -> list[str]:
+    """Re-include the bench-generated tables (docs/results/<name> beside ``page``) into a page that render wrote,
+    in place and without the pipelines' run folders: each table's section — found by its source line, from its
+    heading to the next ``## `` heading — becomes the table as it is now, and one not yet on the page is appended
+    (render puts them last). The rest of the page is left as it is. -> the tables' names refreshed."""
+    if not page.is_file():
+        raise FileNotFoundError(f"{page}: no results page to refresh; write it with qcm-results first")
+    lines = page.read_text().split("\n")
+    refreshed = []
     for name, script in GENERATED_TABLES:
-        path = docs / "results" / name
-        if path.is_file():
-            lines = path.read_text().splitlines()
-            title = lines[0].lstrip("# ") if lines and lines[0].startswith("#") else name
-            parts += [f"## {title}", "", f"(from `{script}`; also [results/{name}](results/{name}))", ""]
-            parts += lines[1:] + [""]
-    return parts
+        block = _generated_block(page.parent, name, script)
+        if block is None:
+            continue
+        try:
+            start = lines.index(_source_line(name, script)) - 2
+        except ValueError:  # not on the page yet: after everything, as render would have put it
+            lines += block
+            refreshed.append(name)
+            continue
+        if start < 0 or not lines[start].startswith("## "):
+            raise ValueError(f"{page}: the section of results/{name} has no heading two lines above its source line")
+        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
+        lines[start:end] = block  # a section ends with its blank line, as the block does
+        refreshed.append(name)
+    tmp = page.with_suffix(".md.tmp")
+    tmp.write_text("\n".join(lines))
+    tmp.replace(page)
+    return refreshed
 
 
 def print_summary(manifest_path: str | Path) -> None:
