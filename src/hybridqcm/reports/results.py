@@ -314,8 +314,9 @@ def _generated_block(docs: Path, name: str, script: str) -> list[str] | None:
 def refresh_generated_tables(page: Path) -> list[str]:
     """Re-include the bench-generated tables (docs/results/<name> beside ``page``) into a page that render wrote,
     in place and without the pipelines' run folders: each table's section — found by its source line, from its
-    heading to the next ``## `` heading — becomes the table as it is now, and one not yet on the page is appended
-    (render puts them last). The rest of the page is left as it is. -> the tables' names refreshed."""
+    heading to the next generated table's or the page's end (render puts them last, so a table may hold headings
+    of its own) — becomes the table as it is now, and one not yet on the page is appended. The rest of the page,
+    a table whose file is gone included, is left as it is. -> the tables' names refreshed."""
     if not page.is_file():
         raise FileNotFoundError(f"{page}: no results page to refresh; write it with qcm-results first")
     lines = page.read_text().split("\n")
@@ -332,7 +333,8 @@ def refresh_generated_tables(page: Path) -> list[str]:
             continue
         if start < 0 or not lines[start].startswith("## "):
             raise ValueError(f"{page}: the section of results/{name} has no heading two lines above its source line")
-        end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")), len(lines))
+        others = {_source_line(n, sc) for n, sc in GENERATED_TABLES if n != name}
+        end = min([i - 2 for i, line in enumerate(lines) if line in others and i - 2 > start] or [len(lines)])
         lines[start:end] = block  # a section ends with its blank line, as the block does
         refreshed.append(name)
     tmp = page.with_suffix(".md.tmp")
