@@ -263,6 +263,8 @@ def test_tables_only_refreshes_the_bench_tables_as_render_would(tmp_path, capsys
     assert "## A part of its own" not in refreshed  # the old table's own heading went with it
     assert app.main(["--tables-only", "--output", str(tmp_path / "none.md")]) == 2
     assert "none.md: no results page" in capsys.readouterr().err
+    assert app.main(["--tables-only", "--manifest", str(manifest), "--output", str(docs / "RESULTS.md")]) == 2
+    assert "--tables-only reads no manifest" in capsys.readouterr().err
 
 
 def test_tables_only_leaves_a_table_whose_file_is_gone(tmp_path):

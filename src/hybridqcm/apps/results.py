@@ -47,6 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     if args.tables_only:
+        if args.manifest:
+            print("error: --tables-only reads no manifest: drop --manifest, or --tables-only", file=sys.stderr)
+            return 2
         try:
             names = refresh_generated_tables(Path(args.output))
         except (FileNotFoundError, ValueError) as error:
