@@ -48,7 +48,7 @@ no body mode).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -193,6 +193,15 @@ class OccupantSelection:
         it dearer): independent solves are handed to the threads largest first, so the small ones fill in."""
         return rows * (1 + self._modes(self.all_models[name]))
 
+    def solve_all(self, function: Callable, jobs: list, costs: list[int]) -> list:
+        """[function(job) for job in jobs] on the selection's threads (_blas.parallel_map), the dearest job
+        (``costs``, each a ``cost``) handed out first; the results in the jobs' order."""
+        order = sorted(range(len(jobs)), key=lambda i: -costs[i])
+        results = [None] * len(jobs)
+        for i, result in zip(order, parallel_map(lambda i: function(jobs[i]), order, self.workers)):
+            results[i] = result
+        return results
+
     @staticmethod
     def _modes(refinement) -> int:
         return sum(1 for n in refinement.response.theta_names if n.startswith("r") and n[1:].isdigit())
@@ -210,11 +219,10 @@ class OccupantSelection:
             start = torch.cat([init, extra.expand(b, -1)], 1)
             return fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
 
-        order = sorted(self.candidates, key=lambda n: -self.cost(n, b))
-        records = dict(zip(order, parallel_map(fit, order, self.workers)))
-        records = {name: records[name] for name in self.candidates}
-        logz, fits = self._weigh(outputs, records, list(self.candidates))
-        choice = self._choose(logz, fits, list(self.candidates))
+        names = list(self.candidates)
+        records = dict(zip(names, self.solve_all(fit, names, [self.cost(n, b) for n in names])))
+        logz, fits = self._weigh(outputs, records, names)
+        choice = self._choose(logz, fits, names)
         # The winner once more, with the channel delay. Where a candidate the data reject (misfit) has more
         # evidence than the winner, or none fits — noise-free data from two clocks leave the one-clock
         # models misfit, and a flexible one may absorb the delay's phase into a wrong fit — every candidate
@@ -239,8 +247,11 @@ class OccupantSelection:
             own = records[name]["params"][rows, : self.candidates[name].response.n_params].double()
             start = torch.cat([own, torch.zeros(rows.numel(), 1, dtype=torch.float64)], 1)
             jobs.append((name, rows, won, {**select_rows(outputs, rows, b), "init": start}))
-        jobs.sort(key=lambda job: -self.cost(f"{job[0]}+delay", job[1].numel()))
-        done = parallel_map(lambda job: fit_candidate(self.delayed[job[0]], job[3], module), jobs, self.workers)
+        done = self.solve_all(
+            lambda job: fit_candidate(self.delayed[job[0]], job[3], module),
+            jobs,
+            [self.cost(f"{name}+delay", rows.numel()) for name, rows, _, _ in jobs],
+        )
         for (name, rows, won, _), record in sorted(zip(jobs, done), key=lambda pair: self.names.index(pair[0][0])):
             variant = f"{name}+delay"
             scatter(records[variant], record, rows)
@@ -342,14 +353,14 @@ class OccupantSelection:
             record = subset(records[key], rows[local])
             record["variances"] = tuple(None if v is None else v[local] for v in (v_out, v_in, log_std))
             jobs.append((key, rows[local], record))
-        jobs.sort(key=lambda job: -self.cost(job[0], job[1].numel()))
 
         def polished(job) -> Tensor:  # a copy of the candidate's record (subset), in place
             key, at, record = job
             here = torch.arange(at.numel())
             return polish_and_weigh(self, key, select_rows(outputs, at, b), record, here, record["variances"][:2])
 
-        for (key, at, record), weighed in zip(jobs, parallel_map(polished, jobs, self.workers)):
+        costs = [self.cost(key, at.numel()) for key, at, _ in jobs]
+        for (key, at, record), weighed in zip(jobs, self.solve_all(polished, jobs, costs)):
             scatter(records[key], record, at)
             logz[key][at] = weighed + self.log_prior[key.split("+")[0]]
             fits[key][at] = record_fits(record)
@@ -416,14 +427,14 @@ class OccupantSelection:
             .squeeze(1)
             for name in names
         }
-        jobs = sorted((n for n in names if weigh[n].numel()), key=lambda n: -self.cost(n, weigh[n].numel()))
+        jobs = [n for n in names if weigh[n].numel()]
 
         def polished(name: str) -> Tensor:  # each candidate's own record, in place
             rows = weigh[name]
             variances = (v_out[rows], None if v_in is None else v_in[rows])
             return polish_and_weigh(self, name, select_rows(outputs, rows, b), records[name], rows, variances)
 
-        weighed = dict(zip(jobs, parallel_map(polished, jobs, self.workers)))
+        weighed = dict(zip(jobs, self.solve_all(polished, jobs, [self.cost(n, weigh[n].numel()) for n in jobs])))
         logz, fits = {}, {}
         for name in names:
             record = records[name]

@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ._blas import parallel_map
 from .occupant_evidence import evaluation_solver
 from .occupant_records import select_rows
 from .profile import profile_interval
@@ -49,11 +48,10 @@ def static_mass_interval(
             rows = ((choice == j) & (records[name]["final"].status != SolverStatus.DIVERGED)).nonzero().squeeze(1)
             if rows.numel():
                 jobs.append((j, name, rows))
-        jobs.sort(key=lambda job: -selection.cost(job[1], job[2].numel()))
-        profiles = parallel_map(
+        profiles = selection.solve_all(
             lambda job: profile_p2(selection, job[1], select_rows(outputs, job[2], b), records[job[1]], job[2]),
             jobs,
-            selection.workers,
+            [selection.cost(name, rows.numel()) for _, name, rows in jobs],
         )
         for (j, name, rows), (p2_low, p2_high, _) in zip(jobs, profiles):
             ok = torch.isfinite(p2_low) & torch.isfinite(p2_high) & (p2_high > 0)
