@@ -165,12 +165,17 @@ def _vehicle_settings(cfg, plan, names) -> tuple:
 # The 5 % level of the likelihood-ratio test of a body mode's mass ratio on its boundary r = 0 (½χ²₀ + ½χ²₁:
 # 2ΔL = 2.71), in nats of the noise-whitened loss (solver.SolverConfig.boundary_test).
 BOUNDARY_NATS = 1.35
+# A candidate's path is stopped as `diverged` where it is outside the domain and its full Gauss-Newton step, no longer
+# than one standard deviation (decrement δᵀJᵀR ≤ 1 nat), lands outside too (solver.SolverConfig.outside_tol).
+OUTSIDE_NATS = 1.0
 
 
 def _interpolating(refinement, boundary_hold: bool = False):
     """The refinement with its stages' line search set to "interpolate" (solver.SolverConfig.backtrack): a body
     candidate's GN steps overshoot by 10-1000×, and halving them took 9-12 loss evaluations an iteration; the
     same α in fewer (docs/measurements/persons.md). The rigid one-clock fit outside a selection keeps halving.
+    A path that converges outside the domain (most often a mass ratio r_i < 0 on a rigid occupant, where the fit ends
+    `diverged`) is stopped there (SolverConfig.outside_tol = OUTSIDE_NATS).
     With ``boundary_hold`` the boundary test (SolverConfig.boundary_test, BOUNDARY_NATS): a body mode whose full
     step heads to r = 0 and whose removal costs less than the test's level is held at r = 0, its nested model
     (on a rigid occupant the mode is not identifiable and its fit crawled to r -> 0 for 30 iterations a pass,
@@ -179,6 +184,7 @@ def _interpolating(refinement, boundary_hold: bool = False):
     optimum), and rigid then won +30-70 % off (docs/measurements/persons.md)."""
     for stage in refinement.stages:
         stage.solver.config.backtrack = "interpolate"
+        stage.solver.config.outside_tol = OUTSIDE_NATS
         if boundary_hold:
             stage.solver.config.boundary_test = BOUNDARY_NATS
     return refinement

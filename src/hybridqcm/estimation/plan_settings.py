@@ -75,6 +75,9 @@ def solver_settings(cfg, overrides: Mapping | None = None) -> tuple[str, dict]:
     tol = base.get("decrement_tol")
     if tol is not None and not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol >= 0):
         raise ConfigError(f"solver.decrement_tol must be null or a finite number >= 0, got {tol!r}")
+    tol = base.get("outside_tol")
+    if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0 <= tol < math.inf):
+        raise ConfigError(f"solver.outside_tol must be null or a finite number of nats >= 0, got {tol!r}")
     return method, base
 
 

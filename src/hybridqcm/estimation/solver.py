@@ -80,6 +80,11 @@ class SolverConfig:
     # less than sqrt(decrement_tol) of a standard deviation in every direction (1e-6: 0.001 σ),
     # well below what the data can resolve. None: off.
     decrement_tol: float | None = 1e-6
+    # ... and, in those fits, stopped as DIVERGED where the iterate lies outside the domain p > 0 and so does the
+    # full step's landing point, itself within sqrt(outside_tol) σ (its decrement δᵀJᵀR ≤ outside_tol): the path
+    # converges to an optimum outside the domain, where it would end DIVERGED after the iterations to decrement_tol
+    # (a path that is still far from its optimum keeps going, and may come back). None: off.
+    outside_tol: float | None = None
     # Nested models at a boundary (noise-whitened fits; estimation/boundary.py): a parameter whose zero is a
     # smaller model (a body mode's mass ratio) is held at 0 where a full step heads there and the loss rises by
     # less than this many nats with it at 0. None: off.
@@ -215,6 +220,9 @@ class NonlinearLeastSquares(ABC):
             raise ValueError(f"solver covariance={self.config.covariance!r}: choose one of {list(COVARIANCES)}")
         if int(self.config.covariance_band) < 1:
             raise ValueError(f"solver covariance_band={self.config.covariance_band!r}: must be an integer >= 1")
+        tol = self.config.outside_tol
+        if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0 <= tol < math.inf):
+            raise ValueError(f"solver outside_tol={tol!r}: a number of nats >= 0, or None")
         test = self.config.jackknife_test
         if test is not None and (isinstance(test, bool) or not isinstance(test, (int, float)) or not 0 < test < 1):
             raise ValueError(f"solver jackknife_test={test!r}: a level in (0, 1), or None")
@@ -337,6 +345,13 @@ class NonlinearLeastSquares(ABC):
             return False
         fisher, gradient = without_held(run.held[index], fisher, gradient)
         step, predicted, stationary = self._step(run, index, fisher, gradient, loss_now)
+        lost = self._converging_outside(run, index, step, predicted) & ~stationary
+        if bool(lost.any()):
+            run.status[index[lost]] = SolverStatus.DIVERGED
+            run.active[index[lost]] = False
+            index, step, loss_now, predicted, stationary = (
+                x[~lost] for x in (index, step, loss_now, predicted, stationary)
+            )
         if applies(self.config, run.evaluation.problem):
             go = ~boundary_test(self, run, index, step)  # the others moved to their nested model this iteration
             run.iterations[index[~go]] += 1
@@ -386,6 +401,20 @@ class NonlinearLeastSquares(ABC):
             stationary |= predicted <= cfg.decrement_tol
         return step, predicted, stationary
 
+    def _outside(self, run: _Run, free_params: Tensor, index: Tensor) -> Tensor:
+        """[b] bool: a physical parameter (not held at its boundary) of ``free_params`` [b, n_free] is <= 0."""
+        return ((free_params <= 0) & ~run.held[index])[:, self._positive].any(1)
+
+    def _converging_outside(self, run: _Run, index, step, predicted) -> Tensor:
+        """[b] bool: the samples SolverConfig.outside_tol stops (noise-whitened fits): outside the domain, and so
+        is the full step's landing point, within sqrt(outside_tol) σ."""
+        tol = self.config.outside_tol
+        if tol is None or run.evaluation.problem.noise is None:
+            return torch.zeros(index.numel(), dtype=torch.bool)
+        here = run.params[index][:, run.free]
+        small = (predicted <= tol) & self._outside(run, here, index)
+        return small & self._outside(run, self._apply_step(here, step), index)
+
     def _accept(self, run: _Run, index, step, loss_now, predicted, stationary) -> None:
         """Line search, the accepted steps into θ, and the statuses of the samples that stop here."""
         cfg, params, free, status, active = self.config, run.params, run.free, run.status, run.active
@@ -420,8 +449,7 @@ class NonlinearLeastSquares(ABC):
         """The result at the end of the loop, with the final uncertainty pass unless switched off."""
         params, status, free = run.params, run.status, run.free
         # An unconstrained path may end outside the physical domain: report it, keep the numbers.
-        outside = ((params[:, free] <= 0) & ~run.held)[:, self._positive].any(1)
-        status[outside] = SolverStatus.DIVERGED
+        status[self._outside(run, params[:, free], torch.arange(params.shape[0]))] = SolverStatus.DIVERGED
         history = torch.stack(run.history)
         history = torch.where(torch.isfinite(history), history, torch.zeros_like(history))
         diverged = status == SolverStatus.DIVERGED
