@@ -360,3 +360,49 @@ def test_eigh_in_slices_equals_one_call_and_pseudo_inverse_is_exact():
     pinv, unidentified, _, deficient = pseudo_inverse(m, rcond=1e-10)
     assert torch.allclose(pinv, torch.linalg.inv(m), rtol=1e-8, atol=1e-10)
     assert not unidentified.any() and not deficient.any()
+
+
+@pytest.mark.parametrize("parametrization", ["unconstrained", "linear"])
+def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data, parametrization):
+    """line_search's "halve" tries the exponents in doubling blocks, one model call per block: each sample's α must
+    be the first α0 2^-e that passes the Armijo test, found by a scan of one sample at a time (the same loss_at),
+    for Gauss-Newton steps blown up 1-10⁶× (0-25 halvings), in at most five calls for 31 exponents."""
+    from hybridqcm.estimation.line_search import line_search
+
+    problem = LeastSquaresProblem(data["accel"][:24], data["road"][:24], H)
+    solver = GaussNewton(SolverConfig(parametrization=parametrization))
+    run = solver._start(problem, _near_truth(data["params"][:24], 0.2, seed=5))
+    index = torch.arange(24)
+    fisher, gradient, loss = run.evaluation.normal_equations(run.params, index)
+    step, predicted, _ = solver._step(run, index, fisher, gradient, loss)
+    blow = 10.0 ** torch.linspace(0, 6, 24, dtype=torch.float64)  # steps that overshoot by up to 10⁶
+    step, predicted = step * blow[:, None], predicted * blow
+
+    evaluation, calls = run.evaluation, []
+    real = evaluation.loss_at
+
+    def counted(trial, rows):
+        calls.append(rows.numel())
+        return real(trial, rows)
+
+    evaluation.loss_at = counted
+    alpha, new_loss = line_search(solver, run, index, step, loss, predicted)
+    evaluation.loss_at = real
+    assert len(calls) <= 5
+
+    expected_alpha, expected_loss = torch.zeros(24, dtype=torch.float64), loss.clone()
+    free = run.free
+    for i in range(24):
+        for e in range(31):
+            a = 0.5**e
+            trial = run.params[i : i + 1].clone()
+            trial[:, free] = trial[:, free] - a * step[i : i + 1]
+            if parametrization == "linear" and not bool((trial[:, free] > 0).all()):
+                continue
+            value = float(real(trial, index[i : i + 1]))
+            if math.isfinite(value) and value <= float(loss[i]) - 1e-4 * a * float(predicted[i]):
+                expected_alpha[i], expected_loss[i] = a, value
+                break
+    assert torch.equal(alpha, expected_alpha)
+    assert (expected_alpha[blow > 1e3] < 1e-2).all() and (expected_alpha > 0).all()  # real backtracking, all found
+    torch.testing.assert_close(new_loss, expected_loss, rtol=1e-12, atol=0)

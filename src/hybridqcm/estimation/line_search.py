@@ -4,6 +4,12 @@ The trial steps are α = α0 2^-e, e = 0..max_backtracks, for every sample at on
 passing e ("halve") or, with "interpolate", at the same e found in fewer trials where the Armijo test passes
 for every e from some e* on (:func:`_next_exponent`). The solver supplies the step's application (linear or
 log parametrization), the relative-step cap and which entries must stay positive.
+
+"halve" tries the exponents in blocks that double, e = 0 | 1, 2 | 3..6 | 7..14 | ..., each block of every sample
+still searching evaluated in one call of the model, and takes each sample's first passing e: the α of one trial at
+a time, in at most 5 calls instead of up to 31. A call's fixed cost (hundreds of small operations, whatever the
+rows) is what a line search costs at the batch sizes of a solve's last iterations; the trials beyond a sample's
+first pass are the price (at most as many as it needed).
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ from .boundary import boundary_cap
 
 def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor):
     """Per-sample Armijo backtracking over α = α0 2^-e, e = 0..max_backtracks; returns (α [b] with 0 = none
-    found, new loss [b]). "halve" tries e = 0, 1, 2, ... and takes the first that passes; "interpolate" takes
+    found, new loss [b]). "halve" takes the first e = 0, 1, 2, ... that passes (_halve); "interpolate" takes
     the same α where the test passes for every e from some e* on (_next_exponent), in fewer trials: it starts
     one e above the sample's last accepted one (a weakly identified direction overshoots alike from one
     iteration to the next), where a failure confirms everything above it."""
@@ -30,9 +36,10 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
         alpha0 = torch.minimum(alpha0, cfg.max_relative_step / relative.clamp_min(1e-300))
     if cfg.boundary_test is not None and bool(solver._boundary.any()):  # every stage: none crosses r = 0
         alpha0 = torch.minimum(alpha0, boundary_cap(solver, run, index, step))
-    exponent = torch.zeros(b, dtype=torch.long)  # the trial's e
-    if cfg.backtrack == "interpolate":  # one e above the last accepted one: where it fails, e* is known
-        exponent = (run.exponent[index] - 1).clamp(0, cfg.max_backtracks)
+    if cfg.backtrack == "halve":
+        return _halve(solver, run, index, step, loss_now, predicted, alpha0)
+    # the first trial one e above the last accepted one: where it fails, e* is known
+    exponent = (run.exponent[index] - 1).clamp(0, cfg.max_backtracks)
     failed = torch.full((b,), -1, dtype=torch.long)  # the largest e that failed (-1: none yet)
     passed = torch.full((b,), cfg.max_backtracks + 1, dtype=torch.long)  # the smallest e that passed
     new_loss = loss_now.clone()
@@ -44,34 +51,73 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
         alpha = alpha0[pos] * 0.5 ** exponent[pos].to(params.dtype)
         trial = params[index[pos]].clone()
         trial[:, free] = solver._apply_step(trial[:, free], alpha.unsqueeze(1) * step[pos])
-        positive = (
-            ((trial[:, free] > 0) | run.held[index[pos]])[:, solver._positive].all(1)
-            if cfg.parametrization != "unconstrained"
-            else torch.ones(pos.numel(), dtype=torch.bool)
-        )
-        positive &= torch.isfinite(trial).all(1)  # an overflowing step (log space) is a failed trial
-        trial_loss = torch.full((pos.numel(),), math.inf, dtype=params.dtype)
-        if bool(positive.any()):
-            # Evaluate only positive trials; the others count as Armijo failures.
-            sub = positive.nonzero().squeeze(1)
-            trial_loss[sub] = run.evaluation.loss_at(trial[sub], index[pos[sub]])
+        trial_loss = _trial_losses(solver, run, index[pos], trial)
         ok = torch.isfinite(trial_loss) & (trial_loss <= loss_now[pos] - cfg.armijo_c * alpha * predicted[pos])
         passed[pos[ok]] = exponent[pos[ok]]
         new_loss[pos[ok]] = trial_loss[ok]
         failed[pos[~ok]] = exponent[pos[~ok]]
-        if cfg.backtrack == "halve":
-            nxt = exponent[pos] + 1
-            searching[pos[ok]] = False
-        else:
-            nxt = _next_exponent(
-                failed[pos], passed[pos], alpha, trial_loss, loss_now[pos], predicted[pos], cfg.max_backtracks
-            )
-            searching[pos[nxt < 0]] = False
+        nxt = _next_exponent(
+            failed[pos], passed[pos], alpha, trial_loss, loss_now[pos], predicted[pos], cfg.max_backtracks
+        )
+        searching[pos[nxt < 0]] = False
         searching[pos[nxt > cfg.max_backtracks]] = False
         exponent[pos] = nxt
     found = passed <= cfg.max_backtracks
     run.exponent[index[found]] = passed[found]
     accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(cfg.max_backtracks).to(params.dtype), 0.0)
+    return accepted_alpha, torch.where(found, new_loss, loss_now)
+
+
+def _trial_losses(solver, run, rows: Tensor, trial: Tensor) -> Tensor:
+    """The loss [r] at the trial points ``trial`` [r, n_theta] of the samples ``rows`` (a sample may appear more than
+    once), in one evaluation; inf for a trial outside the domain (linear/log parametrization) or not finite, which
+    counts as an Armijo failure."""
+    free = run.free
+    positive = (
+        ((trial[:, free] > 0) | run.held[rows])[:, solver._positive].all(1)
+        if solver.config.parametrization != "unconstrained"
+        else torch.ones(rows.numel(), dtype=torch.bool)
+    )
+    positive &= torch.isfinite(trial).all(1)  # an overflowing step (log space) is a failed trial
+    trial_loss = torch.full((rows.numel(),), math.inf, dtype=trial.dtype)
+    if bool(positive.any()):
+        sub = positive.nonzero().squeeze(1)
+        trial_loss[sub] = run.evaluation.loss_at(trial[sub], rows[sub])
+    return trial_loss
+
+
+def _halve(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor, alpha0: Tensor):
+    """"halve": each sample's first e = 0, 1, 2, ... whose α = α0 2^-e passes the Armijo test, the exponents tried in
+    blocks of 1, 2, 4, ... per call (module docstring). Returns (α [b], 0 = none found; new loss [b])."""
+    cfg, params, free = solver.config, run.params, run.free
+    b, last = index.numel(), cfg.max_backtracks
+    passed = torch.full((b,), last + 1, dtype=torch.long)  # the first e that passed (last + 1: none)
+    new_loss = loss_now.clone()
+    first = torch.zeros(b, dtype=torch.long)  # the first e of the sample's next block
+    searching = predicted > 0  # a zero direction cannot decrease the loss
+    width = 1
+    while bool(searching.any()):
+        pos = searching.nonzero().squeeze(1)
+        exponent = first[pos, None] + torch.arange(width)  # [p, width]
+        valid = exponent <= last
+        which = pos[:, None].expand(-1, width)[valid]  # the block's trials, sample by sample
+        exponent = exponent[valid]
+        alpha = alpha0[which] * 0.5 ** exponent.to(params.dtype)
+        trial = params[index[which]].clone()
+        trial[:, free] = solver._apply_step(trial[:, free], alpha.unsqueeze(1) * step[which])
+        trial_loss = _trial_losses(solver, run, index[which], trial)
+        ok = torch.isfinite(trial_loss) & (trial_loss <= loss_now[which] - cfg.armijo_c * alpha * predicted[which])
+        best = torch.full((b,), last + 1, dtype=torch.long)
+        best.scatter_reduce_(0, which[ok], exponent[ok], "amin")
+        take = ok & (exponent == best[which])
+        passed[which[take]] = exponent[take]
+        new_loss[which[take]] = trial_loss[take]
+        first[pos] += width
+        searching[pos] = (best[pos] > last) & (first[pos] <= last)
+        width *= 2
+    found = passed <= last
+    run.exponent[index[found]] = passed[found]
+    accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(last).to(params.dtype), 0.0)
     return accepted_alpha, torch.where(found, new_loss, loss_now)
 
 
