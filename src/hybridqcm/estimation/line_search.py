@@ -87,7 +87,7 @@ def _trial_losses(solver, run, rows: Tensor, trial: Tensor) -> Tensor:
 
 
 def _halve(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor, alpha0: Tensor):
-    """"halve": each sample's first e = 0, 1, 2, ... whose α = α0 2^-e passes the Armijo test, the exponents tried in
+    """The "halve" search: each sample's first e = 0, 1, 2, ... whose α = α0 2^-e passes the Armijo test, exponents in
     blocks of 1, 2, 4, ... per call (module docstring). Returns (α [b], 0 = none found; new loss [b])."""
     cfg, params, free = solver.config, run.params, run.free
     b, last = index.numel(), cfg.max_backtracks
