@@ -364,9 +364,10 @@ def test_eigh_in_slices_equals_one_call_and_pseudo_inverse_is_exact():
 
 @pytest.mark.parametrize("parametrization", ["unconstrained", "linear"])
 def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data, parametrization):
-    """line_search's "halve" tries the exponents in doubling blocks, one model call per block: each sample's α must
-    be the first α0 2^-e that passes the Armijo test, found by a scan of one sample at a time (the same loss_at),
-    for Gauss-Newton steps blown up 1-10⁶× (0-25 halvings), in at most five calls for 31 exponents."""
+    """line_search's "halve" tries the exponents in blocks, one model call per block: each sample's α must be the
+    first α0 2^-e that passes the Armijo test, found by a scan of one sample at a time (the same loss_at), for
+    Gauss-Newton steps blown up 1-10⁶× (0-25 halvings), in at most five calls for 31 exponents; and in one call
+    where each sample's first block reaches its last accepted e (the same search again)."""
     from hybridqcm.estimation.line_search import line_search
 
     problem = LeastSquaresProblem(data["accel"][:24], data["road"][:24], H)
@@ -387,8 +388,11 @@ def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data
 
     evaluation.loss_at = counted
     alpha, new_loss = line_search(solver, run, index, step, loss, predicted)
-    evaluation.loss_at = real
     assert len(calls) <= 5
+    calls.clear()
+    again, _ = line_search(solver, run, index, step, loss, predicted)  # run.exponent now holds each sample's e
+    evaluation.loss_at = real
+    assert len(calls) == 1 and torch.equal(again, alpha)
 
     expected_alpha, expected_loss = torch.zeros(24, dtype=torch.float64), loss.clone()
     free = run.free

@@ -5,11 +5,13 @@ passing e ("halve") or, with "interpolate", at the same e found in fewer trials 
 for every e from some e* on (:func:`_next_exponent`). The solver supplies the step's application (linear or
 log parametrization), the relative-step cap and which entries must stay positive.
 
-"halve" tries the exponents in blocks that double, e = 0 | 1, 2 | 3..6 | 7..14 | ..., each block of every sample
-still searching evaluated in one call of the model, and takes each sample's first passing e: the α of one trial at
-a time, in at most 5 calls instead of up to 31. A call's fixed cost (hundreds of small operations, whatever the
-rows) is what a line search costs at the batch sizes of a solve's last iterations; the trials beyond a sample's
-first pass are the price (at most as many as it needed).
+"halve" tries the exponents in blocks, each block of every sample still searching evaluated in one call of the
+model, and takes each sample's first passing e: the α of one trial at a time. A sample's first block reaches its
+last accepted e (e = 0 .. e_last: a direction that overshoots does so alike from one iteration to the next), each
+next block is twice as long (from rest: 0 | 1, 2 | 3..6 | 7..14 | ...), so at most 5 calls instead of up to 31,
+and one where the overshoot repeats. A call's fixed cost (hundreds of small operations, whatever the rows) is what
+a line search costs at the batch sizes of a solve's last iterations; the trials past a sample's first pass are the
+price.
 """
 
 from __future__ import annotations
@@ -88,19 +90,22 @@ def _trial_losses(solver, run, rows: Tensor, trial: Tensor) -> Tensor:
 
 def _halve(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted: Tensor, alpha0: Tensor):
     """The "halve" search: each sample's first e = 0, 1, 2, ... whose α = α0 2^-e passes the Armijo test, exponents in
-    blocks of 1, 2, 4, ... per call (module docstring). Returns (α [b], 0 = none found; new loss [b])."""
+    blocks per call (module docstring): the first block reaches the sample's last accepted e (a direction that
+    overshoots overshoots alike from one iteration to the next), each next one is twice as long. Returns (α [b],
+    0 = none found; new loss [b])."""
     cfg, params, free = solver.config, run.params, run.free
     b, last = index.numel(), cfg.max_backtracks
     passed = torch.full((b,), last + 1, dtype=torch.long)  # the first e that passed (last + 1: none)
     new_loss = loss_now.clone()
     first = torch.zeros(b, dtype=torch.long)  # the first e of the sample's next block
     searching = predicted > 0  # a zero direction cannot decrease the loss
-    width = 1
+    width = (run.exponent[index] + 1).clamp(1, last + 1)  # [b] the length of the sample's next block
     while bool(searching.any()):
         pos = searching.nonzero().squeeze(1)
-        exponent = first[pos, None] + torch.arange(width)  # [p, width]
-        valid = exponent <= last
-        which = pos[:, None].expand(-1, width)[valid]  # the block's trials, sample by sample
+        span = torch.arange(int(width[pos].max()))
+        exponent = first[pos, None] + span  # [p, span]
+        valid = (span < width[pos, None]) & (exponent <= last)
+        which = pos[:, None].expand_as(exponent)[valid]  # the block's trials, sample by sample
         exponent = exponent[valid]
         alpha = alpha0[which] * 0.5 ** exponent.to(params.dtype)
         trial = params[index[which]].clone()
@@ -112,9 +117,9 @@ def _halve(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted
         take = ok & (exponent == best[which])
         passed[which[take]] = exponent[take]
         new_loss[which[take]] = trial_loss[take]
-        first[pos] += width
+        first[pos] += width[pos]
+        width[pos] *= 2
         searching[pos] = (best[pos] > last) & (first[pos] <= last)
-        width *= 2
     found = passed <= last
     run.exponent[index[found]] = passed[found]
     accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(last).to(params.dtype), 0.0)
