@@ -9,36 +9,14 @@ import pytest
 import torch
 
 from hybridqcm.errors import ConfigError
-from hybridqcm.estimation.noise import SpectralNoise
 from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.response import ExactResponse
 from hybridqcm.estimation.solver import GaussNewton, SolverConfig, SolverStatus
-from hybridqcm.physics.linear_models import SeatBaseExcitation, SeatOccupantBaseExcitation
+from hybridqcm.physics.linear_models import SeatOccupantBaseExcitation
 from hybridqcm.physics.occupant import body_start
+from test_boundary import K3, MASS, B, H, _recordings  # a seat's recordings: rigid occupants or persons, 5 % noise
 
-K3, H, T, B = 98935.0, 0.01, 500, 6
-MASS = torch.linspace(50.0, 120.0, B, dtype=torch.float64)
 SEED, SCALE = 3, 1.1  # rigid occupants whose body1 fits from 10 % off end `diverged` (one of them converging there)
-
-
-def _recordings(body: bool, seed: int = 3):
-    """B recordings of a seat driven by band-limited noise (a2), a3 with white noise of 5 % of its RMS: a rigid
-    occupant or a person (one mode at 5 Hz, ζ 0.4, r = 2, from rest); and the noise model with the true variance."""
-    g = torch.Generator().manual_seed(seed)
-    a2 = torch.randn(B, T, generator=g, dtype=torch.float64)
-    a2 = torch.fft.irfft(torch.fft.rfft(a2, dim=1) * (torch.fft.rfftfreq(T, H) < 15), n=T, dim=1)[..., None]
-    p = torch.stack([615.0 / MASS, K3 / MASS], 1)
-    if body:
-        w = 2 * math.pi * 5.0
-        model = ExactResponse(SeatOccupantBaseExcitation(1), H, initial_state="unknown")
-        theta = torch.cat([p, torch.tensor([[2.0, w * w, 2 * 0.4 * w]]).expand(B, -1).double(), torch.zeros(B, 4)], 1)
-    else:
-        model = ExactResponse(SeatBaseExcitation(), H, initial_state="unknown")
-        theta = torch.cat([p, torch.zeros(B, 2, dtype=torch.float64)], 1)
-    y = model.outputs(theta, a2, 0, T)
-    sigma = 0.05 * y.square().mean((1, 2)).sqrt()
-    y = y + sigma[:, None, None] * torch.randn(y.shape, generator=g, dtype=torch.float64)
-    return a2, y, SpectralNoise((sigma**2)[:, None])
 
 
 def _body_start(scale: float) -> torch.Tensor:
