@@ -64,9 +64,15 @@ def line_search(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, pred
         searching[pos[nxt < 0]] = False
         searching[pos[nxt > cfg.max_backtracks]] = False
         exponent[pos] = nxt
-    found = passed <= cfg.max_backtracks
+    return _accepted(run, index, passed, alpha0, new_loss, loss_now, cfg.max_backtracks)
+
+
+def _accepted(run, index: Tensor, passed: Tensor, alpha0: Tensor, new_loss: Tensor, loss_now: Tensor, last: int):
+    """(α [b], 0 where no e <= ``last`` passed; the loss there [b]) from each sample's first passing e ``passed``
+    [b], which becomes its last accepted one (run.exponent, where the next search starts)."""
+    found = passed <= last
     run.exponent[index[found]] = passed[found]
-    accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(cfg.max_backtracks).to(params.dtype), 0.0)
+    accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(last).to(alpha0.dtype), 0.0)
     return accepted_alpha, torch.where(found, new_loss, loss_now)
 
 
@@ -120,10 +126,7 @@ def _halve(solver, run, index: Tensor, step: Tensor, loss_now: Tensor, predicted
         first[pos] += width[pos]
         width[pos] *= 2
         searching[pos] = (best[pos] > last) & (first[pos] <= last)
-    found = passed <= last
-    run.exponent[index[found]] = passed[found]
-    accepted_alpha = torch.where(found, alpha0 * 0.5 ** passed.clamp_max(last).to(params.dtype), 0.0)
-    return accepted_alpha, torch.where(found, new_loss, loss_now)
+    return _accepted(run, index, passed, alpha0, new_loss, loss_now, last)
 
 
 def _next_exponent(

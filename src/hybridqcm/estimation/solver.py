@@ -312,7 +312,7 @@ class NonlinearLeastSquares(ABC):
         self.init_state(batch, dtype)
         status = torch.full((batch,), SolverStatus.MAX_ITERATIONS, dtype=torch.int8)
         held = initial_held(self, problem, params, free)  # a boundary parameter at 0 is its nested model
-        bad_start = ((params[:, free] <= 0) & ~held)[:, self._positive].any(dim=1)
+        bad_start = self._outside(params[:, free], held)
         status[bad_start] = SolverStatus.DIVERGED
         return _Run(
             evaluation=evaluation,
@@ -401,9 +401,10 @@ class NonlinearLeastSquares(ABC):
             stationary |= predicted <= cfg.decrement_tol
         return step, predicted, stationary
 
-    def _outside(self, run: _Run, free_params: Tensor, index: Tensor) -> Tensor:
-        """[b] bool: a physical parameter (not held at its boundary) of ``free_params`` [b, n_free] is <= 0."""
-        return ((free_params <= 0) & ~run.held[index])[:, self._positive].any(1)
+    def _outside(self, free_params: Tensor, held: Tensor) -> Tensor:
+        """[b] bool: a physical parameter of ``free_params`` [b, n_free], not ``held`` [b, n_free] at its boundary,
+        is <= 0 (outside the domain)."""
+        return ((free_params <= 0) & ~held)[:, self._positive].any(1)
 
     def _converging_outside(self, run: _Run, index, step, predicted) -> Tensor:
         """[b] bool: the samples SolverConfig.outside_tol stops (noise-whitened fits): outside the domain, and so
@@ -412,8 +413,9 @@ class NonlinearLeastSquares(ABC):
         if tol is None or run.evaluation.problem.noise is None:
             return torch.zeros(index.numel(), dtype=torch.bool)
         here = run.params[index][:, run.free]
-        small = (predicted <= tol) & self._outside(run, here, index)
-        return small & self._outside(run, self._apply_step(here, step), index)
+        held = run.held[index]
+        small = (predicted <= tol) & self._outside(here, held)
+        return small & self._outside(self._apply_step(here, step), held)
 
     def _accept(self, run: _Run, index, step, loss_now, predicted, stationary) -> None:
         """Line search, the accepted steps into θ, and the statuses of the samples that stop here."""
@@ -449,7 +451,7 @@ class NonlinearLeastSquares(ABC):
         """The result at the end of the loop, with the final uncertainty pass unless switched off."""
         params, status, free = run.params, run.status, run.free
         # An unconstrained path may end outside the physical domain: report it, keep the numbers.
-        status[self._outside(run, params[:, free], torch.arange(params.shape[0]))] = SolverStatus.DIVERGED
+        status[self._outside(params[:, free], run.held)] = SolverStatus.DIVERGED
         history = torch.stack(run.history)
         history = torch.where(torch.isfinite(history), history, torch.zeros_like(history))
         diverged = status == SolverStatus.DIVERGED

@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
 
+from hybridqcm.atomic import atomic_write_text
 from hybridqcm.console import print_table
 from hybridqcm.metrics import COLUMNS, read_error_distribution
 from hybridqcm.reports.manifest import load_manifest
@@ -276,10 +277,7 @@ def render(
     )
     parts += _generated_tables(output.parent)
     text = "\n".join(header + [verdict_line, ""] + parts)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(output)
+    atomic_write_text(output, text)
     return text, beaten, compared
 
 
@@ -337,9 +335,7 @@ def refresh_generated_tables(page: Path) -> list[str]:
         end = min([i - 2 for i, line in enumerate(lines) if line in others and i - 2 > start] or [len(lines)])
         lines[start:end] = block  # a section ends with its blank line, as the block does
         refreshed.append(name)
-    tmp = page.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines))
-    tmp.replace(page)
+    atomic_write_text(page, "\n".join(lines))
     return refreshed
 
 
