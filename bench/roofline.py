@@ -27,6 +27,10 @@ included), per sample:
 Euler recursion (estimation/sensitivity.py), per step with width W (W = 1 for the outputs):
     c = Coef x: [10, 7] @ [7, W] 140 W; p_j c_j 10 W; explicit slots 10 (tangents only);
     row sum [3, 10] @ [10, W] 60 W; v += h a, q += h v 12 W          -> T (222 W + 10 [tangents])
+    The compiled loop that runs instead on the CPU in float64 (estimation/_kernels.py) does the
+    non-zeros alone: a3 5, a2 11, a1 9 (7 with a scaled road: c9, c10 without u), v and q 12 per column;
+    explicit terms 18 (16 scaled; tangents only), the scaled road's forcing 1
+                                                          -> T (37 W + 18 [tangents]), scaled T (35 W + 16 + 1)
 Normal equations (problems.data_normal_equations): Gram of (R | J) [oT, W]: 2 W² oT (all W² entries,
     numpy's matmul); residual column oT. Step (solver._step, pseudo_inverse_solve): Cholesky n_f³/3,
     solve 2 n_f², scaling 3 n_f² (n_f = W - 1 free entries; the eigen fallback is not counted).
@@ -85,6 +89,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybridqcm.estimation import _kernels
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_exact  # noqa: E402  (the --gn setup: gn_cases)
 
@@ -98,6 +104,12 @@ def euler_recursion_flops(batch: int, steps: int, width: int, tangents: bool) ->
     mm = steps * (2 * 10 * 7 * width + 2 * 3 * 10 * width)
     elementwise = steps * (10 * width + 12 * width + (10 if tangents else 0))
     return {"mm": batch * mm, "elementwise": batch * elementwise}
+
+
+def euler_kernel_flops(batch: int, steps: int, width: int, tangents: bool, scaled: bool = False) -> int:
+    """The compiled Euler loop's FLOPs (module docstring; a negation is no FLOP)."""
+    per_step = (35 if scaled else 37) * width + ((16 if scaled else 18) if tangents else 0) + (1 if scaled else 0)
+    return batch * steps * per_step
 
 
 def gram_flops(batch: int, rows: int, width: int) -> int:
@@ -140,14 +152,17 @@ def _hold_weights_flops(K: int, substeps: int) -> int:
 def scan_flops(steps: int, E: int, pair: bool, batch: int | None = None) -> int:
     """Per sample: _modal._scan over T = ``steps`` rows of E complex numbers a sample (``pair``: (z, dz) halves,
     each step also dz += h z), counted as the dispatched ops are. Blocked (L = isqrt(T), nb = T // L blocks)
-    where the call's row, ``batch`` E, is at most _modal._SCAN_ROW; else (or ``batch`` None) the plain steps
-    (T - 1) (8 E, + 4 E/2 with pairs)."""
+    where the call's row, ``batch`` E, is at most _modal._SCAN_ROW; else (or ``batch`` None, or where the
+    compiled loop runs, estimation/_kernels.py: the same steps) the plain steps (T - 1) (8 E, + 4 E/2 with
+    pairs)."""
+    from hybridqcm.estimation._kernels import applies
     from hybridqcm.estimation._modal import _SCAN_ROW
 
     T, half = steps, E // 2
     step = 8 * E + (4 * half if pair else 0)  # addcmul (complex 8), and dz += h z (complex add with alpha: 4)
     L = max(1, math.isqrt(T))
-    nb = T // L if batch is not None and batch * E <= _SCAN_ROW else 0
+    compiled = applies(torch.zeros(1, dtype=torch.complex128))
+    nb = T // L if batch is not None and batch * E <= _SCAN_ROW and not compiled else 0
     if nb < 2:
         return (T - 1) * step
     carry = 6 * E + 2 * E + (8 * half if pair else 0)  # mu^i c, its add, and (pairs) i h z's product and add
@@ -254,6 +269,7 @@ class Recorder:
             params = args[0] if kind.startswith("euler") else args[1]
             record = {"kind": kind, "batch": params.shape[0], "params": params[:, :N_PARAMS].clone()}
             record["method"] = kwargs.get("method", getattr(original, "keywords", {}).get("method", method))
+            record["kernel"] = kind.startswith("euler") and _kernels.applies(params)
             calls.append(record)
             result = original(*args, **kwargs)
             record["steps"] = result.shape[1]
@@ -310,10 +326,18 @@ def count(calls: list[dict], substeps: int, h: float = 0.01, n_obs: int = N_OUT)
             terms["normal_equations"]["bytes"] += b * normal_equations_bytes(T, W, n_obs)
             terms["step"]["flops"] += step_flops(b, W - 1)
         if c["kind"] == "euler_sens":
-            terms["jacobian"]["flops"] += sum(euler_recursion_flops(b, T, W, True).values())
+            flops = (
+                euler_kernel_flops(b, T, W, True) if c["kernel"] else sum(euler_recursion_flops(b, T, W, True).values())
+            )
+            terms["jacobian"]["flops"] += flops
             terms["jacobian"]["bytes"] += b * jacobian_bytes("euler", T, W)
         elif c["kind"] == "euler_out":
-            terms["line_search"]["flops"] += sum(euler_recursion_flops(b, T, 1, False).values()) + 3 * b * T * n_obs
+            flops = (
+                euler_kernel_flops(b, T, 1, False)
+                if c["kernel"]
+                else sum(euler_recursion_flops(b, T, 1, False).values())
+            )
+            terms["line_search"]["flops"] += flops + 3 * b * T * n_obs
             terms["line_search"]["bytes"] += b * output_bytes("euler", T)
         elif c["kind"] == "exact_sens":
             bad = c.get("n_bad", b) if c["method"] == "modal" else b

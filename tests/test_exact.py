@@ -574,13 +574,19 @@ def test_modal_outputs_match_the_step_recursion(case, hold):
             assert _column_error(new, old) <= 1e-10, (method, start, n_steps)
 
 
+@pytest.mark.parametrize("path", ["kernel", "torch"])
 @pytest.mark.parametrize("rows", [3, 700])  # below and above _modal._SCAN_ROW: blocked, and step by step
 @pytest.mark.parametrize("n_steps", [1, 2, 7, 30, 101, 500])
-def test_blocked_scan_matches_the_step_recursion(n_steps, rows):
-    """_scan (the modal basis' recursion in blocks) against the plain steps z_k = mu z_(k-1) + F_k (and, for the
-    (z, dz) pairs, dz_k += h z_k after each step) on random forcing, and against the closed form of the pairs'
-    free response, z_k = mu^k z_0, dz_k = mu^k (dz_0 + k h z_0)."""
+def test_blocked_scan_matches_the_step_recursion(n_steps, rows, path, monkeypatch):
+    """_scan (the compiled loop, or in torch the modal basis' recursion in blocks) against the plain steps
+    z_k = mu z_(k-1) + F_k (and, for the (z, dz) pairs, dz_k += h z_k after each step) on random forcing, and
+    against the closed form of the pairs' free response, z_k = mu^k z_0, dz_k = mu^k (dz_0 + k h z_0)."""
+    from hybridqcm.estimation import _kernels
     from hybridqcm.estimation._modal import _scan
+
+    if path == "torch":
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    assert _kernels.applies(torch.zeros(1, dtype=torch.complex128)) == (path == "kernel")
 
     g = torch.Generator().manual_seed(n_steps + rows)
     rate = torch.complex(
@@ -608,6 +614,31 @@ def test_blocked_scan_matches_the_step_recursion(n_steps, rows):
     z0, dz0 = forcing[0][..., 0, :], forcing[0][..., 1, :]
     torch.testing.assert_close(free[..., 0, :], power * z0, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(free[..., 1, :], power * (dz0 + k * H * z0), rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("with_x0", [False, True])
+def test_the_compiled_state_recursion_equals_the_torch_steps(with_x0, monkeypatch):
+    """exact._primal_states, x_(k+1) = Phi x_k + F_k per sample, by the compiled loop against the torch steps and
+    against the closed form of a diagonal Phi's free response, x_k = Phi^k x_0."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation.exact import _primal_states
+
+    g = torch.Generator().manual_seed(11)
+    n, b, T = 6, 37, 90
+    phi = 0.3 * torch.randn(n, n, b, generator=g, dtype=F64) / n**0.5
+    forcing = torch.randn(T - 1, n, b, generator=g, dtype=F64)
+    x0 = torch.randn(b, n, generator=g, dtype=F64) if with_x0 else None
+    assert _kernels.applies(phi)
+    compiled = _primal_states(phi, forcing, x0, b, n, T, "cpu")
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    steps = _primal_states(phi, forcing, x0, b, n, T, "cpu")
+    torch.testing.assert_close(compiled, steps, rtol=1e-13, atol=1e-13 * float(steps.abs().amax()))
+    monkeypatch.delenv("HYBRIDQCM_KERNELS")
+    diagonal = torch.diag_embed(torch.rand(b, n, generator=g, dtype=F64)).permute(1, 2, 0).contiguous()
+    free = _primal_states(diagonal, torch.zeros_like(forcing), x0, b, n, T, "cpu")
+    start = x0.t() if with_x0 else torch.zeros(n, b, dtype=F64)
+    powers = torch.diagonal(diagonal, dim1=0, dim2=1).t()[None] ** torch.arange(T, dtype=F64).view(-1, 1, 1)
+    torch.testing.assert_close(free, powers * start, rtol=1e-12, atol=1e-300)
 
 
 @pytest.mark.parametrize("delta", [0.0, 1e-8, -1e-8, 1e-6, 1e-2])

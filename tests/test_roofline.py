@@ -86,7 +86,8 @@ class DispatchCounter(TorchDispatchMode):
 
 
 @pytest.mark.parametrize("with_x0", [False, True])
-def test_euler_recursion_flops_match_the_dispatched_ops(roofline, with_x0):
+def test_euler_recursion_flops_match_the_dispatched_ops(roofline, with_x0, monkeypatch):
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")  # the torch recursion (the compiled loop: the next test)
     b, T = 3, 7
     g = torch.Generator().manual_seed(0)
     params = 0.5 + torch.rand(b, 10, generator=g, dtype=torch.float64)
@@ -106,8 +107,66 @@ def test_euler_recursion_flops_match_the_dispatched_ops(roofline, with_x0):
         assert counter.flops == expected
 
 
+class _Counted(float):
+    """A float whose arithmetic counts its FLOPs (negation is free, as in the formulas)."""
+
+    count = 0
+
+    def _op(self, other, fn):
+        _Counted.count += 1
+        return _Counted(fn(float(self), float(other)))
+
+    def __add__(self, o):
+        return self._op(o, lambda a, b: a + b)
+
+    def __radd__(self, o):
+        return self._op(o, lambda a, b: b + a)
+
+    def __sub__(self, o):
+        return self._op(o, lambda a, b: a - b)
+
+    def __rsub__(self, o):
+        return self._op(o, lambda a, b: b - a)
+
+    def __mul__(self, o):
+        return self._op(o, lambda a, b: a * b)
+
+    def __rmul__(self, o):
+        return self._op(o, lambda a, b: b * a)
+
+    def __neg__(self):
+        return _Counted(-float(self))
+
+
+@pytest.mark.parametrize("width, scaled", [(11, False), (17, False), (1, False), (11, True), (1, True)])
+def test_euler_kernel_flops_match_its_counted_arithmetic(roofline, width, scaled):
+    """The compiled loop's source run as Python on counting floats: the FLOPs of one more step (after the
+    first, every operand is counted) equal euler_kernel_flops of one step."""
+    import numpy as np
+
+    from hybridqcm.estimation import _kernels
+
+    b, tangents, with_x0 = 2, width > 1, width == 17
+
+    def counted(shape, value):
+        a = np.empty(shape, dtype=object)
+        a.flat = [_Counted(value + 0.1 * i) for i in range(a.size)]
+        return a
+
+    def run(steps):
+        _Counted.count = 0
+        out = np.empty((b, steps, 3, width), dtype=object)
+        state, accel = np.empty((7, width), dtype=object), np.empty((3, width), dtype=object)
+        _kernels._euler_loop(counted((b, 10), 1.0), counted((b, steps), 0.01), 0.01, scaled, counted((b, 6), 0.0),
+                            True, with_x0, counted((b, steps, 3), 0.0), False, state, accel, out)  # fmt: skip
+        return _Counted.count
+
+    assert run(6) - run(5) == roofline.euler_kernel_flops(b, 1, width, tangents, scaled)
+
+
 def test_gram_flops_match_the_normal_equations(roofline, monkeypatch):
-    """The Gram of (R | J) as the solver forms it (_blas.gram_matrix: one torch.matmul)."""
+    """The Gram of (R | J) as the solver forms it (_blas.gram_matrix: one torch.matmul); the compiled
+    Euler loop dispatches no product, so the Gram is all the counter sees."""
     b, T = 4, 6
     data = synthetic_samples(b, n_steps=T, seed=3)
     problem = LeastSquaresProblem(data["accel"].to(torch.float64), data["road"].to(torch.float64), 0.01)
@@ -115,13 +174,14 @@ def test_gram_flops_match_the_normal_equations(roofline, monkeypatch):
     flop_counter = FlopCounterMode(display=False)
     with flop_counter:
         evaluation.data_normal_equations(data["params"].to(torch.float64), torch.arange(b))
-    recursion = roofline.euler_recursion_flops(b, T, 11, True)["mm"]
-    assert flop_counter.get_total_flops() - recursion == roofline.gram_flops(b, 3 * T, 11)
+    assert flop_counter.get_total_flops() == roofline.gram_flops(b, 3 * T, 11)
 
 
 def test_exact_layer_flops_match_the_dispatched_ops(roofline, monkeypatch):
     """Within 1 % for the step recursion and 8 % for the modal path (whose small setup ops are summarised);
-    the LAPACK eigen-decomposition and inverse are estimates, left out of the comparison."""
+    the LAPACK eigen-decomposition and inverse are estimates, left out of the comparison. The basis' scan in
+    torch (the compiled loop's steps are counted by the same formula's plain branch)."""
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
     for module in (exact, _modal, _expm, hold):
         monkeypatch.setattr(module, "_matmul", torch.matmul)
     model, b, T, M, margin = QuarterCarRoad(), 3, 40, 16, 2

@@ -1,19 +1,32 @@
-"""Forward-mode sensitivities of the Euler recursion: values and Jacobian (FD and autograd)."""
+"""Forward-mode sensitivities of the Euler recursion: values and Jacobian (FD and autograd), each by the
+compiled loop (estimation/_kernels.py, the default on the CPU in float64) and by the torch recursion."""
+
+import sys
 
 import pytest
 import torch
 
+from hybridqcm.estimation import _kernels
 from hybridqcm.estimation.sensitivity import (
     EulerSensitivity,
     accelerations_and_jacobian,
     euler_accelerations,
     euler_sensitivities,
 )
-from hybridqcm.physics import simulate
+from hybridqcm.physics import reference_params, simulate
 from hybridqcm.physics.integrators import SemiExplicitEuler
 from hybridqcm.testing import synthetic_samples
 
 H = 0.01
+
+
+@pytest.fixture(params=["kernel", "torch"])
+def path(request, monkeypatch):
+    if request.param == "torch":
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    else:
+        assert _kernels.applies(torch.zeros(1, 10, dtype=torch.float64))
+    return request.param
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +35,31 @@ def samples():
 
 
 @pytest.mark.parametrize("scaled_road", [False, True])
-def test_layer_matches_data_generator(samples, scaled_road):
+@pytest.mark.parametrize("tangents, with_x0", [(True, False), (True, True), (False, False)])
+def test_the_compiled_loop_equals_the_torch_recursion(scaled_road, tangents, with_x0, monkeypatch):
+    """Every column, with an initial state, its tangents and the residual, far from the data's parameters."""
+    assert _kernels.applies(torch.zeros(1, 10, dtype=torch.float64))
+    g = torch.Generator().manual_seed(5)
+    b, T = 40, 120
+    params = reference_params().expand(b, 10) * (1 + 0.3 * torch.randn(b, 10, generator=g, dtype=torch.float64))
+    road = 0.01 * torch.randn(b, T, generator=g, dtype=torch.float64).cumsum(1)
+    x0 = 1e-2 * torch.randn(b, 6, generator=g, dtype=torch.float64)
+    targets = torch.randn(b, T, 3, generator=g, dtype=torch.float64)
+    run = (
+        (lambda: euler_sensitivities(params, road, H, scaled_road, x0=x0, with_x0=with_x0, targets=targets))
+        if tangents
+        else (lambda: euler_accelerations(params, road, H, scaled_road, x0=x0)[..., None])
+    )
+    compiled = run()
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = run()
+    assert compiled.shape == reference.shape == (b, T, 3, (17 if with_x0 else 11) if tangents else 1)
+    scale = reference.abs().amax(dim=(1, 2), keepdim=True)  # each sample's column scale
+    assert ((compiled - reference).abs() <= 1e-11 * scale).all()
+
+
+@pytest.mark.parametrize("scaled_road", [False, True])
+def test_layer_matches_data_generator(path, samples, scaled_road):
     p, road = samples["params"], samples["road"]
     forcing = (p[:, 9] - p[:, 8])[:, None] * road if scaled_road else road
     ours = euler_accelerations(p, forcing, H, scaled_road=scaled_road)
@@ -37,7 +74,7 @@ def test_layer_matches_data_generator(samples, scaled_road):
 
 
 @pytest.mark.parametrize("scaled_road", [False, True])
-def test_jacobian_matches_autograd(samples, scaled_road):
+def test_jacobian_matches_autograd(path, samples, scaled_road):
     p, road = samples["params"][:3], samples["road"][:3]
     _, jac = EulerSensitivity(H, scaled_road)(p, road)  # [batch, time, 3, 10]
     layer = SemiExplicitEuler(H, scaled_road=scaled_road)
@@ -47,7 +84,7 @@ def test_jacobian_matches_autograd(samples, scaled_road):
     torch.testing.assert_close(jac, reverse, rtol=1e-9, atol=1e-12 * scale)
 
 
-def test_jacobian_matches_finite_differences(samples):
+def test_jacobian_matches_finite_differences(path, samples):
     p, road = samples["params"][:2], samples["road"][:2]
     _, jac = accelerations_and_jacobian(p, road, H)
     for j in range(10):
@@ -60,7 +97,7 @@ def test_jacobian_matches_finite_differences(samples):
         assert (jac[..., j] - fd).abs().amax() <= 1e-5 * scale, f"p{j + 1}"
 
 
-def test_sensitivity_layout_and_validation(samples):
+def test_sensitivity_layout_and_validation(path, samples):
     p, road = samples["params"], samples["road"]
     out = euler_sensitivities(p, road, H)
     assert out.shape == (6, 60, 3, 11)
@@ -68,3 +105,14 @@ def test_sensitivity_layout_and_validation(samples):
         euler_accelerations(p[:, :9], road, H)
     with pytest.raises(ValueError, match="road"):
         euler_accelerations(p, road[:3], H)
+
+
+def test_where_numba_does_not_import_the_torch_recursion_runs(samples, monkeypatch):
+    p, road = samples["params"], samples["road"]
+    compiled = euler_sensitivities(p, road, H)
+    monkeypatch.setattr(_kernels, "_numba_module", [])
+    monkeypatch.setitem(sys.modules, "numba", None)  # `import numba` raises ImportError
+    with pytest.warns(UserWarning, match="numba does not import"):
+        assert not _kernels.applies(p)
+    assert not _kernels.applies(p)  # decided once, warned once
+    torch.testing.assert_close(euler_sensitivities(p, road, H), compiled, rtol=1e-11, atol=1e-14)

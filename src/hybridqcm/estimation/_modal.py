@@ -52,6 +52,8 @@ import torch
 from torch import Tensor
 
 from ._blas import batched_matmul as _matmul
+from ._kernels import applies as _compiled_applies
+from ._kernels import modal_scan as _compiled_scan
 
 _CDTYPE = torch.complex128
 # cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
@@ -423,7 +425,12 @@ def _scan(Z: Tensor, rate: Tensor, h: float | None = None) -> None:
     block j is its own plus M^L times block j - 1's), then every row's share of the previous block's end,
     M^(i+1) c, in one product, where M^i = mu^i [[1, 0], [i h, 1]] acts on (z, dz) (mu^i for z alone). The
     same sums as the step recursion in another order; the powers of mu are exp(i rate), not repeated
-    products."""
+    products.
+
+    On the CPU in complex128 the plain steps run compiled instead (_kernels.py), the steps' cost gone."""
+    if _compiled_applies(Z):
+        _compiled_scan(Z, rate, h)
+        return
     T = Z.shape[0]
     block = max(1, math.isqrt(T))
     n_blocks = T // block if Z[0].numel() <= _SCAN_ROW else 0  # a long row: the plain steps are cheaper

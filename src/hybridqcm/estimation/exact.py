@@ -68,6 +68,8 @@ from hybridqcm.physics.linear_models import LinearModel
 
 from ._blas import batched_matmul as _matmul
 from ._expm import balance, van_loan_maps, van_loan_maps_batch_first
+from ._kernels import applies as _compiled_applies
+from ._kernels import linear_states as _compiled_states
 from ._modal import modal_outputs, modal_sensitivities
 from .hold import (
     check_held,
@@ -137,6 +139,9 @@ def _primal_states(phi, forcing, x0: Tensor | None, batch: int, n: int, T: int, 
     else:
         states[0].copy_(x0.t())
     if T == 1:
+        return states
+    if _compiled_applies(phi):  # the same steps compiled (_kernels.py)
+        _compiled_states(phi, forcing, states)
         return states
     phi_cols = phi.permute(1, 0, 2).contiguous().unbind(0)  # column l of every Phi, [i, b]
     rows = states.unbind(0)

@@ -24,12 +24,19 @@ no per-sample bmm.
 Initial state: a window cut from a drive starts at x0 = (v_0, q_0) ≠ 0. Every column of the
 recursion is linear in the state, so x0 enters as the primal's initial value, and its 6
 tangents ∂/∂x0_i are 6 more columns started at the unit vectors (width 17 instead of 11).
+
+On the CPU in float64 the same recursion runs compiled, one sample at a time (_kernels.py: 4-8x
+less time a chunk); the torch recursion below serves other devices and dtypes and is the kernel's
+reference in the tests.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
+
+from ._kernels import applies as _compiled_applies
+from ._kernels import euler_recursion as _compiled_recursion
 
 N_PARAMS = 10
 # Which acceleration row (0 = a3, 1 = a2, 2 = a1) each parameter p1..p10 acts on.
@@ -129,6 +136,8 @@ def _recursion(
     if x0 is not None and tuple(x0.shape) != (batch, 6):
         raise ValueError(f"x0 must be [batch, 6] = [{batch}, 6] (v3, v2, v1, q3, q2, q1), got {tuple(x0.shape)}")
     width = (N_PARAMS + 1 + (6 if with_x0 else 0)) if with_tangents else 1
+    if _compiled_applies(params):  # the same recursion compiled, per sample (_kernels.py)
+        return _compiled_recursion(params, road, h, scaled_road, width, x0, with_tangents and with_x0, targets)
     coeff = _coefficient_matrix(scaled_road, dtype, device)  # [10, 7]
     row_sum = _row_sum_matrix(dtype, device)  # [3, 10]
     weights = params.t().contiguous().unsqueeze(1)  # [10, 1, batch]
