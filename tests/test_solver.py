@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+import hybridqcm.estimation.solver as solver_module
 from hybridqcm.estimation.problems import LeastSquaresProblem
 from hybridqcm.estimation.solver import GaussNewton, LevenbergMarquardt, SolverConfig, SolverStatus, build_solver
 from hybridqcm.testing import synthetic_samples
@@ -410,3 +411,24 @@ def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data
     assert torch.equal(alpha, expected_alpha)
     assert (expected_alpha[blow > 1e3] < 1e-2).all() and (expected_alpha > 0).all()  # real backtracking, all found
     torch.testing.assert_close(new_loss, expected_loss, rtol=1e-12, atol=0)
+
+
+def test_the_step_on_the_chunk_threads_is_the_step_on_one_bit_for_bit(monkeypatch):
+    """With num_threads 2 the per-sample solves of the step run in two parts on threads (here from 2 x 4 samples
+    on): every estimate, status and iteration count is one thread's, for both methods."""
+    monkeypatch.setattr(solver_module, "_STEP_PART", 4)
+    calls = []
+    original = solver_module.parallel_map
+    monkeypatch.setattr(solver_module, "parallel_map", lambda *a: calls.append(1) or original(*a))
+    data = synthetic_samples(24, n_steps=60, seed=7)
+    problem = LeastSquaresProblem(data["accel"], data["road"], 0.01)
+    start = data["params"] * (
+        1 + 0.2 * torch.randn(24, 10, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    )
+    for method in (GaussNewton, LevenbergMarquardt):
+        one = method(SolverConfig(max_iterations=8, num_threads=1, chunk_size=5)).solve(problem, start)
+        calls.clear()
+        two = method(SolverConfig(max_iterations=8, num_threads=2, chunk_size=5)).solve(problem, start)
+        assert calls, "the step did not go to the threads"
+        assert torch.equal(one.params, two.params) and torch.equal(one.status, two.status)
+        assert torch.equal(one.iterations, two.iterations)

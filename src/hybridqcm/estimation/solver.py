@@ -31,7 +31,7 @@ from torch import Tensor
 
 from hybridqcm.interrupt import check_stop
 
-from ._blas import chunk_workers, op_threads, torch_threads
+from ._blas import chunk_workers, op_threads, parallel_map, torch_threads
 from ._linalg import pseudo_inverse_solve
 from .boundary import applies, boundary_test, initial_held, without_held
 from .line_search import line_search
@@ -56,6 +56,9 @@ class SolverStatus(IntEnum):
 
 STATUS_LABELS = {s.value: s.label for s in SolverStatus}
 COVARIANCES = ("model", "sandwich", "jackknife", "robust_sandwich", "robust_jackknife")  # SolverConfig.covariance
+# The step's per-sample solves go to the chunk threads in parts of at least this many samples (below it a part's
+# fixed cost is the solve's)
+_STEP_PART = 1024
 
 
 @dataclass
@@ -392,7 +395,15 @@ class NonlinearLeastSquares(ABC):
         safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
         fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
         gradient_scaled = gradient / safe_scale
-        step = self.direction(fisher_scaled, gradient_scaled, index) / safe_scale
+        workers = chunk_workers(cfg)
+        if workers > 1 and index.numel() >= 2 * _STEP_PART:  # per-sample solves: on the chunk threads, bit for bit
+            parts = torch.arange(index.numel()).tensor_split(workers)
+            step = torch.cat(
+                parallel_map(lambda p: self.direction(fisher_scaled[p], gradient_scaled[p], index[p]), parts, workers)
+            )
+        else:
+            step = self.direction(fisher_scaled, gradient_scaled, index)
+        step = step / safe_scale
         step = torch.where(scale > 0, step, torch.zeros_like(step))
         predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
         full_rel_step = self._relative_step(step, run.params[index][:, run.free])
