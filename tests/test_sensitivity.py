@@ -116,3 +116,21 @@ def test_where_numba_does_not_import_the_torch_recursion_runs(samples, monkeypat
         assert not _kernels.applies(p)
     assert not _kernels.applies(p)  # decided once, warned once
     torch.testing.assert_close(euler_sensitivities(p, road, H), compiled, rtol=1e-11, atol=1e-14)
+
+
+def test_without_a_writable_cache_the_loops_compile_in_the_process(samples, monkeypatch):
+    """numba raises RuntimeError at decoration where no cache folder is writable (a read-only install, no home):
+    the loop is compiled without the cache instead."""
+    import numba
+
+    def njit(**options):
+        if options.get("cache"):
+            raise RuntimeError("cannot cache function: no locator available")
+        return numba.njit(**options)
+
+    p, road = samples["params"], samples["road"]
+    expected = euler_sensitivities(p, road, H)
+    monkeypatch.setattr(_kernels, "_compiled", {})
+    monkeypatch.setattr(_kernels, "_numba", lambda: type("fake", (), {"njit": staticmethod(njit)}))
+    assert torch.equal(euler_sensitivities(p, road, H), expected)
+    assert "_euler_loop" in _kernels._compiled

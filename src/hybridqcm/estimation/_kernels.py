@@ -61,7 +61,11 @@ def applies(tensor: Tensor) -> bool:
 
 def _kernel(name: str):
     if name not in _compiled:
-        _compiled[name] = _numba().njit(nogil=True, cache=True)(globals()[name])
+        njit = _numba().njit
+        try:
+            _compiled[name] = njit(nogil=True, cache=True)(globals()[name])
+        except RuntimeError:  # no writable cache beside the module nor in the user's: compile in each process
+            _compiled[name] = njit(nogil=True)(globals()[name])
     return _compiled[name]
 
 
