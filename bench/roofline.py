@@ -83,6 +83,7 @@ import functools
 import math
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -255,25 +256,29 @@ class Recorder:
     def __init__(self):
         self.calls: list[dict] = []
         self._saved: list[tuple] = []
+        self._local = threading.local()
 
     def _wrap(self, module, name, kind, method=None):
         original = getattr(module, name)
-        calls = self.calls
+        calls, local = self.calls, self._local
 
         def wrapper(*args, **kwargs):
             if kind in ("modal_sens", "modal_out"):
                 out, ok = original(*args, **kwargs)
-                calls[-1]["n_bad"] = int((~ok).sum())
-                calls[-1]["A"] = args[0][0]
+                current = local.record  # this thread's call (the chunk threads interleave their records)
+                current["n_bad"] = int((~ok).sum())
+                current["A"] = args[0][0]
                 return out, ok
             params = args[0] if kind.startswith("euler") else args[1]
             record = {"kind": kind, "batch": params.shape[0], "params": params[:, :N_PARAMS].clone()}
             record["method"] = kwargs.get("method", getattr(original, "keywords", {}).get("method", method))
             record["kernel"] = kind.startswith("euler") and _kernels.applies(params)
             calls.append(record)
+            local.record = record
             result = original(*args, **kwargs)
-            record["steps"] = result.shape[1]
-            record["width"] = result.shape[-1] if result.ndim == 4 else 1
+            out = result[0] if isinstance(result, tuple) else result  # (out, fallback rows) with defer_fallback
+            record["steps"] = out.shape[1]
+            record["width"] = out.shape[-1] if out.ndim == 4 else 1
             return result
 
         self._saved.append((module, name, original))
