@@ -207,3 +207,18 @@ def test_exact_layer_flops_match_the_dispatched_ops(roofline, monkeypatch):
             counted = sum(counter.flops.values())
             assert not counter.unknown, (method, kind, counter.unknown)
             assert abs(counted / (b * formula) - 1) < tolerance, (method, kind, counted, b * formula)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_iterations_are_timed_and_counted_on_chunk_threads(roofline, threads):
+    """time_iterations end to end on a small batch: every case timed and counted, the modal path's records
+    (eigenvalues, fallback samples) matched to their own call where the chunk threads interleave them."""
+    import argparse
+
+    args = argparse.Namespace(samples=48, steps=12, margin=4, substeps=4, chunk=8, repeats=1)
+    best, terms = roofline.time_iterations(args, threads)
+    assert set(best) == set(terms) == {"euler", "euler x0", "exact recursion", "exact modal"}
+    for name, term in terms.items():
+        assert all(seconds > 0 for seconds in best.values())
+        assert term["jacobian"]["flops"] > 0 and term["line_search"]["flops"] > 0, name
+    assert terms["euler"]["jacobian"]["flops"] == roofline.euler_kernel_flops(48, 12, 11, True)
