@@ -90,6 +90,7 @@ def test_exp5_run_writes_everything(tiny_dataset, tmp_path):
     assert any(tag.startswith("estimation/error_distribution") for tag in events.Tags()["tensors"])
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["all_within_1pct"] >= 0.9  # noise-free: GN recovers all ten parameters
+    assert summary["compiled_loops"] is True
     assert "within 1 %" in proc.stdout
 
 

@@ -114,7 +114,7 @@ def test_where_numba_does_not_import_the_torch_recursion_runs(samples, monkeypat
     monkeypatch.setitem(sys.modules, "numba", None)  # `import numba` raises ImportError
     with pytest.warns(UserWarning, match="numba does not import"):
         assert not _kernels.applies(p)
-    assert not _kernels.applies(p)  # decided once, warned once
+    assert not _kernels.applies(p) and not _kernels.compiled_loops()  # decided once, warned once
     torch.testing.assert_close(euler_sensitivities(p, road, H), compiled, rtol=1e-11, atol=1e-14)
 
 

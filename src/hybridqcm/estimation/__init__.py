@@ -1,5 +1,6 @@
 """Parameter estimation: forward-mode sensitivities, batched Gauss-Newton / LM, hybrid pipeline."""
 
+from hybridqcm.estimation._kernels import compiled_loops
 from hybridqcm.estimation.front import (
     HybridEstimator,
     check_networks,
@@ -28,6 +29,7 @@ from hybridqcm.estimation.solver import (
 from hybridqcm.estimation.weighting import NoiseWeighting
 
 __all__ = [
+    "compiled_loops",
     "EulerSensitivity",
     "accelerations_and_jacobian",
     "euler_accelerations",

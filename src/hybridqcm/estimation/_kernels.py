@@ -59,6 +59,11 @@ def applies(tensor: Tensor) -> bool:
     )
 
 
+def compiled_loops() -> bool:
+    """Whether this process's CPU solves in float64 run the compiled loops (what a run's summary.json records)."""
+    return applies(torch.zeros(1, dtype=torch.float64))
+
+
 def _kernel(name: str):
     if name not in _compiled:
         njit = _numba().njit

@@ -24,6 +24,7 @@ from torch.utils.tensorboard import SummaryWriter
 from hybridqcm import runfolder
 from hybridqcm.atomic import atomic_write_csv, atomic_write_text
 from hybridqcm.console import print_table
+from hybridqcm.estimation import compiled_loops
 from hybridqcm.estimation.solver import STATUS_LABELS, SolverStatus
 from hybridqcm.estimation.tables import ALL_STATUS_LABELS, merge_stage_stats
 from hybridqcm.estimation.window_check import WINDOW_STATUS_LABELS, is_skipped
@@ -337,6 +338,8 @@ def run_summary(cfg, plan, solved, run_dir: Path) -> dict:
         "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
         "predict_devices": sorted({m["device"] for m in markers if m.get("device")}),  # the networks' device(s)
         "gn_device": str(cfg.get("gn_device", "cpu")),
+        # the CPU solves' step recursions compiled (estimation/_kernels.py) or in torch (HYBRIDQCM_KERNELS=torch)
+        "compiled_loops": compiled_loops(),
         # peak memory of one block's GN on the device (gn_device=accelerator on a GPU), else null
         "device_memory_mib": max((m["device_memory_mib"] for m in markers if m.get("device_memory_mib")), default=None),
     }
