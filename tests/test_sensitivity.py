@@ -134,3 +134,19 @@ def test_without_a_writable_cache_the_loops_compile_in_the_process(samples, monk
     monkeypatch.setattr(_kernels, "_numba", lambda: type("fake", (), {"njit": staticmethod(njit)}))
     assert torch.equal(euler_sensitivities(p, road, H), expected)
     assert "_euler_loop" in _kernels._compiled
+
+
+def test_the_loops_refuse_shapes_they_would_index_past():
+    """numba does not check bounds: a mismatched shape is refused before the loop, in one line naming it."""
+    b, T = 3, 8
+    params, road = torch.ones(b, 10, dtype=torch.float64), torch.zeros(b, T, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^_kernels: targets must be \[3, 8, 3\], got \[3, 7, 3\]$"):
+        _kernels.euler_recursion(params, road, H, False, 11, targets=torch.zeros(b, T - 1, 3, dtype=torch.float64))
+    Z = torch.zeros(T, b, 2, 2, 1, dtype=torch.complex128)
+    with pytest.raises(ValueError, match=r"^_kernels: rate must be \[3, 2, 2, 1\], got \[3, 2, 1\]$"):
+        _kernels.modal_scan(Z, torch.zeros(b, 2, 1, dtype=torch.complex128), H)
+    states = torch.zeros(T, 6, b, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^_kernels: forcing must be \[7, 6, 3\], got \[8, 6, 3\]$"):
+        _kernels.linear_states(
+            torch.zeros(6, 6, b, dtype=torch.float64), torch.zeros(T, 6, b, dtype=torch.float64), states
+        )

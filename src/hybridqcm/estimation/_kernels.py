@@ -162,8 +162,17 @@ def _states_loop(phi, forcing, states):
                     states[k + 1, i, b] += phi[i, j, b] * states[k, j, b]
 
 
+def _check(name: str, got, want) -> None:
+    """The loops index without bounds checks (numba's default): a shape that does not match is refused here."""
+    if tuple(got) != tuple(want):
+        raise ValueError(f"_kernels: {name} must be {list(want)}, got {list(got)}")
+
+
 def linear_states(phi: Tensor, forcing: Tensor, states: Tensor) -> None:
     """exact._primal_states' recursion in place over states [T, n, b] (contiguous, states[0] set)."""
+    n_steps, n, batch = states.shape
+    _check("phi", phi.shape, (n, n, batch))
+    _check("forcing", forcing.shape, (n_steps - 1, n, batch))
     _kernel("_states_loop")(_numpy(phi), _numpy(forcing), states.numpy())
 
 
@@ -179,6 +188,11 @@ def euler_recursion(
 ) -> Tensor:
     """sensitivity._recursion's result [batch, time, 3, width] (inputs validated there)."""
     batch, n_steps = road.shape
+    _check("params", params.shape, (batch, N_PARAMS))
+    if x0 is not None:
+        _check("x0", x0.shape, (batch, 6))
+    if targets is not None:
+        _check("targets", targets.shape, (batch, n_steps, 3))
     x = np.zeros((1, 6)) if x0 is None else _numpy(x0)
     t = np.zeros((1, 1, 3)) if targets is None else _numpy(targets)
     out = np.empty((batch, n_steps, 3, width))
@@ -197,5 +211,6 @@ def modal_scan(Z: Tensor, rate: Tensor, h: float | None) -> None:
     rows = Z.reshape(n_steps, batch, -1)  # a view: the rest is contiguous in the basis buffer
     if rows.data_ptr() != Z.data_ptr():
         raise RuntimeError("_kernels.modal_scan: the basis rows are not a view of the buffer")
+    _check("rate", rate.shape, Z.shape[1:])
     mu = torch.exp(rate).reshape(batch, -1).contiguous()
     _kernel("_scan_loop")(rows.numpy(), mu.numpy(), 0.0 if h is None else float(h), 0 if h is None else rate.shape[-1])
