@@ -156,14 +156,12 @@ def scan_flops(steps: int, E: int, pair: bool, batch: int | None = None) -> int:
     where the call's row, ``batch`` E, is at most _modal._SCAN_ROW; else (or ``batch`` None, or where the
     compiled loop runs, estimation/_kernels.py: the same steps) the plain steps (T - 1) (8 E, + 4 E/2 with
     pairs)."""
-    from hybridqcm.estimation._kernels import applies
     from hybridqcm.estimation._modal import _SCAN_ROW
 
     T, half = steps, E // 2
     step = 8 * E + (4 * half if pair else 0)  # addcmul (complex 8), and dz += h z (complex add with alpha: 4)
     L = max(1, math.isqrt(T))
-    compiled = applies(torch.zeros(1, dtype=torch.complex128))
-    nb = T // L if batch is not None and batch * E <= _SCAN_ROW and not compiled else 0
+    nb = T // L if batch is not None and batch * E <= _SCAN_ROW and not _kernels.compiled_loops() else 0
     if nb < 2:
         return (T - 1) * step
     carry = 6 * E + 2 * E + (8 * half if pair else 0)  # mu^i c, its add, and (pairs) i h z's product and add
@@ -319,6 +317,14 @@ def _modes(A: torch.Tensor) -> int:
     return int((A.shape[-1] - (lam.imag > 0).sum(1)).max())
 
 
+def _euler_flops(call: dict, tangents: bool) -> int:
+    """A recorded Euler call's FLOPs: the compiled loop's where it ran, else the torch recursion's."""
+    b, T, W = call["batch"], call["steps"], call["width"]
+    if call["kernel"]:
+        return euler_kernel_flops(b, T, W, tangents)
+    return sum(euler_recursion_flops(b, T, W, tangents).values())
+
+
 def count(calls: list[dict], substeps: int, h: float = 0.01, n_obs: int = N_OUT) -> dict[str, dict[str, float]]:
     """{term: {"flops", "bytes"}} of the recorded calls of one iteration (terms: jacobian, normal_equations,
     step, line_search)."""
@@ -331,18 +337,10 @@ def count(calls: list[dict], substeps: int, h: float = 0.01, n_obs: int = N_OUT)
             terms["normal_equations"]["bytes"] += b * normal_equations_bytes(T, W, n_obs)
             terms["step"]["flops"] += step_flops(b, W - 1)
         if c["kind"] == "euler_sens":
-            flops = (
-                euler_kernel_flops(b, T, W, True) if c["kernel"] else sum(euler_recursion_flops(b, T, W, True).values())
-            )
-            terms["jacobian"]["flops"] += flops
+            terms["jacobian"]["flops"] += _euler_flops(c, True)
             terms["jacobian"]["bytes"] += b * jacobian_bytes("euler", T, W)
         elif c["kind"] == "euler_out":
-            flops = (
-                euler_kernel_flops(b, T, 1, False)
-                if c["kernel"]
-                else sum(euler_recursion_flops(b, T, 1, False).values())
-            )
-            terms["line_search"]["flops"] += flops + 3 * b * T * n_obs
+            terms["line_search"]["flops"] += _euler_flops(c, False) + 3 * b * T * n_obs
             terms["line_search"]["bytes"] += b * output_bytes("euler", T)
         elif c["kind"] == "exact_sens":
             bad = c.get("n_bad", b) if c["method"] == "modal" else b
