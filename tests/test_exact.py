@@ -641,6 +641,111 @@ def test_the_compiled_state_recursion_equals_the_torch_steps(with_x0, monkeypatc
     torch.testing.assert_close(free, powers * start, rtol=1e-12, atol=1e-300)
 
 
+@pytest.mark.parametrize("path", ["kernel", "torch"])
+@pytest.mark.parametrize("m_sub", [1, 4, 16])
+def test_hold_weights_integrate_constant_and_ramp_inputs_exactly(m_sub, path, monkeypatch):
+    """_modal._hold_weights (the compiled loop, or torch's ops) against closed forms of one step of psi' = lambda psi + s(t)
+    from psi = 0: a constant input held as 1 at every sub-step gives (e^(lambda h) - 1) / lambda under either hold, a
+    ramp s = t (exact under the first-order hold) (e^(lambda h) - 1 - lambda h) / lambda^2; d l_j / d lambda against
+    central differences of l_j in lambda (the weights are analytic in lambda); and the two paths against each other."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._modal import _hold_weights
+
+    if path == "torch":
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    assert _kernels.applies(torch.zeros(1, dtype=torch.complex128)) == (path == "kernel")
+    # |lambda tau| below and above 1 (the series and the recurrence), a real mode, a nearly zero one
+    lam = torch.tensor(
+        [[-3.0 + 30.0j, -40.0 + 0.0j, -1e-7 + 0.0j], [-600.0 + 2500.0j, -9000.0 + 0.0j, -25.0 - 180.0j]],
+        dtype=torch.complex128,
+    )
+    tau = H / m_sub
+    for hold in ("zoh", "spline"):
+        ell, dell = _hold_weights(lam, H, hold, m_sub)
+        assert ell.shape == dell.shape == (m_sub + 1, 2, 3)
+        # per mode phi_1(lambda h) h and the ramp's integral, by the series where lambda h is small
+        z = lam * H
+        small = z.abs() < 1e-3
+        step = torch.where(small, H * (1 + z / 2 + z * z / 6), torch.expm1(z) / lam)
+        ramp = torch.where(small, H * H * (0.5 + z / 6 + z * z / 24), (torch.expm1(z) - z) / lam**2)
+        torch.testing.assert_close(ell.sum(0), step, rtol=1e-12, atol=0)
+        if hold != "zoh":
+            times = (torch.arange(m_sub + 1, dtype=F64) * tau).view(-1, 1, 1)
+            torch.testing.assert_close((ell * times).sum(0), ramp, rtol=1e-11, atol=0)
+        eps = 1e-6 * lam.abs().clamp_min(1 / H)  # at least 1e-6 / h: a nearly zero mode needs no smaller one
+        up, _ = _hold_weights(lam + eps, H, hold, m_sub)
+        down, _ = _hold_weights(lam - eps, H, hold, m_sub)
+        fd = (up - down) / (2 * eps)
+        torch.testing.assert_close(dell, fd, rtol=1e-6, atol=1e-9 * float(dell.abs().amax()))
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch" if path == "kernel" else "")
+        other = _hold_weights(lam, H, hold, m_sub)
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch" if path == "torch" else "")
+        for mine, theirs in zip((ell, dell), other):
+            torch.testing.assert_close(mine, theirs, rtol=1e-13, atol=1e-15 * float(theirs.abs().amax()))
+
+
+def test_the_compiled_balance_equals_torchs(monkeypatch):
+    """_expm.balance by the compiled loop and by torch's ops: the same powers of two, on matrices whose rows span eight
+    decades, with a zero matrix, a zero column and a non-finite entry among them."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import balance
+
+    g = torch.Generator().manual_seed(5)
+    M = torch.randn(64, 6, 6, generator=g, dtype=F64) * torch.logspace(-3, 5, 6, dtype=F64)[None, :, None]
+    M[0] = 0.0
+    M[1, :, 2] = 0.0
+    M[2, 3, 4] = math.inf
+    assert _kernels.applies(M)
+    compiled = balance(M)
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = balance(M)
+    assert compiled.shape == (64, 6)
+    torch.testing.assert_close(compiled, reference, rtol=0, atol=0, equal_nan=True)
+    finite = compiled[3:]
+    assert bool((torch.exp2(torch.round(torch.log2(finite))) == finite).all())  # powers of two: an exact scaling
+    assert bool((compiled[0] == 1).all())
+
+
+@pytest.mark.parametrize("sort", [False, True])
+def test_the_compiled_modes_equal_torchs_and_rebuild_A(sort, monkeypatch):
+    """_modal._decompose by the compiled loop and by torch's ops: the same eigenvalues in the same order, V, V^-1,
+    condition numbers, flags and counts, on quarter-car and seat system matrices, a matrix with real eigenvalues only,
+    a defective one (a Jordan block: eigenvectors parallel to rounding, cond(V) beyond 1e10) and a non-finite one;
+    where ok and well conditioned, V diag(lambda) V^-1 rebuilds A."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import balance
+    from hybridqcm.estimation._modal import _decompose
+
+    g = torch.Generator().manual_seed(3)
+    params = synthetic_samples(6, n_steps=2, seed=4)["params"].to(F64)
+    A = torch.zeros(10, 6, 6, dtype=F64)
+    A[:6] = system_matrix(params)
+    A[6] = torch.diag(-torch.arange(1.0, 7.0, dtype=F64)) + 0.1 * torch.triu(torch.ones(6, 6, dtype=F64), 1)
+    A[7] = -2.0 * torch.eye(6, dtype=F64) + torch.diag(torch.ones(5, dtype=F64), 1)  # one Jordan block
+    A[8] = torch.randn(6, 6, generator=g, dtype=F64)
+    A[9] = A[0]
+    A[9, 2, 3] = math.nan
+    scale = balance(A)
+    assert _kernels.applies(A)
+    compiled = _decompose(A, scale, sort)
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = _decompose(A, scale, sort)
+    lam, V, V_inv, cond, ok, n_first = compiled
+    assert torch.equal(ok, reference[4]) and torch.equal(n_first, reference[5])
+    assert ok[:7].all() and ok[8] and not ok[9] and (not ok[7] or cond[7] > 1e10)
+    good = (ok & (cond < 1e8)).nonzero().flatten()
+    assert good.numel() == 8
+    assert torch.equal(lam[good], reference[0][good])  # LAPACK's values, reordered alike
+    for mine, theirs in zip((V, V_inv, cond), reference[1:4]):
+        torch.testing.assert_close(mine[good], theirs[good], rtol=1e-10, atol=1e-12 * float(theirs[good].abs().amax()))
+    rebuilt = (V[good] * lam[good][:, None, :]) @ V_inv[good]
+    torch.testing.assert_close(rebuilt.real, A[good], rtol=0, atol=1e-9 * float(A[good].abs().amax()))
+    assert float(rebuilt.imag.abs().amax()) < 1e-9 * float(A[good].abs().amax())
+    if sort:  # the upper members of the pairs first, then the real ones
+        key = torch.where(lam.imag > 0, 0, torch.where(lam.imag == 0, 1, 2))
+        assert bool((key[good].diff(dim=1) >= 0).all())
+
+
 @pytest.mark.parametrize("delta", [0.0, 1e-8, -1e-8, 1e-6, 1e-2])
 def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta):
     """Seat damped near critically (as above): the outputs alone stay accurate much closer to the
@@ -697,6 +802,25 @@ def test_batched_matmul_matches_torch():
     batched_matmul(c, d, out=buffer[:, :, 1:4].transpose(0, 1))
     torch.testing.assert_close(buffer[:, :, 1:4].transpose(0, 1), c @ d, rtol=1e-14, atol=1e-14)
     assert not buffer[:, :, 0].any() and not buffer[:, :, 4:].any()
+
+
+@pytest.mark.parametrize("by_torch", [False, True])
+def test_the_gram_matrix_by_either_library_is_the_sum_of_outer_products(by_torch, monkeypatch):
+    """_blas.gram_matrix by numpy's per-sample products or by one torch GEMM (the library is chosen by the CPU's
+    maker): aᵀa of a contiguous [b, r, w] equals the sum over rows of the outer products (float64 einsum of a
+    different contraction order), symmetric, and the numpy path dispatches no torch product."""
+    from hybridqcm.estimation import _blas
+
+    monkeypatch.setattr(_blas, "_GRAM_BY_TORCH", by_torch)
+    g = torch.Generator().manual_seed(8)
+    a = torch.randn(9, 300, 17, generator=g, dtype=F64)
+    expected = sum(torch.einsum("bi,bj->bij", a[:, r], a[:, r]) for r in range(300))
+    if not by_torch:
+        monkeypatch.setattr(torch, "matmul", lambda *args, **kw: (_ for _ in ()).throw(AssertionError("torch")))
+    gram = _blas.gram_matrix(a)
+    monkeypatch.undo()
+    torch.testing.assert_close(gram, expected, rtol=1e-13, atol=1e-12)
+    torch.testing.assert_close(gram, gram.transpose(1, 2), rtol=0, atol=1e-12)
 
 
 def test_unknown_method_raises(samples):

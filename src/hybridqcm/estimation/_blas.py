@@ -5,6 +5,7 @@ torch's thread count for those small per-step operations; and independent solves
 from __future__ import annotations
 
 import os
+import platform
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -34,11 +35,31 @@ def batched_matmul(a: Tensor, b: Tensor, out: Tensor | None = None) -> Tensor:
     return out
 
 
+def _intel_cpu() -> bool:
+    """Whether this machine's CPU is Intel's (Linux: /proc/cpuinfo's vendor_id; elsewhere the platform's string)."""
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as info:
+            for line in info:
+                if line.startswith("vendor_id"):
+                    return "GenuineIntel" in line
+    except OSError:
+        pass
+    return "intel" in platform.processor().lower()
+
+
+# torch's CPU build multiplies with MKL, fast on Intel's processors and not on others; numpy's OpenBLAS the reverse
+_GRAM_BY_TORCH = torch.backends.mkl.is_available() and _intel_cpu()
+
+
 def gram_matrix(a: Tensor) -> Tensor:
-    """aᵀa [b, w, w] of a [b, r, w] (per sample). torch.matmul of the transposed view (one batched
-    GEMM with a transposed operand) is 3x faster than numpy's per-sample calls at w = 11-18, r = 300,
-    512 samples, 1 thread (Euler 0.9-1.3 vs 2.9-3.5 ms, exact 2.9-3.5 vs 9.2-10.2 ms; copying the
-    transpose for torch.bmm: 9-28 ms)."""
+    """aᵀa [b, w, w] of a [b, r, w] (per sample), by whichever library multiplies faster on this CPU (decided once per
+    machine, so its numbers are the same from run to run). On an Intel Xeon, torch.matmul of the transposed view
+    (one batched GEMM with a transposed operand, MKL) was 3x faster than numpy's per-sample calls at w = 11-18,
+    r = 300, 512 samples, 1 thread (Euler 0.9-1.3 vs 2.9-3.5 ms, exact 2.9-3.5 vs 9.2-10.2 ms); on an AMD EPYC
+    numpy's (OpenBLAS) were 1.2-1.7x faster than torch's (w = 11, 17, 23: 3.3, 4.8, 8.0 vs 4.1, 7.5, 13.6 ms;
+    docs/measurements/roofline.md). Other devices, and tensors that require grad: torch."""
+    if not _GRAM_BY_TORCH and a.device.type == "cpu" and not a.requires_grad:
+        return batched_matmul(a.transpose(1, 2), a)
     return torch.matmul(a.transpose(1, 2), a)
 
 

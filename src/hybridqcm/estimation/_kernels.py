@@ -1,5 +1,5 @@
 """Compiled loops (numba) for the estimation layers' recursions, on the CPU: the Euler recursion with its
-tangents, the modal basis' scan and the exact model's state recursion.
+tangents, the modal basis' scan, the exact model's state recursion and the modes' hold weights.
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
@@ -24,6 +24,8 @@ of the output [batch, time, 3, width].
 
 from __future__ import annotations
 
+import functools
+import math
 import os
 import warnings
 
@@ -66,11 +68,13 @@ def compiled_loops() -> bool:
 
 def _kernel(name: str):
     if name not in _compiled:
-        njit = _numba().njit
+        # error_model "numpy": a division by zero gives inf or NaN, as in torch (a failed trial step's matrix), not an
+        # exception
+        njit = functools.partial(_numba().njit, nogil=True, error_model="numpy")
         try:
-            _compiled[name] = njit(nogil=True, cache=True)(globals()[name])
+            _compiled[name] = njit(cache=True)(globals()[name])
         except RuntimeError:  # no writable cache beside the module nor in the user's: compile in each process
-            _compiled[name] = njit(nogil=True)(globals()[name])
+            _compiled[name] = njit()(globals()[name])
     return _compiled[name]
 
 
@@ -162,6 +166,146 @@ def _states_loop(phi, forcing, states):
                     states[k + 1, i, b] += phi[i, j, b] * states[k, j, b]
 
 
+def _hold_loop(lam, tau, zoh, inv_fact, ell, dell):
+    """_modal._hold_weights per mode: lam [b, K] complex -> ell, dell [M + 1, b, K] (written); inv_fact[k] = 1/k!
+    for k <= the series' last term + 3. The same expressions as there, mode by mode: phi_1..3 by the series
+    (Horner, |z| <= 1) or by the downward recurrence, then the folded FOH (or ZOH) weights."""
+    m_sub = ell.shape[0] - 1
+    batch, n_slot = lam.shape
+    terms = inv_fact.shape[0] - 4
+    tau2 = tau * tau
+    for b in range(batch):
+        for s in range(n_slot):
+            z = lam[b, s] * tau
+            if abs(z) <= 1.0:
+                p3 = inv_fact[terms + 3] + 0j
+                for r in range(terms - 1, -1, -1):
+                    p3 = p3 * z + inv_fact[r + 3]
+                p2 = p3 * z + 0.5
+                p1 = p2 * z + 1.0
+            else:
+                p1 = (np.exp(z) - 1.0) / z
+                p2 = (p1 - 1.0) / z
+                p3 = (p2 - 0.5) / z
+            if zoh:
+                g0, g1 = tau * p1, 0j
+                dg0, dg1 = tau2 * (p1 - p2), 0j
+            else:
+                g0, g1 = tau * (p1 - p2), tau * p2
+                dg0, dg1 = tau2 * (p1 - 2.0 * p2 + 2.0 * p3), tau2 * (p2 - 2.0 * p3)
+            phi = np.exp(z)
+            power = 1.0 + 0j  # phi^(M - j), from j = M down
+            previous = power
+            for j in range(m_sub, -1, -1):
+                # j < M: phi^(M - 1 - j) (g0 terms), the previous j's power; j >= 1: phi^(M - j) (g1 terms)
+                e = 0j
+                de = 0j
+                if j < m_sub:
+                    e += previous * g0
+                    de += previous * ((m_sub - 1 - j) * tau * g0 + dg0)
+                if j >= 1:
+                    e += power * g1
+                    de += power * ((m_sub - j) * tau * g1 + dg1)
+                ell[j, b, s] = e
+                dell[j, b, s] = de
+                previous = power
+                power = power * phi
+
+
+def _balance_loop(M, sweeps, damping, d):
+    """_expm.balance per sample: M [b, N, N] -> d [b, N] (written), the same damped simultaneous updates."""
+    batch, n = M.shape[0], M.shape[1]
+    log_d = np.zeros(n)
+    col = np.zeros(n)
+    row = np.zeros(n)
+    for b in range(batch):
+        log_d[:] = 0.0
+        for _ in range(sweeps):
+            col[:] = 0.0
+            row[:] = 0.0
+            for i in range(n):
+                di = np.exp2(log_d[i])
+                for j in range(n):
+                    if i != j:
+                        scaled = abs(M[b, i, j]) * np.exp2(log_d[j]) / di
+                        col[j] += scaled
+                        row[i] += scaled
+            for i in range(n):
+                if col[i] > 0 and row[i] > 0:
+                    log_d[i] += damping * np.log2(row[i] / col[i])
+        for i in range(n):
+            d[b, i] = np.exp2(np.rint(log_d[i]))
+
+
+def _modes_loop(lam_in, Vb, scale, sort, work, lam, V, V_inv, cond, ok, n_first):
+    """_modal._decompose per sample after LAPACK's eigen-decomposition of the balanced D^-1 A D: lam_in [b, n], Vb
+    [b, n, n] (complex), scale [b, n] = D -> (written) lam, V = D Vb, V^-1 = Vb^-1 D^-1 with the modes in LAPACK's
+    order or, with ``sort``, the upper members of the conjugate pairs first, then the real eigenvalues, then the
+    lower members (a stable order: torch's argsort there); cond [b] the 1-norm condition number of Vb; ok [b]: Vb
+    invertible (no zero pivot), cond finite, the complex eigenvalues in pairs; n_first [b] the upper and real
+    ones. Vb^-1 by Gauss-Jordan elimination with partial pivoting on work [n, 2n] = (Vb | I)."""
+    batch, n = lam_in.shape
+    order = np.empty(n, dtype=np.int64)
+    for b in range(batch):
+        upper = 0
+        lower = 0
+        for i in range(n):
+            if lam_in[b, i].imag > 0:
+                upper += 1
+            elif lam_in[b, i].imag < 0:
+                lower += 1
+        n_first[b] = n - upper
+        slot = 0
+        for key in range(3 if sort else 1):
+            for i in range(n):
+                im = lam_in[b, i].imag
+                if not sort or key == (0 if im > 0 else (1 if im == 0 else 2)):
+                    order[slot] = i
+                    slot += 1
+        for i in range(n):
+            for j in range(n):
+                work[i, j] = Vb[b, i, j]
+                work[i, n + j] = 1.0 if i == j else 0.0
+        invertible = True
+        for c in range(n):
+            pivot = c
+            for r in range(c + 1, n):
+                if abs(work[r, c]) > abs(work[pivot, c]):
+                    pivot = r
+            if work[pivot, c] == 0:
+                invertible = False
+                break
+            if pivot != c:
+                for j in range(2 * n):
+                    work[c, j], work[pivot, j] = work[pivot, j], work[c, j]
+            inv = 1.0 / work[c, c]
+            for j in range(2 * n):
+                work[c, j] *= inv
+            for r in range(n):
+                f = work[r, c]
+                if r != c and f != 0:
+                    for j in range(2 * n):
+                        work[r, j] -= f * work[c, j]
+        norm = 0.0
+        norm_inv = 0.0
+        for j in range(n):
+            col = 0.0
+            col_inv = 0.0
+            for i in range(n):
+                col += abs(Vb[b, i, j])
+                col_inv += abs(work[i, n + j])
+            norm = max(norm, col)
+            norm_inv = max(norm_inv, col_inv)
+        cond[b] = norm * norm_inv if invertible else np.inf
+        ok[b] = invertible and np.isfinite(cond[b]) and upper == lower
+        for s in range(n):
+            k = order[s]
+            lam[b, s] = lam_in[b, k]
+            for i in range(n):
+                V[b, i, s] = Vb[b, i, k] * scale[b, i]
+                V_inv[b, s, i] = (work[k, n + i] if invertible else 0.0) / scale[b, i]
+
+
 def _check(name: str, got, want) -> None:
     """The loops index without bounds checks (numba's default): a shape that does not match is refused here."""
     if tuple(got) != tuple(want):
@@ -214,3 +358,40 @@ def modal_scan(Z: Tensor, rate: Tensor, h: float | None) -> None:
     _check("rate", rate.shape, Z.shape[1:])
     mu = torch.exp(rate).reshape(batch, -1).contiguous()
     _kernel("_scan_loop")(rows.numpy(), mu.numpy(), 0.0 if h is None else float(h), 0 if h is None else rate.shape[-1])
+
+
+def hold_weights(lam: Tensor, h: float, hold: str, m_sub: int, series_terms: int) -> tuple[Tensor, Tensor]:
+    """_modal._hold_weights: lam [b, K] complex128 -> (l_j, d l_j / d lambda) [M + 1, b, K] each; ``series_terms``
+    the degree of its phi_3 series."""
+    if lam.ndim != 2:
+        raise ValueError(f"_kernels: lam must be [b, K], got {list(lam.shape)}")
+    inv_fact = np.array([1.0 / math.factorial(k) for k in range(series_terms + 4)])
+    ell = np.empty((m_sub + 1, *lam.shape), dtype=np.complex128)
+    dell = np.empty_like(ell)
+    lam_np = lam.detach().to(torch.complex128).contiguous().numpy()
+    _kernel("_hold_loop")(lam_np, float(h) / m_sub, hold == "zoh", inv_fact, ell, dell)
+    return torch.from_numpy(ell), torch.from_numpy(dell)
+
+
+def balance(M: Tensor, sweeps: int, damping: float) -> Tensor:
+    """_expm.balance: M [b, N, N] float64 -> d [b, N]."""
+    if M.ndim != 3 or M.shape[1] != M.shape[2]:
+        raise ValueError(f"_kernels: M must be [b, N, N], got {list(M.shape)}")
+    d = np.empty(M.shape[:2])
+    _kernel("_balance_loop")(_numpy(M), int(sweeps), float(damping), d)
+    return torch.from_numpy(d)
+
+
+def modes(lam: Tensor, Vb: Tensor, scale: Tensor, sort: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """_modal._decompose after the eigen-decomposition: lam [b, n], Vb [b, n, n] (complex128), scale [b, n] ->
+    (lam, V, V^-1, cond [b], ok [b], n_first [b]) as _modes_loop writes them."""
+    batch, n = lam.shape
+    _check("Vb", Vb.shape, (batch, n, n))
+    _check("scale", scale.shape, (batch, n))
+    out_lam = np.empty((batch, n), dtype=np.complex128)
+    V, V_inv = np.empty((batch, n, n), dtype=np.complex128), np.empty((batch, n, n), dtype=np.complex128)
+    cond, ok, n_first = np.empty(batch), np.empty(batch, dtype=np.bool_), np.empty(batch, dtype=np.int64)
+    complex_values = (lam.to(torch.complex128).contiguous().numpy(), Vb.to(torch.complex128).contiguous().numpy())
+    work = np.empty((n, 2 * n), dtype=np.complex128)
+    _kernel("_modes_loop")(*complex_values, _numpy(scale), bool(sort), work, out_lam, V, V_inv, cond, ok, n_first)
+    return tuple(torch.from_numpy(x) for x in (out_lam, V, V_inv, cond, ok, n_first))

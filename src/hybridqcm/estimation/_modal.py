@@ -53,7 +53,9 @@ from torch import Tensor
 
 from ._blas import batched_matmul as _matmul
 from ._kernels import applies as _compiled_applies
+from ._kernels import hold_weights as _compiled_hold_weights
 from ._kernels import modal_scan as _compiled_scan
+from ._kernels import modes as _compiled_modes
 
 _CDTYPE = torch.complex128
 # cond(V) max|lambda| / |lambda_i - lambda_l| above these: leave the sample to the recursion.
@@ -92,7 +94,10 @@ def _phi123(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _hold_weights(lam: Tensor, h: float, hold: str, m_sub: int) -> tuple[Tensor, Tensor]:
-    """l_j and d l_j / d lambda for the unit-gain mode lambda [...]: each [m_sub + 1, ...]."""
+    """l_j and d l_j / d lambda for the unit-gain mode lambda [...]: each [m_sub + 1, ...]. On the CPU in complex128
+    by a compiled loop over the modes (_kernels.py: the same expressions; here ~40 small ops a call)."""
+    if lam.ndim == 2 and _compiled_applies(lam):
+        return _compiled_hold_weights(lam, h, hold, m_sub, _SERIES_TERMS)
     tau = h / m_sub
     z = lam * tau
     p1, p2, p3 = _phi123(z)
@@ -155,21 +160,39 @@ def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return torch.from_numpy(lam.astype(kind)), torch.from_numpy(V.astype(kind)), torch.from_numpy(converged)
 
 
-def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """A [b, n, n] = V diag(lambda) V^-1 from the balanced D^-1 A D (scale [b, n] = D):
-    -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
-    balanced eigenvectors, ok [b]: finite, and the complex eigenvalues in conjugate pairs)."""
+def _decompose(A: Tensor, scale: Tensor, sort: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """_eigen, and with ``sort`` the modes in _modes' order; the count of the upper and real modes n_first [b] appended.
+    After LAPACK's decomposition, the inverse, scaling, checks and order run as one compiled loop over the samples
+    on the CPU (_kernels.py; here ~25 small ops a call, the cost of a line search's trial at a few recordings)."""
     ratio = scale[:, None, :] / scale[:, :, None]
     balanced = A * ratio
     finite = torch.isfinite(balanced).all(-1).all(-1)
     # a non-finite matrix (a failed trial step) or defective eigenvectors: not ok, left to the recursion
     balanced = torch.where(finite[:, None, None], balanced, torch.zeros_like(balanced))
     lam, Vb, converged = _eig(balanced)
+    if _compiled_applies(Vb):
+        lam, V, V_inv, cond, ok, n_first = _compiled_modes(lam, Vb, scale, sort)
+        return lam, V, V_inv, cond, ok & finite & converged, n_first
     Vb_inv, info = torch.linalg.inv_ex(Vb)
     V, V_inv = Vb * scale[:, :, None], Vb_inv / scale[:, None, :]
     cond = Vb.abs().sum(1).amax(-1) * Vb_inv.abs().sum(1).amax(-1)
     ok = finite & converged & (info == 0) & torch.isfinite(cond) & ((lam.imag > 0).sum(-1) == (lam.imag < 0).sum(-1))
-    return lam, V, V_inv, cond, ok
+    n = lam.shape[1]
+    upper, real = lam.imag > 0, lam.imag == 0
+    n_first = n - upper.sum(1)
+    if sort:
+        order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
+        lam = torch.gather(lam, 1, order)
+        V = torch.gather(V, 2, order[:, None, :].expand(-1, n, -1))
+        V_inv = torch.gather(V_inv, 1, order[:, :, None].expand(-1, -1, n))
+    return lam, V, V_inv, cond, ok, n_first
+
+
+def _eigen(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A [b, n, n] = V diag(lambda) V^-1 from the balanced D^-1 A D (scale [b, n] = D):
+    -> (lambda [b, n], V, V^-1 [b, n, n] complex, cond [b] the 1-norm condition number of the
+    balanced eigenvectors, ok [b]: finite, and the complex eigenvalues in conjugate pairs)."""
+    return _decompose(A, scale, sort=False)[:5]
 
 
 def _modes(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -181,15 +204,8 @@ def _modes(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Te
     Re(c z) = Re c Re z - Im c Im z: only the kept modes (upper members and real eigenvalues,
     n_first <= n per sample) are propagated, and Re z, Im z of each are the real basis columns.
     Slots: the kept modes first, padded to the chunk's largest n_first (K) with zero weight."""
-    lam, V, V_inv, cond, ok = _eigen(A, scale)
-    n = lam.shape[1]
-    upper, real = lam.imag > 0, lam.imag == 0
-    order = torch.argsort(torch.where(upper, 0, torch.where(real, 1, 2)).to(torch.int8), dim=1, stable=True)
-    n_first = n - upper.sum(1)
+    lam, V, V_inv, cond, ok, n_first = _decompose(A, scale, sort=True)
     n_slot = int(n_first.max())
-    lam = torch.gather(lam, 1, order)
-    V = torch.gather(V, 2, order[:, None, :].expand(-1, n, -1))
-    V_inv = torch.gather(V_inv, 1, order[:, :, None].expand(-1, -1, n))
     omega = torch.where(lam[:, :n_slot].imag > 0, 2.0, 1.0).to(torch.float64)
     omega = omega * (torch.arange(n_slot, device=lam.device) < n_first[:, None])
     return lam, V, V_inv, cond, ok, omega
