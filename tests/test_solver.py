@@ -413,6 +413,58 @@ def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data
     torch.testing.assert_close(new_loss, expected_loss, rtol=1e-12, atol=0)
 
 
+@pytest.mark.parametrize("overshoot", [1.0, 1e3])
+def test_the_interpolated_search_with_speculative_trials_is_the_same_search_in_fewer_calls(
+    data, overshoot, monkeypatch
+):
+    """line_search's "interpolate" evaluates, for a few samples, the two exponents it may go to next beside the one it
+    needs (_with_speculation): the accepted α and losses must be those of the search without them, bit for bit
+    (the Euler model's loss of a sample does not depend on the rows beside it), in fewer model calls, each with at most
+    three trials a sample; and with more samples than _SPECULATE the calls are those of the plain search."""
+    from hybridqcm.estimation import line_search as line_search_module
+
+    problem = LeastSquaresProblem(data["accel"][:12], data["road"][:12], H)
+    solver = GaussNewton(SolverConfig(backtrack="interpolate"))
+    run = solver._start(problem, _near_truth(data["params"][:12], 0.2, seed=9))
+    index = torch.arange(12)
+    fisher, gradient, loss = run.evaluation.normal_equations(run.params, index)
+    step, predicted, _ = solver._step(run, index, fisher, gradient, loss)
+    blow = overshoot * 10.0 ** torch.linspace(0, 3, 12, dtype=torch.float64)  # 0 to ~20 halvings
+    step, predicted = step * blow[:, None], predicted * blow
+
+    evaluation, calls = run.evaluation, []
+    real = evaluation.loss_at
+
+    def counted(trial, rows):
+        calls.append(rows.numel())
+        return real(trial, rows)
+
+    evaluation.loss_at = counted
+    results = {}
+    for speculate in (0, 16):
+        monkeypatch.setattr(line_search_module, "_SPECULATE", speculate)
+        run.exponent[index] = 0
+        calls.clear()
+        results[speculate] = (*line_search_module.line_search(solver, run, index, step, loss, predicted), list(calls))
+    evaluation.loss_at = real
+    (alpha, new_loss, plain), (alpha_s, new_loss_s, speculative) = results[0], results[16]
+    assert torch.equal(alpha_s, alpha) and torch.equal(new_loss_s, new_loss)
+    assert len(speculative) < len(plain) and max(speculative) <= 3 * 12 and max(plain) <= 12
+    # and it is halving's answer (the Armijo test is monotone in e here): each sample's first passing α = 2^-e, by a
+    # scan of one sample at a time
+    for i in range(12):
+        for e in range(31):
+            trial = run.params[i : i + 1].clone()
+            trial[:, run.free] = trial[:, run.free] - 0.5**e * step[i : i + 1]
+            value = float(real(trial, index[i : i + 1]))
+            if value <= float(loss[i]) - 1e-4 * 0.5**e * float(predicted[i]):
+                assert float(alpha[i]) == 0.5**e and float(new_loss[i]) == pytest.approx(value, rel=1e-12, abs=0)
+                break
+        else:
+            raise AssertionError(f"sample {i}: no step passes")
+    assert (alpha < 1).any()  # some after backtracking
+
+
 def test_the_step_on_the_chunk_threads_is_the_step_on_one_bit_for_bit(monkeypatch):
     """With num_threads 2 the per-sample solves of the step run in two parts on threads (here from 2 x 4 samples
     on): every estimate, status and iteration count is one thread's, for both methods."""
