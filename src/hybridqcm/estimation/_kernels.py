@@ -1,5 +1,7 @@
 """Compiled loops (numba) for the estimation layers' recursions, on the CPU: the Euler recursion with its
-tangents, the modal basis' scan, the exact model's state recursion and the modes' hold weights.
+tangents, the modal basis' scan and the exact model's state recursion; and the per-sample setup of the modal
+evaluation (the modes' hold weights, the balancing, the eigenvectors' inverse and order), whose torch form is tens
+of small ops a call, the cost of a line search's trial at a few recordings.
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
