@@ -363,23 +363,22 @@ def test_eigh_in_slices_equals_one_call_and_pseudo_inverse_is_exact():
     assert not unidentified.any() and not deficient.any()
 
 
-@pytest.mark.parametrize("parametrization", ["unconstrained", "linear"])
-def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data, parametrization):
-    """line_search's "halve" tries the exponents in blocks, one model call per block: each sample's α must be the
-    first α0 2^-e that passes the Armijo test, found by a scan of one sample at a time (the same loss_at), for
-    Gauss-Newton steps blown up 1-10⁶× (0-25 halvings), in at most five calls for 31 exponents; and in one call
-    where each sample's first block reaches its last accepted e (the same search again)."""
-    from hybridqcm.estimation.line_search import line_search
-
-    problem = LeastSquaresProblem(data["accel"][:24], data["road"][:24], H)
-    solver = GaussNewton(SolverConfig(parametrization=parametrization))
-    run = solver._start(problem, _near_truth(data["params"][:24], 0.2, seed=5))
-    index = torch.arange(24)
+def _overshooting_steps(data, config, seed, blow):
+    """For the line-search tests: a solver, its run from near the truth of the first len(``blow``) samples, and their
+    Gauss-Newton steps and predicted decreases blown up by ``blow`` [n] -> (solver, run, index, step, loss, predicted)."""
+    n = blow.numel()
+    problem = LeastSquaresProblem(data["accel"][:n], data["road"][:n], H)
+    solver = GaussNewton(config)
+    run = solver._start(problem, _near_truth(data["params"][:n], 0.2, seed=seed))
+    index = torch.arange(n)
     fisher, gradient, loss = run.evaluation.normal_equations(run.params, index)
     step, predicted, _ = solver._step(run, index, fisher, gradient, loss)
-    blow = 10.0 ** torch.linspace(0, 6, 24, dtype=torch.float64)  # steps that overshoot by up to 10⁶
-    step, predicted = step * blow[:, None], predicted * blow
+    return solver, run, index, step * blow[:, None], loss, predicted * blow
 
+
+def _counted_losses(run):
+    """run.evaluation.loss_at wrapped to record each call's row count -> (evaluation, the real loss_at, the counts);
+    the caller restores ``evaluation.loss_at = real``."""
     evaluation, calls = run.evaluation, []
     real = evaluation.loss_at
 
@@ -388,6 +387,22 @@ def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data
         return real(trial, rows)
 
     evaluation.loss_at = counted
+    return evaluation, real, calls
+
+
+@pytest.mark.parametrize("parametrization", ["unconstrained", "linear"])
+def test_the_halving_search_in_blocks_takes_each_samples_first_passing_step(data, parametrization):
+    """line_search's "halve" tries the exponents in blocks, one model call per block: each sample's α must be the
+    first α0 2^-e that passes the Armijo test, found by a scan of one sample at a time (the same loss_at), for
+    Gauss-Newton steps blown up 1-10⁶× (0-25 halvings), in at most five calls for 31 exponents; and in one call
+    where each sample's first block reaches its last accepted e (the same search again)."""
+    from hybridqcm.estimation.line_search import line_search
+
+    blow = 10.0 ** torch.linspace(0, 6, 24, dtype=torch.float64)  # steps that overshoot by up to 10⁶
+    solver, run, index, step, loss, predicted = _overshooting_steps(
+        data, SolverConfig(parametrization=parametrization), 5, blow
+    )
+    evaluation, real, calls = _counted_losses(run)
     alpha, new_loss = line_search(solver, run, index, step, loss, predicted)
     assert len(calls) <= 5
     calls.clear()
@@ -423,23 +438,11 @@ def test_the_interpolated_search_with_speculative_trials_is_the_same_search_in_f
     three trials a sample; and with more samples than _SPECULATE the calls are those of the plain search."""
     from hybridqcm.estimation import line_search as line_search_module
 
-    problem = LeastSquaresProblem(data["accel"][:12], data["road"][:12], H)
-    solver = GaussNewton(SolverConfig(backtrack="interpolate"))
-    run = solver._start(problem, _near_truth(data["params"][:12], 0.2, seed=9))
-    index = torch.arange(12)
-    fisher, gradient, loss = run.evaluation.normal_equations(run.params, index)
-    step, predicted, _ = solver._step(run, index, fisher, gradient, loss)
     blow = overshoot * 10.0 ** torch.linspace(0, 3, 12, dtype=torch.float64)  # 0 to ~20 halvings
-    step, predicted = step * blow[:, None], predicted * blow
-
-    evaluation, calls = run.evaluation, []
-    real = evaluation.loss_at
-
-    def counted(trial, rows):
-        calls.append(rows.numel())
-        return real(trial, rows)
-
-    evaluation.loss_at = counted
+    solver, run, index, step, loss, predicted = _overshooting_steps(
+        data, SolverConfig(backtrack="interpolate"), 9, blow
+    )
+    evaluation, real, calls = _counted_losses(run)
     results = {}
     for speculate in (0, 16):
         monkeypatch.setattr(line_search_module, "_SPECULATE", speculate)
