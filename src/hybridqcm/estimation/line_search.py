@@ -11,7 +11,8 @@ last accepted e (e = 0 .. e_last: a direction that overshoots does so alike from
 next block is twice as long (from rest: 0 | 1, 2 | 3..6 | 7..14 | ...), so at most 5 calls instead of up to 31,
 and one where the overshoot repeats. A call's fixed cost (hundreds of small operations, whatever the rows) is what
 a line search costs at the batch sizes of a solve's last iterations; the trials past a sample's first pass are the
-price.
+price. "interpolate" does the same where few samples search: their calls also evaluate the two exponents each
+search goes to next, kept in a cache from which the search reads (:func:`_with_speculation`; the same path).
 """
 
 from __future__ import annotations
