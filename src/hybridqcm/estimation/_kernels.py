@@ -362,12 +362,20 @@ def modal_scan(Z: Tensor, rate: Tensor, h: float | None) -> None:
     _kernel("_scan_loop")(rows.numpy(), mu.numpy(), 0.0 if h is None else float(h), 0 if h is None else rate.shape[-1])
 
 
+@functools.lru_cache(maxsize=4)
+def _inverse_factorials(count: int) -> np.ndarray:
+    """1/k! for k < count (read-only: shared by every call)."""
+    values = np.array([1.0 / math.factorial(k) for k in range(count)])
+    values.flags.writeable = False
+    return values
+
+
 def hold_weights(lam: Tensor, h: float, hold: str, m_sub: int, series_terms: int) -> tuple[Tensor, Tensor]:
     """_modal._hold_weights: lam [b, K] complex128 -> (l_j, d l_j / d lambda) [M + 1, b, K] each; ``series_terms``
     the degree of its phi_3 series."""
     if lam.ndim != 2:
         raise ValueError(f"_kernels: lam must be [b, K], got {list(lam.shape)}")
-    inv_fact = np.array([1.0 / math.factorial(k) for k in range(series_terms + 4)])
+    inv_fact = _inverse_factorials(series_terms + 4)
     ell = np.empty((m_sub + 1, *lam.shape), dtype=np.complex128)
     dell = np.empty_like(ell)
     lam_np = lam.detach().to(torch.complex128).contiguous().numpy()
