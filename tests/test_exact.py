@@ -706,6 +706,69 @@ def test_the_compiled_balance_equals_torchs(monkeypatch):
     assert bool((compiled[0] == 1).all())
 
 
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
+def test_the_compiled_van_loan_maps_integrate_constant_and_ramp_inputs_exactly(case, hold, monkeypatch):
+    """_expm.van_loan_maps without tangents by the compiled loop: Phi = exp(A h) (torch.linalg.matrix_exp), the
+    forcing of a constant input sum_j Lam_j = A^-1 (Phi - I) B and, under the first-order holds, of the ramp
+    s_j = j tau: sum_j j tau Lam_j = (A^-2 (Phi - I) - h A^-1) B (closed forms of the variation of constants); and
+    torch's batch-innermost ops give the same maps."""
+    from hybridqcm.estimation._expm import van_loan_maps
+
+    model, p, _ = _random_case(case, 7, 10, seed=21)
+    substeps = 5
+    m_sub = substeps if hold == "spline" else 1
+    phi, lam = van_loan_maps(model, p, H, hold, substeps, False)  # [n, n, b], [m_sub + 1, n, m, b]
+    A, B, _, _ = model.matrices(p)
+    eye = torch.eye(model.n_state, dtype=F64)
+    expected_phi = torch.linalg.matrix_exp(A * H)
+    torch.testing.assert_close(phi.permute(2, 0, 1), expected_phi, rtol=1e-13, atol=1e-13)
+    A_inv = torch.linalg.inv(A)
+    constant = A_inv @ (expected_phi - eye) @ B
+    torch.testing.assert_close(lam.sum(0).permute(2, 0, 1), constant, rtol=1e-11, atol=1e-13 * constant.abs().amax())
+    if hold != "zoh":  # the zero-order hold holds s_0 over the step: a ramp is not what it integrates
+        tau = H / m_sub
+        ramp = (A_inv @ A_inv @ (expected_phi - eye) - H * A_inv) @ B
+        weights = torch.arange(m_sub + 1, dtype=F64)[:, None, None, None] * tau
+        torch.testing.assert_close(
+            (lam * weights).sum(0).permute(2, 0, 1), ramp, rtol=1e-10, atol=1e-12 * ramp.abs().amax()
+        )
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    torch_phi, torch_lam = van_loan_maps(model, p, H, hold, substeps, False)
+    torch.testing.assert_close(phi, torch_phi, rtol=1e-13, atol=1e-15 * torch_phi.abs().amax())
+    torch.testing.assert_close(lam, torch_lam, rtol=1e-13, atol=1e-15 * torch_lam.abs().amax())
+
+
+def test_preload_loads_a_loop_only_where_the_loops_run(monkeypatch):
+    """qcm-estimate's runner loads numba before its solve's clock starts; with the loops off it loads nothing."""
+    from hybridqcm.estimation import _kernels
+
+    monkeypatch.setattr(_kernels, "_compiled", {})
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    assert _kernels.preload() is False and _kernels._compiled == {}
+    monkeypatch.delenv("HYBRIDQCM_KERNELS")
+    assert _kernels.preload() is True and list(_kernels._compiled) == ["_states_loop"]
+
+
+def test_the_compiled_van_loan_maps_keep_a_non_finite_sample_to_itself():
+    """A NaN parameter gives that sample NaN maps; the batch's other samples get the maps they get alone (the
+    scaling is chosen from the finite samples), and a mismatched shape is refused in one line."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import van_loan_maps
+
+    model = QuarterCarRoad()
+    p = reference_params().expand(3, 10).clone()
+    p[1, 0] = math.nan
+    phi, lam = van_loan_maps(model, p, H, "spline", 4, False)
+    assert bool(phi[..., 1].isnan().all()) and bool(lam[..., 1].isnan().all())
+    for i in (0, 2):
+        alone = van_loan_maps(model, p[i : i + 1], H, "spline", 4, False)
+        torch.testing.assert_close(phi[..., i : i + 1], alone[0], rtol=0, atol=0)
+        torch.testing.assert_close(lam[..., i : i + 1], alone[1], rtol=0, atol=0)
+    with pytest.raises(ValueError, match=r"^_kernels: d must be \[3, 8\], got \[3, 7\]$"):
+        _kernels.van_loan_maps(torch.zeros(8, 8, 3, dtype=F64), torch.ones(3, 7, dtype=F64), 6, False, 4, 11, 0.25)
+
+
 @pytest.mark.parametrize("sort", [False, True])
 def test_the_compiled_modes_equal_torchs_and_rebuild_A(sort, monkeypatch):
     """_modal._decompose by the compiled loop and by torch's ops: the same eigenvalues in the same order, V, V^-1,
@@ -767,13 +830,15 @@ def test_modal_outputs_hand_ill_conditioned_eigenvectors_to_the_recursion(delta)
     assert bool(ok.all()) == (abs(delta) > 1e-7)
 
 
+@pytest.mark.parametrize("path", ["kernel", "torch"])
 @pytest.mark.parametrize("hold", HOLDS)
 @pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
-def test_stacked_fallback_matches_the_step_recursion(case, hold):
-    """The modal path's fallback for a few samples (one block-diagonal product per step) is the
-    batch-innermost step recursion in another order of operations."""
+def test_stacked_fallback_matches_the_step_recursion(case, hold, path, monkeypatch):
+    """The modal path's fallback for a few samples (one block-diagonal product per step, or the compiled loop) is
+    the batch-innermost step recursion in another order of operations."""
     from hybridqcm.estimation.exact import _recursion_sensitivities, _stacked_sensitivities
 
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch" if path == "torch" else "")
     model, p, w = _random_case(case, 9, 60, seed=13)
     x0 = _x0(9, model.n_state, seed=6)
     for x, with_x0, start, n_steps in [(x0, True, 5, 50), (None, False, 0, 60), (x0, True, 7, 2), (None, True, 2, 1)]:

@@ -18,6 +18,7 @@ from hybridqcm.physics.linear_models import LinearModel
 from ._blas import batched_matmul as _matmul
 from ._kernels import applies as _compiled_applies
 from ._kernels import balance as _compiled_balance
+from ._kernels import van_loan_maps as _compiled_van_loan_maps
 
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
@@ -163,6 +164,9 @@ def van_loan_maps(model, p, h, hold, substeps, tangents):
     m_sub = substeps if hold == "spline" else 1
     tau = h / m_sub
     M = _van_loan(A, B, tau)
+    if not tangents and _compiled_applies(M):  # the same maps by a compiled loop over the samples (_kernels.py)
+        d = balance(M.permute(2, 0, 1))
+        return _compiled_van_loan_maps(M, d, n, hold == "zoh", m_sub, _TAYLOR_DEGREE, _TAYLOR_THETA)
     dM = None
     if tangents:  # only the n state rows of the Van Loan matrix depend on p
         dA, dB, _, _ = model.matrix_derivatives(p)

@@ -68,6 +68,17 @@ def compiled_loops() -> bool:
     return applies(torch.zeros(1, dtype=torch.float64))
 
 
+def preload() -> bool:
+    """Import numba and load one loop, so that a run's first solve does not carry the program's start-up: numba's
+    import (~0.35 s) and, at the first loop's load, its code generator's set-up (~0.2 s; each further loop then
+    loads in milliseconds). What ``compiled_loops`` returns."""
+    if not compiled_loops():
+        return False
+    states = np.zeros((2, 1, 1))
+    _kernel("_states_loop")(np.zeros((1, 1, 1)), np.zeros((1, 1, 1)), states)
+    return True
+
+
 def _kernel(name: str):
     if name not in _compiled:
         # error_model "numpy": a division by zero gives inf or NaN, as in torch (a failed trial step's matrix), not an
@@ -168,6 +179,26 @@ def _states_loop(phi, forcing, states):
                     states[k + 1, i, b] += phi[i, j, b] * states[k, j, b]
 
 
+def _tangent_states_loop(phi, forcing, dphi, X):
+    """In place over X [T, b, n, c] (X[0] set): X_(k+1) = Phi X_k, then its first q columns += F_k + dPhi x_k;
+    phi [b, n, n], forcing [T-1, b, n, q], dphi [b, n, q, n], x_k = X_k[:, 0] (exact._stacked_sensitivities)."""
+    n_steps, batch, n, width = X.shape
+    n_q = forcing.shape[3]
+    for s in range(batch):
+        for k in range(n_steps - 1):
+            for i in range(n):
+                for c in range(width):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += phi[s, i, j] * X[k, s, j, c]
+                    X[k + 1, s, i, c] = acc
+                for q in range(n_q):
+                    acc = forcing[k, s, i, q]
+                    for j in range(n):
+                        acc += dphi[s, i, q, j] * X[k, s, j, 0]
+                    X[k + 1, s, i, q] += acc
+
+
 def _hold_loop(lam, tau, zoh, inv_fact, ell, dell):
     """_modal._hold_weights per mode: lam [b, K] complex -> ell, dell [M + 1, b, K] (written); inv_fact[k] = 1/k!
     for k <= the series' last term + 3. The same expressions as there, mode by mode: phi_1..3 by the series
@@ -212,6 +243,127 @@ def _hold_loop(lam, tau, zoh, inv_fact, ell, dell):
                 dell[j, b, s] = de
                 previous = power
                 power = power * phi
+
+
+def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
+    """_expm.van_loan_maps without tangents, batch innermost: M [N, N, b] the Van Loan matrices (N = n + 2m), d [b, N]
+    their balancing -> phi_out [n, n, b], lam_out [M_sub + 1, n, m, b] (written). exp(M) as _expm._expm_inner
+    computes it: D^-1 M D, scaled by 2^-s to a 1-norm <= theta (one s for the batch, from its finite samples),
+    degree-11 Taylor by Paterson-Stockmeyer, s squarings, D back; then the sub-steps folded as there. Every product
+    runs over the batch innermost (vectorised across samples); a sample whose matrix is not finite gets NaN maps."""
+    size, batch = M.shape[0], M.shape[2]
+    m = (size - n) // 2
+    m_sub = lam_out.shape[0] - 1
+    work = np.empty((5, size, size, batch))  # X, X^2, X^3, S (the sum), T (a product)
+    X, X2, S, T = work[0], work[1], work[3], work[4]
+    column = np.zeros(batch)
+    norm = 0.0
+    for j in range(size):
+        for b in range(batch):
+            column[b] = 0.0
+        for i in range(size):
+            for b in range(batch):
+                X[i, j, b] = M[i, j, b] * d[b, j] / d[b, i]
+                column[b] += abs(X[i, j, b])
+        for b in range(batch):
+            if np.isfinite(column[b]) and column[b] > norm:
+                norm = column[b]
+    squarings = 0
+    if norm > theta:
+        squarings = int(math.ceil(math.log2(norm / theta)))
+    scale = 2.0**-squarings
+    for i in range(size):
+        for j in range(size):
+            for b in range(batch):
+                X[i, j, b] *= scale
+    # The products in order, each (out, left, right) slots of ``work``, written once (each copy of a product's loops
+    # costs seconds of compilation): X^2, X^3, then X^3 S per Horner step, then S S per squaring.
+    blocks = (coef.shape[0] - 1) // 3
+    for op in range(2 + blocks + squarings):
+        if op < 2:
+            out, left, right = op + 1, op, 0
+        elif op < 2 + blocks:
+            out, left, right = 4, 2, 3
+        else:
+            out, left, right = 4, 3, 3
+        if op == 2:  # the last block first: S = sum_{r<3} coef[3 blocks + r] X^r
+            for i in range(size):
+                for j in range(size):
+                    a = coef[3 * blocks] if i == j else 0.0
+                    for b in range(batch):
+                        S[i, j, b] = a + coef[3 * blocks + 1] * X[i, j, b] + coef[3 * blocks + 2] * X2[i, j, b]
+        for i in range(size):
+            for j in range(size):
+                for b in range(batch):
+                    work[out, i, j, b] = 0.0
+                for k in range(size):
+                    for b in range(batch):
+                        work[out, i, j, b] += work[left, i, k, b] * work[right, k, j, b]
+        if 2 <= op < 2 + blocks:  # S = X^3 S + sum_{r<3} coef[3 block + r] X^r
+            block = blocks - 1 - (op - 2)
+            for i in range(size):
+                for j in range(size):
+                    a = coef[3 * block] if i == j else 0.0
+                    for b in range(batch):
+                        S[i, j, b] = T[i, j, b] + (
+                            a + coef[3 * block + 1] * X[i, j, b] + coef[3 * block + 2] * X2[i, j, b]
+                        )
+        elif op >= 2 + blocks:
+            for i in range(size):
+                for j in range(size):
+                    for b in range(batch):
+                        S[i, j, b] = T[i, j, b]
+    for i in range(size):
+        for j in range(size):
+            for b in range(batch):
+                S[i, j, b] *= d[b, i] / d[b, j]
+    # exp(Van Loan) = [[phi, F1, F2], ...]; FOH: g0 = F1 - F2, g1 = F2; ZOH: g0 = F1, g1 = 0
+    G0, G1 = np.empty((n, m, batch)), np.empty((n, m, batch))
+    for i in range(n):
+        for c in range(m):
+            for b in range(batch):
+                f1, f2 = S[i, n + c, b], S[i, n + m + c, b]
+                G0[i, c, b] = f1 if zoh else f1 - f2
+                G1[i, c, b] = 0.0 if zoh else f2
+    # Lam_M = g1; with c = g0 + phi g1 and W = [c | g0 | phi] multiplied by phi from the left M - 1 times:
+    # Lam_j = phi^(M-1-j) c (W's first columns after M - 1 - j products), Lam_0 = phi^(M-1) g0, Phi = phi^M.
+    # (M = 1: Lam = (g0, g1), Phi = phi.) The copies are loops: each numba slice assignment costs ~1 s to compile.
+    width = n + 2 * m
+    W, W_next = np.empty((n, width, batch)), np.empty((n, width, batch))
+    for i in range(n):
+        for c in range(m):
+            for b in range(batch):
+                lam_out[m_sub, i, c, b] = G1[i, c, b]
+                W[i, c, b] = G0[i, c, b]
+                W[i, m + c, b] = G0[i, c, b]
+            if m_sub > 1:
+                for k in range(n):
+                    for b in range(batch):
+                        W[i, c, b] += S[i, k, b] * G1[k, c, b]
+        for k in range(n):
+            for b in range(batch):
+                W[i, 2 * m + k, b] = S[i, k, b]
+    for step in range(m_sub):
+        if step > 0:
+            for i in range(n):
+                for j in range(width):
+                    for b in range(batch):
+                        W_next[i, j, b] = 0.0
+                    for k in range(n):
+                        for b in range(batch):
+                            W_next[i, j, b] += S[i, k, b] * W[k, j, b]
+            W, W_next = W_next, W
+        for i in range(n):
+            for c in range(m):
+                for b in range(batch):
+                    if step < m_sub - 1:
+                        lam_out[m_sub - 1 - step, i, c, b] = W[i, c, b]
+                    else:
+                        lam_out[0, i, c, b] = W[i, m + c, b]
+    for i in range(n):
+        for k in range(n):
+            for b in range(batch):
+                phi_out[i, k, b] = W[i, 2 * m + k, b]
 
 
 def _balance_loop(M, sweeps, damping, d):
@@ -322,6 +474,19 @@ def linear_states(phi: Tensor, forcing: Tensor, states: Tensor) -> None:
     _kernel("_states_loop")(_numpy(phi), _numpy(forcing), states.numpy())
 
 
+def tangent_states(phi: Tensor, forcing: Tensor, dphi: Tensor, X: Tensor) -> None:
+    """exact._stacked_sensitivities' recursion in place over X [T, b, n, c] (contiguous, X[0] set): phi [b, n, n],
+    forcing [T-1, b, n, q], dphi [b, n, q, n]."""
+    n_steps, batch, n, _ = X.shape
+    n_q = forcing.shape[-1]
+    _check("phi", phi.shape, (batch, n, n))
+    _check("forcing", forcing.shape, (n_steps - 1, batch, n, n_q))
+    _check("dphi", dphi.shape, (batch, n, n_q, n))
+    if not X.is_contiguous() or n_q > X.shape[3]:
+        raise ValueError(f"_kernels: X must be contiguous with at least {n_q} columns, got {list(X.shape)}")
+    _kernel("_tangent_states_loop")(_numpy(phi), _numpy(forcing), _numpy(dphi), X.numpy())
+
+
 def euler_recursion(
     params: Tensor,
     road: Tensor,
@@ -381,6 +546,23 @@ def hold_weights(lam: Tensor, h: float, hold: str, m_sub: int, series_terms: int
     lam_np = lam.detach().to(torch.complex128).contiguous().numpy()
     _kernel("_hold_loop")(lam_np, float(h) / m_sub, hold == "zoh", inv_fact, ell, dell)
     return torch.from_numpy(ell), torch.from_numpy(dell)
+
+
+def van_loan_maps(M: Tensor, d: Tensor, n: int, zoh: bool, m_sub: int, degree: int, theta: float):
+    """_expm.van_loan_maps without tangents from the Van Loan matrices M [N, N, b] (batch innermost) and their
+    balancing d [b, N]: (Phi [n, n, b], Lam [m_sub + 1, n, m, b]); ``degree`` and ``theta`` those of _expm's
+    Taylor."""
+    size, batch = M.shape[0], M.shape[2]
+    _check("M", M.shape, (size, size, batch))
+    _check("d", d.shape, (batch, size))
+    if (size - n) % 2 or size <= n or m_sub < 1 or degree % 3 != 2:
+        raise ValueError(f"_kernels: van_loan_maps needs N = n + 2m, m_sub >= 1, degree 3k + 2; got {size}, {n}, "
+                         f"{m_sub}, {degree}")  # fmt: skip
+    m = (size - n) // 2
+    phi, lam = np.empty((n, n, batch)), np.empty((m_sub + 1, n, m, batch))
+    coef = _inverse_factorials(degree + 1)
+    _kernel("_van_loan_loop")(_numpy(M), _numpy(d), int(n), bool(zoh), coef, float(theta), phi, lam)
+    return torch.from_numpy(phi), torch.from_numpy(lam)
 
 
 def balance(M: Tensor, sweeps: int, damping: float) -> Tensor:

@@ -70,6 +70,7 @@ from ._blas import batched_matmul as _matmul
 from ._expm import balance, van_loan_maps, van_loan_maps_batch_first
 from ._kernels import applies as _compiled_applies
 from ._kernels import linear_states as _compiled_states
+from ._kernels import tangent_states as _compiled_tangent_states
 from ._modal import modal_outputs, modal_sensitivities
 from .hold import (
     check_held,
@@ -391,12 +392,15 @@ def _stacked_sensitivities(model, params, x0, inputs, h, hold, substeps, with_x0
         # dPhi as [b, (i, q), l] with zero rows for q = 0: dPhi x_k lands in the tangent columns
         dphi_q = torch.zeros(batch, n, 1 + n_params, n, dtype=_DTYPE, device=params.device)
         dphi_q[:, :, 1:] = dphi.transpose(1, 2)
-        dphi_q = dphi_q.view(batch, n * (1 + n_params), n)
-        for k in range(T - 1):  # torch.bmm: for a few samples its per-call cost is the lowest (3 us)
-            torch.bmm(phi, X[k], out=X[k + 1])
-            X[k + 1, ..., : 1 + n_params] += torch.baddbmm(forcing[k], dphi_q, X[k, ..., :1]).view(
-                batch, n, 1 + n_params
-            )
+        if _compiled_applies(X):  # the same steps compiled (_kernels.py)
+            _compiled_tangent_states(phi, forcing.view(T - 1, batch, n, 1 + n_params), dphi_q, X)
+        else:
+            dphi_q = dphi_q.view(batch, n * (1 + n_params), n)
+            for k in range(T - 1):  # torch.bmm: for a few samples its per-call cost is the lowest (3 us)
+                torch.bmm(phi, X[k], out=X[k + 1])
+                X[k + 1, ..., : 1 + n_params] += torch.baddbmm(forcing[k], dphi_q, X[k, ..., :1]).view(
+                    batch, n, 1 + n_params
+                )
     # y_k = C x_k + E w_k, dy_k/dp = C dx_k + dC x_k + dE w_k, dy_k/dx0 = C dx_k/dx0: all k at once
     states = X.transpose(0, 1)  # [b, T, n, column]
     window = inputs[:, start : start + T]  # [b, T, m]

@@ -33,6 +33,7 @@ from omegaconf import DictConfig
 
 from hybridqcm import config, runfolder
 from hybridqcm.errors import ConfigError
+from hybridqcm.estimation._kernels import preload as preload_kernels
 from hybridqcm.estimation.blocks import InputSettings, RankBlocks, RecordingBlocks, block_rows
 from hybridqcm.estimation.front import HybridEstimator
 from hybridqcm.estimation.plan_occupant import build_selection
@@ -330,6 +331,7 @@ def solve(cfg, plan, run_dir: Path, store: ShardStore, refinement, tables: Estim
     shards of its blocks), then merged into estimates.csv and status.csv by rank 0. None on other ranks."""
     blocks = run_blocks(cfg, plan)
     pending = store.pending(blocks)  # a finished block (matching marker) of an interrupted run is kept
+    on_device = gn_on_device(cfg, lambda: build_refinement(cfg, plan), plan["base_excitation"] is None)
     writer = ShardWriter(
         store,
         refinement,
@@ -339,13 +341,15 @@ def solve(cfg, plan, run_dir: Path, store: ShardStore, refinement, tables: Estim
         block_stage_stats,
         tables.skipped,
         merge_block_tables,
-        gn_on_device(cfg, lambda: build_refinement(cfg, plan), plan["base_excitation"] is None),
+        on_device,
     )
     trainer = build_trainer(cfg, [writer], run_dir)
     if trainer.world_size > 1:
         # Spawned ranks receive the module's tensors through shared memory; the default file-descriptor
         # passing fails in containers with a small fd/shm allowance ("unable to resize file").
         torch.multiprocessing.set_sharing_strategy("file_system")
+    if pending and on_device is None:
+        preload_kernels()  # numba's import and set-up are the program's start-up, as torch's are, not the solve's
     t_solve = time.perf_counter()
     if pending:
         _predict(cfg, plan, trainer, blocks, pending, store)
