@@ -1,7 +1,9 @@
 """Compiled loops (numba) for the estimation layers' recursions, on the CPU: the Euler recursion with its
-tangents, the modal basis' scan and the exact model's state recursion; and the per-sample setup of the modal
-evaluation (the modes' hold weights, the balancing, the eigenvectors' inverse and order), whose torch form is tens
-of small ops a call, the cost of a line search's trial at a few recordings.
+tangents, the modal basis' scan, the exact model's state recursion and, for the few samples the modal path leaves,
+its state-and-tangent recursion; the Van Loan maps of the line search's outputs (the exponential and the folded
+sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
+modes' hold weights, the balancing, the eigenvectors' inverse and order), whose torch form is tens of small ops a
+call, the cost of a line search's trial at a few recordings.
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
@@ -10,8 +12,9 @@ recordings). Here the loops run over one sample's (or one row's) values with the
 Each loop is the torch code's arithmetic, step by step; the results agree with it to rounding (fused
 multiply-adds and summation orders differ), checked in tests/test_sensitivity.py and tests/test_exact.py
 against the torch paths. The loops release the GIL, so the solver's chunk threads (SolverConfig.thread_chunks)
-run them on several cores at once. They compile at the first call (about a second each) into numba's cache
-beside this file, which later processes load.
+run them on several cores at once. They compile at the first call (about a second each, the Van Loan maps 2-3 s)
+into numba's cache beside this file, which later processes load; ``preload`` lets a run load numba before its
+solve's clock starts.
 
 ``HYBRIDQCM_KERNELS=torch`` in the environment turns them off (the torch code everywhere); where numba is
 absent or does not import the torch code runs as well, with one warning.
