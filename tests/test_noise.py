@@ -67,6 +67,37 @@ def test_whitened_jacobian_matches_finite_differences(model):
     assert torch.allclose(whitened[..., 0].square().sum((1, 2)), expected, rtol=1e-10)
 
 
+@pytest.mark.parametrize("T", [64, 65])
+def test_time_domain_rows_carry_the_frequency_stacks_gram_without_input_noise(T):
+    """Output noise alone: the normal equations and the loss need only the whitened stack's Gram, which the centered,
+    scaled time-domain rows give (Parseval with the DC term dropped); compared with the DFT stack, even and odd T. With
+    input noise, or where the rows themselves are needed (the spectral score groups), the DFT stack is kept."""
+    g = torch.Generator().manual_seed(4)
+    b, o, Q = 3, 2, 4
+    augmented = torch.randn(b, T, o, 1 + Q, generator=g, dtype=torch.float64) + 0.7  # a mean, which DC removes
+    p = torch.rand(b, 6, generator=g, dtype=torch.float64) * 20 + 5
+    index = torch.arange(b)
+    out_only = SpectralNoise(torch.rand(b, o, generator=g, dtype=torch.float64) + 0.5)
+    stack = out_only.whiten(augmented, p, index)
+    rows = out_only.whiten(augmented, p, index, frequency_rows=False)
+    assert stack.shape[1] == 2 * (T // 2 + 1) and rows.shape == augmented.shape
+    gram = lambda x: torch.einsum("btoi,btoj->bij", x, x)  # noqa: E731
+    torch.testing.assert_close(gram(rows), gram(stack), rtol=1e-12, atol=1e-12 * gram(stack).abs().amax())
+    residual = augmented[..., 0]
+    loss = out_only.whiten_residual(residual, p, index, frequency_rows=False).square().sum((1, 2))
+    direct = ((residual - residual.mean(1, keepdim=True)).square() / out_only.v_out[:, None]).sum((1, 2))
+    torch.testing.assert_close(loss, direct, rtol=1e-13, atol=0)
+    torch.testing.assert_close(
+        loss, out_only.whiten_residual(residual, p, index).square().sum((1, 2)), rtol=1e-12, atol=0
+    )
+    model = SeatBaseExcitation()
+    with_input = SpectralNoise(out_only.v_out[:, :1], torch.full((b, 1), 0.3, dtype=torch.float64), model, H_STEP)
+    one, seat = augmented[:, :, :1, : 1 + model.n_params], p[:, : model.n_params]
+    torch.testing.assert_close(
+        with_input.whiten(one, seat, index, frequency_rows=False), with_input.whiten(one, seat, index), rtol=0, atol=0
+    )
+
+
 def test_frequency_response_is_the_seat_transmissibility():
     p = torch.tensor([[6.0, 900.0], [12.0, 2500.0]], dtype=torch.float64)
     omega = torch.linspace(0.0, 300.0, 50, dtype=torch.float64)
@@ -210,6 +241,27 @@ def test_sensor_offsets_do_not_move_the_spectral_estimate():
     assert float(((plain.params[:, 1] / p[:, 1]) - 1).abs().max()) > 4 * float(
         ((clean.params[:, 1] / p[:, 1]) - 1).abs().max()
     )
+
+
+def test_output_noise_fits_by_time_domain_rows_equal_the_spectral_stacks_and_ignore_offsets(monkeypatch):
+    """With output noise alone the solver's normal equations and losses use the centered time-domain rows: the same
+    optimum (to 1e-4 sigma), statuses and standard deviations as with the DFT stack (forced below), and an output
+    offset still moves nothing (the DC term is dropped either way)."""
+    p, a2, a3 = _seat_recordings(8, 200, 8, sigma=0.02, seed=2)
+    make = lambda *_: SpectralNoise(torch.full((8, 1), 4e-4, dtype=torch.float64))  # noqa: E731
+    rows = _fit(p, a2, a3, 8, make)
+    shifted = _fit(p, a2, a3 - 1.0, 8, make)
+    for name in ("whiten", "whiten_residual"):
+        original = getattr(SpectralNoise, name)
+        monkeypatch.setattr(
+            SpectralNoise, name, lambda self, *args, _f=original, **kw: _f(self, *args[:3], frequency_rows=True)
+        )
+    stack = _fit(p, a2, a3, 8, make)
+    assert torch.equal(rows.status, stack.status) and int((rows.status == SolverStatus.CONVERGED).sum()) >= 6
+    # the same optimum: the stops differ by rounding within the decrement tolerance (1e-6 nats, ~1e-3 sigma)
+    assert float(((rows.params - stack.params).abs() / stack.std).max()) < 1e-4
+    torch.testing.assert_close(rows.std, stack.std, rtol=1e-6, atol=0)
+    assert float(((shifted.params - rows.params).abs() / rows.std)[:, :2].max()) < 1e-4
 
 
 def test_errors_in_variables_intervals_cover_where_output_error_ones_do_not():

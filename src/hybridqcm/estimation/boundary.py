@@ -76,7 +76,7 @@ def contribution(run, theta: Tensor, nested: Tensor, rows: Tensor) -> tuple[Tens
         problem.model.outputs(theta, road, *problem.window)[:, :, obs]
         - problem.model.outputs(nested, road, *problem.window)[:, :, obs]
     )
-    energy = 0.5 * problem.noise.whiten_residual(delta, theta, rows).square().sum((1, 2))
+    energy = 0.5 * problem.noise.whiten_residual(delta, theta, rows, frequency_rows=False).square().sum((1, 2))
     size = evaluation.targets[rows].square().mean(1).sqrt().clamp_min(1e-300)
     return energy, (delta.square().mean(1).sqrt() / size).amax(1)
 

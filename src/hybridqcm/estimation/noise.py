@@ -473,14 +473,30 @@ class SpectralNoise:
         """[b, K, ...] complex -> [b, 2K, ...] real (real parts, then imaginary parts)."""
         return torch.cat([E.real, E.imag], 1).contiguous()
 
-    def whiten_residual(self, residual: Tensor, params: Tensor | None, index: Tensor) -> Tensor:
-        """residual [b, T, o] at θ ``params`` [b, Q] of the samples ``index`` -> [b, 2K, o]."""
+    def _centered(self, x: Tensor, index: Tensor) -> Tensor:
+        """x [b, T, o, ...] less its time mean, over sqrt(v_out) per channel: without input noise the real stack's
+        sums of squares and products in the time domain (Parseval with c_0 = 0: sum_k c_k X_k conj(Y_k) / T =
+        sum_t (x_t - mean x)(y_t - mean y)), without the DFT. Its rows are time steps, not frequencies."""
+        scale = self.v_out[index].rsqrt().view(x.shape[0], 1, x.shape[2], *([1] * (x.ndim - 3)))
+        return (x - x.mean(1, keepdim=True)) * scale
+
+    def whiten_residual(
+        self, residual: Tensor, params: Tensor | None, index: Tensor, frequency_rows: bool = True
+    ) -> Tensor:
+        """residual [b, T, o] at θ ``params`` [b, Q] of the samples ``index`` -> [b, 2K, o]; with ``frequency_rows``
+        False and no input noise the time-domain rows of the same sums of squares, [b, T, o] (_centered)."""
+        if not frequency_rows and not self.has_input_noise:
+            return self._centered(residual.to(torch.float64), index)
         L, _ = self._factor(index, params, residual.shape[1], False)
         return self._real_stack(self._solve(L, self._spectrum(residual)[..., None])[..., 0])
 
-    def whiten(self, augmented: Tensor, params: Tensor, index: Tensor) -> Tensor:
+    def whiten(self, augmented: Tensor, params: Tensor, index: Tensor, frequency_rows: bool = True) -> Tensor:
         """(R | J) [b, T, o, 1 + Q] -> the whitened (e | de/dθ) [b, 2K, o, 1 + Q]; S depends on the
-        first ``n_params`` entries of θ (input noise), which adds -Phi(M) e to their columns."""
+        first ``n_params`` entries of θ (input noise), which adds -Phi(M) e to their columns. With
+        ``frequency_rows`` False and no input noise: the time-domain rows of the same Gram, [b, T, o, 1 + Q]
+        (_centered; what the normal equations need, not the spectral score groups)."""
+        if not frequency_rows and not self.has_input_noise:
+            return self._centered(augmented.to(torch.float64), index)
         n_steps = augmented.shape[1]
         L, dS = self._factor(index, params, n_steps, self.has_input_noise)
         E = self._solve(L, self._spectrum(augmented))  # L^-1 (R | J), [b, K, o, 1 + Q]

@@ -275,8 +275,8 @@ class ProblemEvaluation:
                 out, redo = model.residual_sensitivities(*args, full_targets[chunk])
             if len(obs) < out.shape[2]:
                 out = out[:, :, obs[0] : obs[0] + 1] if len(obs) == 1 else out[:, :, obs]
-            if problem.noise is not None:
-                out = problem.noise.whiten(out, params[chunk], chunk)
+            if problem.noise is not None:  # the score groups are frequency bands: only they need the DFT's rows
+                out = problem.noise.whiten(out, params[chunk], chunk, frequency_rows=band is not None)
             elif self.weights is not None:
                 out *= self.weights[chunk][:, None, :, None]
             b = chunk.numel()
@@ -325,7 +325,7 @@ class ProblemEvaluation:
             accel = problem.model.outputs(trial_params[sl], road[chunk], *problem.window)
             residual = accel[:, :, obs] - targets[chunk]
             if problem.noise is not None:
-                residual = problem.noise.whiten_residual(residual, trial_params[sl], chunk)
+                residual = problem.noise.whiten_residual(residual, trial_params[sl], chunk, frequency_rows=False)
             elif self.weights is not None:
                 residual = residual * self.weights[chunk][:, None, :]
             loss = 0.5 * residual.square().sum((1, 2))

@@ -307,7 +307,7 @@ class NonlinearLeastSquares(ABC):
         )
         targets, weights = evaluation.targets, evaluation.weights
         if problem.noise is not None:  # the targets as the loss sees them (at the start's p)
-            weighted_targets = problem.noise.whiten_residual(targets, params, torch.arange(batch))
+            weighted_targets = problem.noise.whiten_residual(targets, params, torch.arange(batch), frequency_rows=False)
         else:
             weighted_targets = targets if weights is None else targets * weights[:, None, :]
         data_energy = 0.5 * weighted_targets.square().sum(dim=(1, 2))  # [batch]
