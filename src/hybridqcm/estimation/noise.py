@@ -39,6 +39,10 @@ so Gauss-Newton, Armijo, the status tests and the Laplace covariance of the solv
 unchanged on the real stack of (Re e_k, Im e_k) sqrt(c_k / T). Back in the time domain (inverse
 DFT of e with its DC set to zero) the whitened residual of a model that fits is white with the
 same variance in every channel, which is what the solver's Ljung-Box misfit test assumes.
+Without input noise S_k = diag(v_out) at every frequency, and the stack's sums of squares and
+products are those of the time-domain rows (r_t - mean r) / sqrt(v_out) (Parseval, c_0 = 0): the
+normal equations and the losses use these (``frequency_rows=False``), without a DFT; only the
+spectral score groups of the sandwich covariance need the stack's rows themselves.
 
 The variances are not known to a user; :func:`estimate_variances` fits them to the residual's
 periodogram P_k = R_k R_k^H / T at a preliminary estimate by Whittle's likelihood
