@@ -750,6 +750,34 @@ def test_preload_loads_a_loop_only_where_the_loops_run(monkeypatch):
     assert _kernels.preload() is True and list(_kernels._compiled) == ["_states_loop"]
 
 
+@pytest.mark.parametrize("hold", HOLDS)
+@pytest.mark.parametrize("case", ["quarter", "seat", "sprung"])
+def test_the_compiled_van_loan_maps_with_tangents_equal_the_block_exponential(case, hold, monkeypatch):
+    """_expm.van_loan_maps_batch_first by the compiled loop (forward-mode tangents through the Taylor products and the
+    folded sub-steps) against torch's: the Frechet derivatives as blocks of exp([[M, dM_j], [0, M]]) by
+    torch.linalg.matrix_exp, folded by per-sample products; and against central differences of the maps."""
+    from hybridqcm.estimation._expm import van_loan_maps_batch_first
+
+    model, p, _ = _random_case(case, 5, 10, seed=23)
+    compiled = van_loan_maps_batch_first(model, p, H, hold, 5)
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = van_loan_maps_batch_first(model, p, H, hold, 5)
+    for got, want in zip(compiled, reference):
+        assert got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13 * want.abs().amax())
+    monkeypatch.delenv("HYBRIDQCM_KERNELS")
+    for j in (0, p.shape[1] - 1):
+        step = torch.zeros_like(p)
+        step[:, j] = 1e-4 * p[:, j]  # smaller: the maps' rounding (g0 = F1 - F2) would dominate the difference
+        up, down = (
+            van_loan_maps_batch_first(model, p + step, H, hold, 5),
+            van_loan_maps_batch_first(model, p - step, H, hold, 5),
+        )
+        for k, tangent in ((0, compiled[2][:, j]), (1, compiled[3][:, j])):
+            fd = (up[k] - down[k]) / (2 * step[:, j].view(-1, *([1] * (up[k].ndim - 1))))
+            torch.testing.assert_close(tangent, fd, rtol=1e-5, atol=1e-7 * fd.abs().amax())
+
+
 def test_the_compiled_van_loan_maps_keep_a_non_finite_sample_to_itself():
     """A NaN parameter gives that sample NaN maps; the batch's other samples get the maps they get alone (the
     scaling is chosen from the finite samples), and a mismatched shape is refused in one line."""

@@ -19,6 +19,7 @@ from ._blas import batched_matmul as _matmul
 from ._kernels import applies as _compiled_applies
 from ._kernels import balance as _compiled_balance
 from ._kernels import van_loan_maps as _compiled_van_loan_maps
+from ._kernels import van_loan_tangent_maps as _compiled_van_loan_tangent_maps
 
 _DTYPE = torch.float64
 # Taylor degree 11 on ||X||_1 <= 1/4: truncation error <= 0.25^12/12! * e^0.25 < 2e-16 relative.
@@ -226,8 +227,15 @@ def van_loan_maps_batch_first(model, p: Tensor, h: float, hold: str, substeps: i
     m_sub = substeps if hold == "spline" else 1
     tau = h / m_sub
     N = n + 2 * m
-    block = torch.zeros(batch, n_params, 2 * N, 2 * N, dtype=_DTYPE, device=p.device)
     M = _van_loan(A, B, tau).permute(2, 0, 1)  # [b, N, N]
+    if _compiled_applies(M):  # the same maps by a compiled loop over the samples (_kernels.py)
+        dM = torch.zeros(batch, n_params, N, N, dtype=_DTYPE, device=p.device)
+        dM[..., :n, :n] = dA * tau
+        dM[..., :n, n : n + m] = dB * tau
+        return _compiled_van_loan_tangent_maps(
+            M, dM, balance(M), n, hold == "zoh", m_sub, _TAYLOR_DEGREE, _TAYLOR_THETA
+        )
+    block = torch.zeros(batch, n_params, 2 * N, 2 * N, dtype=_DTYPE, device=p.device)
     block[..., :N, :N] = block[..., N:, N:] = M[:, None]
     block[..., :n, N : N + n] = dA * tau
     block[..., :n, N + n : N + n + m] = dB * tau

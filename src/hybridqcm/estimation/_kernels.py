@@ -1,7 +1,7 @@
 """Compiled loops (numba) for the estimation layers' recursions, on the CPU: the Euler recursion with its
 tangents, the modal basis' scan, the exact model's state recursion and, for the few samples the modal path leaves,
-its state-and-tangent recursion; the Van Loan maps of the line search's outputs (the exponential and the folded
-sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
+its state-and-tangent recursion and Van Loan maps with tangents; the Van Loan maps of the line search's outputs (the
+exponential and the folded sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
 modes' hold weights, the balancing, the eigenvectors' inverse and order), whose torch form is tens of small ops a
 call, the cost of a line search's trial at a few recordings.
 
@@ -369,6 +369,165 @@ def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
                 phi_out[i, k, b] = W[i, 2 * m + k, b]
 
 
+def _van_loan_tangent_loop(M, dM, d, n, zoh, coef, theta, phi_out, lam_out, dphi_out, dlam_out):
+    """_expm.van_loan_maps_batch_first per sample: M [b, N, N] the Van Loan matrices (N = n + 2m), dM [b, P, N, N] their
+    derivatives in the P parameters, d [b, N] the balancing of M -> phi_out [b, n, n], lam_out [b, M_sub + 1, n, m],
+    dphi_out [b, P, n, n], dlam_out [b, P, M_sub + 1, n, m] (written). exp(M) and its Frechet derivatives by the
+    scheme of _expm._expm_inner (balanced, scaled to a 1-norm <= theta per sample, degree-11 Paterson-Stockmeyer,
+    squarings), every product carrying its tangents (d(A B) = dA B + A dB); then the sub-steps folded as there.
+    For the few samples the modal path leaves: one sample's matrices stay in cache."""
+    batch, size = M.shape[0], M.shape[1]
+    n_p = dM.shape[1]
+    m = (size - n) // 2
+    m_sub = lam_out.shape[1] - 1
+    blocks = (coef.shape[0] - 1) // 3
+    # slots: X, X^2, X^3, S, T (a product); tangents likewise, per parameter
+    work = np.empty((5, size, size))
+    dwork = np.empty((5, n_p, size, size))
+    width = n + 2 * m
+    W, W_next = np.empty((n, width)), np.empty((n, width))
+    dW, dW_next = np.empty((n_p, n, width)), np.empty((n_p, n, width))
+    for b in range(batch):
+        norm = 0.0
+        for j in range(size):
+            column = 0.0
+            for i in range(size):
+                work[0, i, j] = M[b, i, j] * d[b, j] / d[b, i]
+                column += abs(work[0, i, j])
+                for q in range(n_p):
+                    dwork[0, q, i, j] = dM[b, q, i, j] * d[b, j] / d[b, i]
+            norm = max(norm, column)
+        if not np.isfinite(norm):
+            for i in range(n):
+                for k in range(n):
+                    phi_out[b, i, k] = np.nan
+                    for q in range(n_p):
+                        dphi_out[b, q, i, k] = np.nan
+                for j in range(m_sub + 1):
+                    for c in range(m):
+                        lam_out[b, j, i, c] = np.nan
+                        for q in range(n_p):
+                            dlam_out[b, q, j, i, c] = np.nan
+            continue
+        squarings = 0
+        if norm > theta:
+            squarings = int(math.ceil(math.log2(norm / theta)))
+        scale = 2.0**-squarings
+        for i in range(size):
+            for j in range(size):
+                work[0, i, j] *= scale
+                for q in range(n_p):
+                    dwork[0, q, i, j] *= scale
+        # the products in order, (out, left, right) slots, written once: X^2, X^3, X^3 S per Horner step, S S per
+        # squaring; with tangents d(out) = d(left) right + left d(right)
+        for op in range(2 + blocks + squarings):
+            if op < 2:
+                out, left, right = op + 1, op, 0
+            elif op < 2 + blocks:
+                out, left, right = 4, 2, 3
+            else:
+                out, left, right = 4, 3, 3
+            if op == 2:  # the last block first: S = sum_{r<3} coef[3 blocks + r] X^r
+                for i in range(size):
+                    for j in range(size):
+                        a = coef[3 * blocks] if i == j else 0.0
+                        work[3, i, j] = a + coef[3 * blocks + 1] * work[0, i, j] + coef[3 * blocks + 2] * work[1, i, j]
+                        for q in range(n_p):
+                            dwork[3, q, i, j] = (
+                                coef[3 * blocks + 1] * dwork[0, q, i, j] + coef[3 * blocks + 2] * dwork[1, q, i, j]
+                            )
+            for i in range(size):
+                for j in range(size):
+                    acc = 0.0
+                    for k in range(size):
+                        acc += work[left, i, k] * work[right, k, j]
+                    work[out, i, j] = acc
+                    for q in range(n_p):
+                        acc = 0.0
+                        for k in range(size):
+                            acc += dwork[left, q, i, k] * work[right, k, j] + work[left, i, k] * dwork[right, q, k, j]
+                        dwork[out, q, i, j] = acc
+            if 2 <= op < 2 + blocks:  # S = X^3 S + sum_{r<3} coef[3 block + r] X^r
+                block = blocks - 1 - (op - 2)
+                for i in range(size):
+                    for j in range(size):
+                        a = coef[3 * block] if i == j else 0.0
+                        work[3, i, j] = work[4, i, j] + (
+                            a + coef[3 * block + 1] * work[0, i, j] + coef[3 * block + 2] * work[1, i, j]
+                        )
+                        for q in range(n_p):
+                            dwork[3, q, i, j] = dwork[4, q, i, j] + (
+                                coef[3 * block + 1] * dwork[0, q, i, j] + coef[3 * block + 2] * dwork[1, q, i, j]
+                            )
+            elif op >= 2 + blocks:
+                for i in range(size):
+                    for j in range(size):
+                        work[3, i, j] = work[4, i, j]
+                        for q in range(n_p):
+                            dwork[3, q, i, j] = dwork[4, q, i, j]
+        for i in range(size):  # D back: F = D exp(X) D^-1
+            for j in range(size):
+                ratio = d[b, i] / d[b, j]
+                work[3, i, j] *= ratio
+                for q in range(n_p):
+                    dwork[3, q, i, j] *= ratio
+        # exp(Van Loan) = [[phi, F1, F2], ...]; FOH: g0 = F1 - F2, g1 = F2; ZOH: g0 = F1, g1 = 0. W = [c | g0 | phi]
+        # with c = g0 + phi g1 (M > 1; M = 1: Lam = (g0, g1)), then W times phi from the left M - 1 times (folding).
+        S, dS = work[3], dwork[3]
+        for i in range(n):
+            for c in range(m):
+                f1, f2 = S[i, n + c], S[i, n + m + c]
+                g0 = f1 if zoh else f1 - f2
+                g1 = 0.0 if zoh else f2
+                lam_out[b, m_sub, i, c] = g1
+                W[i, c] = g0
+                W[i, m + c] = g0
+                if m_sub > 1:
+                    for k in range(n):
+                        W[i, c] += S[i, k] * (0.0 if zoh else S[k, n + m + c])
+                for q in range(n_p):
+                    df1, df2 = dS[q, i, n + c], dS[q, i, n + m + c]
+                    dg0 = df1 if zoh else df1 - df2
+                    dg1 = 0.0 if zoh else df2
+                    dlam_out[b, q, m_sub, i, c] = dg1
+                    dW[q, i, c] = dg0
+                    dW[q, i, m + c] = dg0
+                    if m_sub > 1 and not zoh:
+                        for k in range(n):
+                            dW[q, i, c] += dS[q, i, k] * S[k, n + m + c] + S[i, k] * dS[q, k, n + m + c]
+            for k in range(n):
+                W[i, 2 * m + k] = S[i, k]
+                for q in range(n_p):
+                    dW[q, i, 2 * m + k] = dS[q, i, k]
+        for step in range(m_sub):
+            if step > 0:
+                for i in range(n):
+                    for j in range(width):
+                        acc = 0.0
+                        for k in range(n):
+                            acc += S[i, k] * W[k, j]
+                        W_next[i, j] = acc
+                        for q in range(n_p):
+                            acc = 0.0
+                            for k in range(n):
+                                acc += dS[q, i, k] * W[k, j] + S[i, k] * dW[q, k, j]
+                            dW_next[q, i, j] = acc
+                W, W_next = W_next, W
+                dW, dW_next = dW_next, dW
+            for i in range(n):
+                for c in range(m):
+                    row = m_sub - 1 - step if step < m_sub - 1 else 0
+                    col = c if step < m_sub - 1 else m + c
+                    lam_out[b, row, i, c] = W[i, col]
+                    for q in range(n_p):
+                        dlam_out[b, q, row, i, c] = dW[q, i, col]
+        for i in range(n):
+            for k in range(n):
+                phi_out[b, i, k] = W[i, 2 * m + k]
+                for q in range(n_p):
+                    dphi_out[b, q, i, k] = dW[q, i, 2 * m + k]
+
+
 def _balance_loop(M, sweeps, damping, d):
     """_expm.balance per sample: M [b, N, N] -> d [b, N] (written), the same damped simultaneous updates."""
     batch, n = M.shape[0], M.shape[1]
@@ -566,6 +725,29 @@ def van_loan_maps(M: Tensor, d: Tensor, n: int, zoh: bool, m_sub: int, degree: i
     coef = _inverse_factorials(degree + 1)
     _kernel("_van_loan_loop")(_numpy(M), _numpy(d), int(n), bool(zoh), coef, float(theta), phi, lam)
     return torch.from_numpy(phi), torch.from_numpy(lam)
+
+
+def van_loan_tangent_maps(M: Tensor, dM: Tensor, d: Tensor, n: int, zoh: bool, m_sub: int, degree: int, theta: float):
+    """_expm.van_loan_maps_batch_first from the Van Loan matrices M [b, N, N], their derivatives dM [b, P, N, N] and
+    the balancing d [b, N]: (Phi [b, n, n], Lam [b, m_sub + 1, n, m], dPhi [b, P, n, n], dLam [b, P, m_sub + 1, n, m])."""
+    batch, size = M.shape[0], M.shape[1]
+    n_p = dM.shape[1]
+    _check("M", M.shape, (batch, size, size))
+    _check("dM", dM.shape, (batch, n_p, size, size))
+    _check("d", d.shape, (batch, size))
+    if (size - n) % 2 or size <= n or m_sub < 1 or degree % 3 != 2:
+        raise ValueError(
+            f"_kernels: van_loan_tangent_maps needs N = n + 2m, m_sub >= 1, degree 3k + 2; got {size}, {n}, {m_sub}, "
+            f"{degree}"
+        )
+    m = (size - n) // 2
+    phi, lam = np.empty((batch, n, n)), np.empty((batch, m_sub + 1, n, m))
+    dphi, dlam = np.empty((batch, n_p, n, n)), np.empty((batch, n_p, m_sub + 1, n, m))
+    coef = _inverse_factorials(degree + 1)
+    _kernel("_van_loan_tangent_loop")(
+        _numpy(M), _numpy(dM), _numpy(d), int(n), bool(zoh), coef, float(theta), phi, lam, dphi, dlam
+    )
+    return tuple(torch.from_numpy(x) for x in (phi, lam, dphi, dlam))
 
 
 def balance(M: Tensor, sweeps: int, damping: float) -> Tensor:
