@@ -779,10 +779,10 @@ def test_the_compiled_van_loan_maps_with_tangents_equal_the_block_exponential(ca
 
 
 def test_the_compiled_van_loan_maps_keep_a_non_finite_sample_to_itself():
-    """A NaN parameter gives that sample NaN maps; the batch's other samples get the maps they get alone (the
-    scaling is chosen from the finite samples), and a mismatched shape is refused in one line."""
+    """A NaN parameter gives that sample NaN maps, with and without tangents; the batch's other samples get the maps
+    they get alone (the scaling is chosen from the finite samples), and a mismatched shape is refused in one line."""
     from hybridqcm.estimation import _kernels
-    from hybridqcm.estimation._expm import van_loan_maps
+    from hybridqcm.estimation._expm import van_loan_maps, van_loan_maps_batch_first
 
     model = QuarterCarRoad()
     p = reference_params().expand(3, 10).clone()
@@ -793,6 +793,11 @@ def test_the_compiled_van_loan_maps_keep_a_non_finite_sample_to_itself():
         alone = van_loan_maps(model, p[i : i + 1], H, "spline", 4, False)
         torch.testing.assert_close(phi[..., i : i + 1], alone[0], rtol=0, atol=0)
         torch.testing.assert_close(lam[..., i : i + 1], alone[1], rtol=0, atol=0)
+    tangent = van_loan_maps_batch_first(model, p, H, "spline", 4)  # the fallback's maps, per sample
+    assert all(bool(x[1].isnan().all()) for x in tangent)
+    for i in (0, 2):
+        for got, alone in zip(tangent, van_loan_maps_batch_first(model, p[i : i + 1], H, "spline", 4)):
+            torch.testing.assert_close(got[i : i + 1], alone, rtol=0, atol=0)
     with pytest.raises(ValueError, match=r"^_kernels: d must be \[3, 8\], got \[3, 7\]$"):
         _kernels.van_loan_maps(torch.zeros(8, 8, 3, dtype=F64), torch.ones(3, 7, dtype=F64), 6, False, 4, 11, 0.25)
 
