@@ -43,7 +43,7 @@ Exact, Van Loan maps (_expm.van_loan_maps): a product S [r, k] T [k, c] with tan
     M - 1 products [n, n] [n, n + 2m].
 Exact outputs, recursion (exact._recursion_outputs): maps (no tangents); forcing 2 (T-1) M n m + 2 (T-1) n m;
     states 2 (T-1) n²; outputs T o (2 (n + m) - 1).
-Exact outputs, modal (exact_outputs for b <= 160 samples, _modal.modal_outputs): eigen-decomposition
+Exact outputs, modal (exact_outputs in torch for b <= 160 samples, _modal.modal_outputs): eigen-decomposition
     ≈ 25 n³ (real nonsymmetric, with vectors; Golub & Van Loan's estimate), complex inverse 8 n³
     (these two are LAPACK calls, estimated, not checked by tests/test_roofline.py), gamma, xi0, beta of
     the kept modes 8 (o n K + K n + K n m), the hold's weights ≈ 200 K + 44 (M+1) K, forcing of the psi

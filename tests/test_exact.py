@@ -616,6 +616,28 @@ def test_blocked_scan_matches_the_step_recursion(n_steps, rows, path, monkeypatc
     torch.testing.assert_close(free[..., 1, :], power * (dz0 + k * H * z0), rtol=1e-12, atol=1e-14)
 
 
+def test_the_compiled_scan_gives_the_same_numbers_stored_batch_first():
+    """_modal's basis buffer is stored batch first where the compiled scan runs (_basis_buffer): the loop then takes
+    one sample's steps in order. Each value takes the same operations as in a time-first buffer: equal bit for bit,
+    with and without the (z, dz) pairs."""
+    from hybridqcm.estimation import _kernels
+
+    g = torch.Generator().manual_seed(4)
+    n_steps, rows = 40, 9
+    rate = torch.complex(
+        -0.1 * torch.rand(rows, 3, 2, 2, generator=g, dtype=F64), torch.rand(rows, 3, 2, 2, generator=g, dtype=F64)
+    )
+    forcing = torch.complex(*torch.randn(2, n_steps, rows, 3, 2, 2, generator=g, dtype=F64))
+    for h in (None, H):
+        time_first = forcing.clone()
+        batch_first = forcing.transpose(0, 1).contiguous().transpose(0, 1)
+        assert batch_first.stride(1) > batch_first.stride(0)
+        _kernels.modal_scan(time_first, rate, h)
+        _kernels.modal_scan(batch_first, rate, h)
+        assert torch.equal(batch_first, time_first)
+        assert not torch.equal(time_first, forcing)
+
+
 @pytest.mark.parametrize("with_x0", [False, True])
 def test_the_compiled_state_recursion_equals_the_torch_steps(with_x0, monkeypatch):
     """exact._primal_states, x_(k+1) = Phi x_k + F_k per sample, by the compiled loop against the torch steps and
@@ -840,6 +862,98 @@ def test_the_compiled_modes_equal_torchs_and_rebuild_A(sort, monkeypatch):
     if sort:  # the upper members of the pairs first, then the real ones
         key = torch.where(lam.imag > 0, 0, torch.where(lam.imag == 0, 1, 2))
         assert bool((key[good].diff(dim=1) >= 0).all())
+
+
+def _person_case(name: str, batch: int, n_in: int, seed: int):
+    """A person (one or two body modes) on the road-free seat or in the quarter car, parameters scattered by 30 %
+    around a 5 Hz body: derivatives per sample (the models are not linear in their parameters)."""
+    from hybridqcm.physics.linear_models import QuarterCarOccupantRoad, SeatOccupantBaseExcitation
+
+    g = torch.Generator().manual_seed(seed)
+    n_modes = 2 if name.endswith("2") else 1
+    body = []
+    for r, f, zeta in ((0.6, 5.0, 0.4), (0.3, 9.0, 0.3))[:n_modes]:
+        w = 2 * math.pi * f
+        body += [r, w * w, 2 * zeta * w]
+    vehicle = synthetic_samples(batch, n_steps=2, seed=seed)["params"].to(F64)
+    if name.startswith("seat"):
+        model, base = SeatOccupantBaseExcitation(n_modes), vehicle[:, :2]
+    else:
+        model, base = QuarterCarOccupantRoad(n_modes), vehicle
+    p = torch.cat([base, torch.tensor(body, dtype=F64).expand(batch, -1)], 1)
+    p = p * (1 + 0.3 * torch.rand(p.shape, generator=g, dtype=F64) - 0.15)
+    w = torch.randn(batch, n_in, 1, generator=g, dtype=F64) * (0.01 if name.startswith("quarter") else 1.0)
+    return model, p, w
+
+
+@pytest.mark.parametrize("case", ["quarter", "sprung", "seat_body1", "seat_body2", "quarter_body1"])
+def test_the_compiled_modal_coefficients_equal_torchs(case, monkeypatch):
+    """modal_sensitivities with its coefficients (V^-1 dA_j V, the Sylvester terms, the real form's weights) from the
+    compiled loop and from torch's ops: the same ok flags and the same result to rounding, for a linear model's
+    shared derivatives and a person's per-sample ones, with x0 or from rest, with x0's columns or not, with the
+    targets' columns or not; a sample with a NaN and one damped nearly critically (the spread test) are not ok on
+    both paths and change no other sample. The modal result against the step recursion, an independent evaluation
+    (test_modal_evaluation_matches_the_step_recursion's bound)."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import balance
+    from hybridqcm.estimation._modal import modal_sensitivities
+
+    batch = 12
+    if case in ("quarter", "sprung"):
+        model, p, w = _random_case(case, batch, 110, seed=21)
+    else:
+        model, p, w = _person_case(case, batch, 110, seed=21)
+    A, B, C, E = model.matrices(p)
+    derivatives = model.matrix_derivatives(p)
+    A = A.clone()
+    A[3, 0, 0] = math.nan
+    fine = held_input(w, "spline", 4, 8, 100).permute(2, 1, 0)
+    x0 = _x0(batch, model.n_state, seed=8)
+    targets = torch.randn(batch, 100, model.n_output, generator=torch.Generator().manual_seed(2), dtype=F64)
+    assert _kernels.applies(A)
+    for x, with_x0, t in [(x0, True, targets), (None, False, None), (x0, False, None), (None, True, targets)]:
+        args = ((A, B, C, E), derivatives, balance(A), x, fine, w[:, 8:108], H, "spline", with_x0, t)
+        compiled, ok = modal_sensitivities(*args)
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+        reference, ok_reference = modal_sensitivities(*args)
+        monkeypatch.delenv("HYBRIDQCM_KERNELS")
+        assert torch.equal(ok, ok_reference) and not ok[3] and int(ok.sum()) >= batch - 2
+        assert _column_error(compiled[ok], reference[ok]) <= 1e-12
+        good = ok.nonzero().flatten()
+        recursion = exact_sensitivities(
+            model, p[good], None if x is None else x[good], w[good], H, "spline", 4, with_x0, 8, 100, method="recursion"
+        )
+        if t is not None:
+            recursion[..., 0] -= t[good]
+        assert _column_error(compiled[good], recursion) <= 1e-9
+    seat = SeatBaseExcitation()
+    p2 = torch.tensor([400.0, 150.0], dtype=F64)
+    p_seat = torch.stack([2 * p2.sqrt() * (1 + torch.tensor([1e-6, 1e-1], dtype=F64)), p2], 1)  # one nearly double
+    A, B, C, E = seat.matrices(p_seat)
+    fine = held_input(w[:2], "spline", 4, 8, 100).permute(2, 1, 0)
+    args = ((A, B, C, E), seat.matrix_derivatives(p_seat), balance(A), None, fine, w[:2, 8:108], H, "spline", False)
+    compiled, ok = modal_sensitivities(*args)
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference, ok_reference = modal_sensitivities(*args)
+    assert ok.tolist() == ok_reference.tolist() == [False, True]
+    assert _column_error(compiled[1:], reference[1:]) <= 1e-12
+
+
+def test_the_compiled_modal_coefficients_refuse_a_wrong_shape():
+    """The loop indexes without bounds checks: a derivative of the wrong shape is one line naming it."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import balance
+    from hybridqcm.estimation._modal import _modes
+
+    model, p, _ = _random_case("seat", 3, 10, seed=1)
+    A, B, C, E = model.matrices(p)
+    dA, dB, dC, dE = model.matrix_derivatives(p)
+    lam, V, V_inv, cond, ok, omega = _modes(A, balance(A))
+    with pytest.raises(ValueError, match=r"^_kernels: dA must be \[3, 2, 2, 2\], got \[3, 2, 2, 3\]$"):
+        _kernels.modal_coefficients(
+            lam, V, V_inv, cond, ok, (A, B, C, E), (torch.zeros(3, 2, 2, 3, dtype=F64), dB, dC, dE), None, False,
+            omega, 0, 12, (1e5, 1e3),
+        )  # fmt: skip
 
 
 @pytest.mark.parametrize("delta", [0.0, 1e-8, -1e-8, 1e-6, 1e-2])

@@ -2,8 +2,9 @@
 tangents, the modal basis' scan, the exact model's state recursion and, for the few samples the modal path leaves,
 its state-and-tangent recursion and Van Loan maps with tangents; the Van Loan maps of the line search's outputs (the
 exponential and the folded sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
-modes' hold weights, the balancing, the eigenvectors' inverse and order), whose torch form is tens of small ops a
-call, the cost of a line search's trial at a few recordings.
+modes' hold weights, the balancing, the eigenvectors' inverse and order, and the coefficients of the basis: V^-1 dA_j V,
+the Sylvester terms and the real form's weights), whose torch form is tens of small ops a call, the cost of a line
+search's trial at a few recordings (the coefficients: ~60 ops over [b, 1 + m, 2, K, o, W] complex tensors).
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
@@ -157,9 +158,20 @@ def _euler_loop(params, road, h, scaled, x0, has_x0, with_x0, targets, has_targe
 
 
 def _scan_loop(Z, mu, h, n_slot):
-    """In place over Z [T, b, R] complex (rows may be strided), mu [b, R]: Z[k] <- mu Z[k - 1] + Z[k]; with
-    n_slot K > 0 each row is R = groups x (z | dz) x K and dz[k] += h z[k] follows each step."""
+    """In place over Z [T, b, R] complex (rows may be strided; stored time or batch first), mu [b, R]: Z[k] <- mu
+    Z[k - 1] + Z[k]; with n_slot K > 0 each row is R = groups x (z | dz) x K and dz[k] += h z[k] follows each step.
+    The loops run in the order of the storage; each value takes the same operations in either."""
     n_steps, batch, width = Z.shape
+    if Z.strides[1] > Z.strides[0]:  # stored batch first: one sample's steps in order, its rows in cache
+        for b in range(batch):
+            for k in range(1, n_steps):
+                for i in range(width):
+                    Z[k, b, i] += mu[b, i] * Z[k - 1, b, i]
+                if n_slot > 0:
+                    for g in range(width // (2 * n_slot)):
+                        for s in range(n_slot):
+                            Z[k, b, (2 * g + 1) * n_slot + s] += h * Z[k, b, 2 * g * n_slot + s]
+        return
     for k in range(1, n_steps):
         for b in range(batch):
             for i in range(width):
@@ -622,10 +634,208 @@ def _modes_loop(lam_in, Vb, scale, sort, work, lam, V, V_inv, cond, ok, n_first)
                 V_inv[b, s, i] = (work[k, n + i] if invertible else 0.0) / scale[b, i]
 
 
+def _coefficients_loop(lam, V, V_inv, cond, B, C, E, dA, dB, dC, dE, x0, has_x0, with_x0, omega, n_t, limit,
+                       limit_real, coef_all, ok):  # fmt: skip
+    """_modal._coefficients per sample (its notation): lam [b, n], V, V_inv [b, n, n] (complex), cond [b]; B, C, E
+    and dA, dB, dC, dE with a leading dimension of b, or of 1 where one value serves every sample (a linear
+    model's derivatives); x0 [b or 1, n] (read where has_x0); omega [b, K] -> coef_all [b, width, o n_col] and ok
+    [b] (in: _modes' flags; out: and the spread test and finite coefficients). dA_j is sparse (a parameter enters a
+    few entries of A): its zero entries and rows are skipped, which changes no sum."""
+    batch, n = lam.shape
+    m, o, n_p = B.shape[2], C.shape[1], dA.shape[1]
+    n_slot = omega.shape[1]
+    n_col = 1 + n_p + (n if with_x0 else 0)
+    width, n_out = coef_all.shape[1], coef_all.shape[2]
+    n_real = 4 * n_slot * (m + 1)
+    beta = np.empty((n, m), dtype=np.complex128)
+    gamma = np.empty((o, n), dtype=np.complex128)
+    dAV = np.empty((n, n), dtype=np.complex128)
+    rows = np.empty(n, dtype=np.int64)  # the rows of dA_j with a non-zero entry
+    K = np.empty((n_p, n, n), dtype=np.complex128)  # [j, i, l] = (V^-1 dA_j V)_il
+    S = np.empty((n_p, n, n), dtype=np.complex128)
+    xi0 = np.zeros(n, dtype=np.complex128)
+    R = np.empty((1 + m, 2, n_slot, n_col), dtype=np.complex128)
+    Q = np.empty((1 + m, n_slot), dtype=np.complex128)
+    Gam = np.empty((o, n_p, n_slot), dtype=np.complex128)
+    for b in range(batch):
+        bB = b if B.shape[0] > 1 else 0
+        bC = b if C.shape[0] > 1 else 0
+        bE = b if E.shape[0] > 1 else 0
+        bA = b if dA.shape[0] > 1 else 0
+        bdB = b if dB.shape[0] > 1 else 0
+        bdC = b if dC.shape[0] > 1 else 0
+        bdE = b if dE.shape[0] > 1 else 0
+        bx = b if x0.shape[0] > 1 else 0
+        # cond(V) max|lambda| / |lambda_i - lambda_l| within the limits (a NaN fails, as in torch)
+        good = ok[b]
+        largest = 0.0
+        for i in range(n):
+            largest = max(largest, abs(lam[b, i]))
+        numerator = cond[b] * largest
+        for i in range(n):
+            for l in range(n):
+                if i != l:
+                    both_real = lam[b, i].imag == 0 and lam[b, l].imag == 0
+                    if not numerator / abs(lam[b, i] - lam[b, l]) <= (limit_real if both_real else limit):
+                        good = False
+        for i in range(n):
+            for c in range(m):
+                acc = 0j
+                for j in range(n):
+                    acc += V_inv[b, i, j] * B[bB, j, c]
+                beta[i, c] = acc
+        for r in range(o):
+            for i in range(n):
+                acc = 0j
+                for j in range(n):
+                    acc += C[bC, r, j] * V[b, j, i]
+                gamma[r, i] = acc
+        for p in range(n_p):
+            n_used = 0
+            for j in range(n):
+                for l in range(n):
+                    dAV[j, l] = 0j
+                used = False
+                for q in range(n):
+                    a = dA[bA, p, j, q]
+                    if a != 0.0:
+                        used = True
+                        for l in range(n):
+                            dAV[j, l] += a * V[b, q, l]
+                if used:
+                    rows[n_used] = j
+                    n_used += 1
+            for i in range(n):
+                for l in range(n):
+                    acc = 0j
+                    for u in range(n_used):
+                        acc += V_inv[b, i, rows[u]] * dAV[rows[u], l]
+                    K[p, i, l] = acc
+                    gap = lam[b, i] - lam[b, l]
+                    if i == l:
+                        S[p, i, l] = 0j
+                    elif gap != 0:
+                        S[p, i, l] = -(acc / gap)
+                    else:  # a double eigenvalue (the spread test has failed): numba's complex division would raise
+                        S[p, i, l] = complex(np.nan, np.nan)
+        if has_x0:
+            for i in range(n):
+                acc = 0j
+                for j in range(n):
+                    acc += V_inv[b, i, j] * x0[bx, j]
+                xi0[i] = acc
+        R[:] = 0j
+        Q[:] = 0j
+        for k in range(n_slot):
+            if has_x0:
+                R[0, 0, k, 0] = xi0[k]
+                Q[0, k] = xi0[k]
+                for p in range(n_p):
+                    acc = 0j
+                    for l in range(n):
+                        acc += S[p, k, l] * xi0[l]
+                    R[0, 0, k, 1 + p] = -acc
+                    R[0, 1, k, 1 + p] = K[p, k, k] * xi0[k]
+            if with_x0:
+                for j in range(n):
+                    R[0, 0, k, 1 + n_p + j] = V_inv[b, k, j]
+            for c in range(m):
+                R[1 + c, 0, k, 0] = beta[k, c]
+                Q[1 + c, k] = beta[k, c]
+                for p in range(n_p):
+                    acc = 0j
+                    for l in range(n):
+                        acc += V_inv[b, k, l] * dB[bdB, p, l, c]
+                    sylvester = 0j
+                    for l in range(n):
+                        sylvester += S[p, k, l] * beta[l, c]
+                    R[1 + c, 0, k, 1 + p] = acc - sylvester
+                    R[1 + c, 1, k, 1 + p] = K[p, k, k] * beta[k, c]
+        for r in range(o):
+            for p in range(n_p):
+                for k in range(n_slot):
+                    acc = 0j
+                    for q in range(n):
+                        acc += dC[bdC, p, r, q] * V[b, q, k]
+                    sylvester = 0j
+                    for i in range(n):
+                        sylvester += gamma[r, i] * S[p, i, k]
+                    Gam[r, p, k] = acc + sylvester
+        for row in range(width):
+            for col in range(n_out):
+                coef_all[b, row, col] = 0.0
+        for ch in range(1 + m):
+            for kind in range(2):
+                for k in range(n_slot):
+                    row = ((ch * 2 + kind) * n_slot + k) * 2
+                    w = omega[b, k]
+                    for r in range(o):
+                        g = gamma[r, k].conjugate() * w
+                        for col in range(n_col):
+                            value = g * R[ch, kind, k, col].conjugate()
+                            if kind == 0 and 1 <= col <= n_p:
+                                value += Gam[r, col - 1, k].conjugate() * w * Q[ch, k].conjugate()
+                            coef_all[b, row, r * n_col + col] = value.real
+                            coef_all[b, row + 1, r * n_col + col] = value.imag
+        for c in range(m):
+            for r in range(o):
+                coef_all[b, n_real + c, r * n_col] = E[bE, r, c]
+                for p in range(n_p):
+                    coef_all[b, n_real + c, r * n_col + 1 + p] = dE[bdE, p, r, c]
+        for r in range(n_t):
+            coef_all[b, n_real + m + r, r * n_col] = -1.0
+        total = 0.0
+        for row in range(width):
+            for col in range(n_out):
+                total += coef_all[b, row, col]
+        ok[b] = good and np.isfinite(total)
+
+
 def _check(name: str, got, want) -> None:
     """The loops index without bounds checks (numba's default): a shape that does not match is refused here."""
     if tuple(got) != tuple(want):
         raise ValueError(f"_kernels: {name} must be {list(want)}, got {list(got)}")
+
+
+def _per_sample(t: Tensor) -> np.ndarray:
+    """A [b, ...] float64 argument for the loops that index it per sample: one row where every sample shares it (an
+    expanded view, stride 0), else contiguous."""
+    if t.shape[0] > 1 and t.stride(0) == 0:
+        t = t[:1]
+    return _numpy(t)
+
+
+def modal_coefficients(lam, V, V_inv, cond, ok, matrices, derivatives, x0, with_x0, omega, n_t, width, limits):
+    """_modal._coefficients (its arguments; ``limits`` = (_LIMIT, _LIMIT_REAL)) -> (coef_all [b, width, o n_col], ok
+    [b]) as _coefficients_loop writes them."""
+    _, B, C, E = matrices
+    dA, dB, dC, dE = derivatives
+    batch, n = lam.shape
+    m, o, n_p = B.shape[2], C.shape[1], dA.shape[1]
+    n_slot = omega.shape[1]
+    _check("V", V.shape, (batch, n, n))
+    _check("V_inv", V_inv.shape, (batch, n, n))
+    _check("B", B.shape, (batch, n, m))
+    _check("C", C.shape, (batch, o, n))
+    _check("E", E.shape, (batch, o, m))
+    _check("dA", dA.shape, (batch, n_p, n, n))
+    _check("dB", dB.shape, (batch, n_p, n, m))
+    _check("dC", dC.shape, (batch, n_p, o, n))
+    _check("dE", dE.shape, (batch, n_p, o, m))
+    if x0 is not None:
+        _check("x0", x0.shape, (batch, n))
+    if omega.shape[0] != batch or n_slot > n or width < 4 * n_slot * (m + 1) + m + n_t:
+        raise ValueError(f"_kernels: omega {list(omega.shape)} or width {width} do not fit lam {list(lam.shape)}")
+    n_col = 1 + n_p + (n if with_x0 else 0)
+    coef_all = np.empty((batch, width, o * n_col))
+    flags = ok.to(torch.bool).clone().numpy()
+    complex_values = (t.detach().to(torch.complex128).contiguous().numpy() for t in (lam, V, V_inv))
+    _kernel("_coefficients_loop")(
+        *complex_values, _numpy(cond), *(_per_sample(t) for t in (B, C, E, dA, dB, dC, dE)),
+        np.zeros((1, n)) if x0 is None else _numpy(x0), x0 is not None, bool(with_x0), _numpy(omega), int(n_t),
+        float(limits[0]), float(limits[1]), coef_all, flags,
+    )  # fmt: skip
+    return torch.from_numpy(coef_all), torch.from_numpy(flags)
 
 
 def linear_states(phi: Tensor, forcing: Tensor, states: Tensor) -> None:

@@ -54,6 +54,7 @@ from torch import Tensor
 from ._blas import batched_matmul as _matmul
 from ._kernels import applies as _compiled_applies
 from ._kernels import hold_weights as _compiled_hold_weights
+from ._kernels import modal_coefficients as _compiled_coefficients
 from ._kernels import modal_scan as _compiled_scan
 from ._kernels import modes as _compiled_modes
 
@@ -211,6 +212,16 @@ def _modes(A: Tensor, scale: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Te
     return lam, V, V_inv, cond, ok, omega
 
 
+def _basis_buffer(T: int, batch: int, width: int, device) -> Tensor:
+    """The basis buffer as a time-first view [T, b, width]. Stored batch first where the compiled scan runs: its loop
+    takes one sample's steps in order, and the final product reads each sample's rows contiguously (time first,
+    that product ran 1.3x longer at 512 recordings a chunk); time first for torch's scan, where one step over the
+    whole batch is one op."""
+    if _compiled_applies(torch.empty(0, dtype=_CDTYPE, device=device)):
+        return torch.empty(batch, T, width, dtype=torch.float64, device=device).transpose(0, 1)
+    return torch.empty(T, batch, width, dtype=torch.float64, device=device)
+
+
 def _held_rows(fine: Tensor, T: int) -> Tensor:
     """fine [b, m, M + (T - 1) M + 1] (M leading zeros) -> [b, T, (c, j)] (a copy): row k holds
     s_{k-1, 0..M} of every input channel (row 0: the padding, zeros)."""
@@ -254,6 +265,65 @@ def _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot):
     return dlam, S_kept, beta2, Gam
 
 
+def _coefficients(lam, V, V_inv, cond, ok, matrices, derivatives, x0, with_x0, omega, n_t, width):
+    """modal_sensitivities' coefficients (its notation and arguments; lam, V, V^-1, cond and ok from _modes) in
+    torch: -> (coef_all [b, width, o (1 + P (+ n))] real, ok [b] with the spread and finiteness checks applied).
+    Rows (channel, kind, slot, Re/Im) of the basis, then the inputs w, then the targets (coefficient -1 on their
+    output's column 0), then zero padding."""
+    A, B, C, E = matrices
+    dA, dB, dC, dE = derivatives
+    batch, n, m = B.shape
+    o, n_params = C.shape[1], dA.shape[1]
+    n_col = 1 + n_params + (n if with_x0 else 0)
+    dev = A.device
+    n_slot = omega.shape[1]
+    diff = lam[:, :, None] - lam[:, None, :]  # [b, i, l] lambda_i - lambda_l
+    eye = torch.eye(n, dtype=torch.bool, device=dev)
+    both_real = (lam.imag == 0)[:, :, None] & (lam.imag == 0)[:, None, :]
+    spread = (cond * lam.abs().amax(-1))[:, None, None] / diff.abs().masked_fill(eye, math.inf)  # [b, i, l]
+    ok = ok & (spread <= torch.where(both_real, _LIMIT_REAL, _LIMIT)).all(-1).all(-1)
+
+    # K_j = V^-1 dA_j V, S_j, and per kept mode l < K: beta''_j (rows l of S), Gam_j = gamma S_j +
+    # dC_j V (columns l), eta_j(0) = -S_j xi0
+    beta = _matmul(V_inv, B.to(_CDTYPE))  # [b, n, m]
+    gamma = _matmul(C.to(_CDTYPE), V)  # [b, o, n]
+    dlam, S_kept, beta2, Gam = _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot)
+
+    # Coefficients [b, channel, kind, slot, o, col], channels (e, f) then (psi_c, chi_c): every one
+    # is gamma_l R[channel, kind, l, col] plus, in the p columns of kind 0, Gam_j,l Q[channel, l]
+    # (the Sylvester term), so R and Q are built per slot and multiplied out once; the real form's
+    # conjugate and weight omega go into the factors.
+    R = torch.zeros(batch, 1 + m, 2, n_slot, n_col, dtype=_CDTYPE, device=dev)
+    Q = torch.zeros(batch, 1 + m, n_slot, dtype=_CDTYPE, device=dev)
+    beta_t = beta[:, :n_slot].transpose(1, 2)  # [b, c, K]
+    if x0 is not None:
+        xi0 = _matmul(V_inv, x0.to(_CDTYPE)[..., None])  # [b, n, 1]
+        R[:, 0, 0, :, 0] = Q[:, 0] = xi0[:, :n_slot, 0]
+        R[:, 0, 0, :, 1 : 1 + n_params] = -_matmul(S_kept, xi0).view(batch, n_slot, n_params)
+        R[:, 0, 1, :, 1 : 1 + n_params] = (dlam * xi0[:, None, :n_slot, 0]).transpose(1, 2)
+    if with_x0:
+        R[:, 0, 0, :, 1 + n_params :] = V_inv[:, :n_slot]
+    R[:, 1:, 0, :, 0] = Q[:, 1:] = beta_t
+    R[:, 1:, 0, :, 1 : 1 + n_params] = beta2.permute(0, 3, 1, 2)
+    R[:, 1:, 1, :, 1 : 1 + n_params] = dlam.transpose(1, 2)[:, None] * beta_t[..., None]
+    g = gamma[:, :, :n_slot].conj().transpose(1, 2) * omega[:, :, None]  # [b, K, o]
+    coef = g[:, None, None, :, :, None] * R.conj()[:, :, :, :, None, :]  # [b, 1 + m, 2, K, o, col]
+    coef[:, :, 0, :, :, 1 : 1 + n_params] += (Gam.conj() * omega[:, None, None, :]).permute(0, 3, 1, 2)[
+        :, None
+    ] * Q.conj()[..., None, None]
+    n_real = 4 * n_slot * (m + 1)
+    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | targets | 0)
+    if n_t:
+        coef_all[:, n_real + m : n_real + m + o].view(batch, o, o, n_col).diagonal(dim1=1, dim2=2)[:, 0] = -1.0
+    coef_all[:, :n_real].view(batch, 1 + m, 2, n_slot, 2, o, n_col).copy_(
+        torch.view_as_real(coef).permute(0, 1, 2, 3, 6, 4, 5)
+    )
+    coef_w = coef_all[:, n_real : n_real + m].view(batch, m, o, n_col)
+    coef_w[..., : 1 + n_params] = torch.cat([E[:, None], dE], 1).permute(0, 3, 2, 1)  # y and dy/dp: E w, dE w
+    ok &= torch.isfinite(coef_all.sum((1, 2)))
+    return coef_all, ok
+
+
 def modal_sensitivities(
     matrices: tuple[Tensor, Tensor, Tensor, Tensor],
     derivatives: tuple[Tensor, Tensor, Tensor, Tensor],
@@ -286,52 +356,16 @@ def modal_sensitivities(
 
     lam, V, V_inv, cond, ok, omega = _modes(A, scale)
     n_slot = omega.shape[1]  # K: the modes 0..K-1 are propagated
-    diff = lam[:, :, None] - lam[:, None, :]  # [b, i, l] lambda_i - lambda_l
-    eye = torch.eye(n, dtype=torch.bool, device=dev)
-    both_real = (lam.imag == 0)[:, :, None] & (lam.imag == 0)[:, None, :]
-    spread = (cond * lam.abs().amax(-1))[:, None, None] / diff.abs().masked_fill(eye, math.inf)  # [b, i, l]
-    ok &= (spread <= torch.where(both_real, _LIMIT_REAL, _LIMIT)).all(-1).all(-1)
-
-    # K_j = V^-1 dA_j V, S_j, and per kept mode l < K: beta''_j (rows l of S), Gam_j = gamma S_j +
-    # dC_j V (columns l), eta_j(0) = -S_j xi0
-    beta = _matmul(V_inv, B.to(_CDTYPE))  # [b, n, m]
-    gamma = _matmul(C.to(_CDTYPE), V)  # [b, o, n]
-    dlam, S_kept, beta2, Gam = _derivative_terms(derivatives, V, V_inv, beta, gamma, diff, n_slot)
-
-    # Coefficients [b, channel, kind, slot, o, col], channels (e, f) then (psi_c, chi_c): every one
-    # is gamma_l R[channel, kind, l, col] plus, in the p columns of kind 0, Gam_j,l Q[channel, l]
-    # (the Sylvester term), so R and Q are built per slot and multiplied out once; the real form's
-    # conjugate and weight omega go into the factors.
-    R = torch.zeros(batch, 1 + m, 2, n_slot, n_col, dtype=_CDTYPE, device=dev)
-    Q = torch.zeros(batch, 1 + m, n_slot, dtype=_CDTYPE, device=dev)
-    beta_t = beta[:, :n_slot].transpose(1, 2)  # [b, c, K]
-    if x0 is not None:
-        xi0 = _matmul(V_inv, x0.to(_CDTYPE)[..., None])  # [b, n, 1]
-        R[:, 0, 0, :, 0] = Q[:, 0] = xi0[:, :n_slot, 0]
-        R[:, 0, 0, :, 1 : 1 + n_params] = -_matmul(S_kept, xi0).view(batch, n_slot, n_params)
-        R[:, 0, 1, :, 1 : 1 + n_params] = (dlam * xi0[:, None, :n_slot, 0]).transpose(1, 2)
-    if with_x0:
-        R[:, 0, 0, :, 1 + n_params :] = V_inv[:, :n_slot]
-    R[:, 1:, 0, :, 0] = Q[:, 1:] = beta_t
-    R[:, 1:, 0, :, 1 : 1 + n_params] = beta2.permute(0, 3, 1, 2)
-    R[:, 1:, 1, :, 1 : 1 + n_params] = dlam.transpose(1, 2)[:, None] * beta_t[..., None]
-    g = gamma[:, :, :n_slot].conj().transpose(1, 2) * omega[:, :, None]  # [b, K, o]
-    coef = g[:, None, None, :, :, None] * R.conj()[:, :, :, :, None, :]  # [b, 1 + m, 2, K, o, col]
-    coef[:, :, 0, :, :, 1 : 1 + n_params] += (Gam.conj() * omega[:, None, None, :]).permute(0, 3, 1, 2)[
-        :, None
-    ] * Q.conj()[..., None, None]
     n_real = 4 * n_slot * (m + 1)  # basis columns from the recursion: (channel, kind, slot, Re/Im)
     n_t = 0 if targets is None else o
     width = n_real + m + n_t + (m + n_t) % 2  # Z is a complex view of the buffer below: an even row width
-    coef_all = torch.zeros(batch, width, o * n_col, dtype=torch.float64, device=dev)  # rows: (Z | w | targets | 0)
-    if n_t:
-        coef_all[:, n_real + m : n_real + m + o].view(batch, o, o, n_col).diagonal(dim1=1, dim2=2)[:, 0] = -1.0
-    coef_all[:, :n_real].view(batch, 1 + m, 2, n_slot, 2, o, n_col).copy_(
-        torch.view_as_real(coef).permute(0, 1, 2, 3, 6, 4, 5)
-    )
-    coef_w = coef_all[:, n_real : n_real + m].view(batch, m, o, n_col)
-    coef_w[..., : 1 + n_params] = torch.cat([E[:, None], dE], 1).permute(0, 3, 2, 1)  # y and dy/dp: E w, dE w
-    ok &= torch.isfinite(coef_all.sum((1, 2)))
+    # rows of coef_all: (Z | w | targets | 0), columns (output, column of the result)
+    if _compiled_applies(V):
+        coef_all, ok = _compiled_coefficients(
+            lam, V, V_inv, cond, ok, matrices, derivatives, x0, with_x0, omega, n_t, width, (_LIMIT, _LIMIT_REAL)
+        )
+    else:
+        coef_all, ok = _coefficients(lam, V, V_inv, cond, ok, matrices, derivatives, x0, with_x0, omega, n_t, width)
     lam_s = lam[:, :n_slot]
 
     # The basis by one scalar recursion per slot: Z [T, b, 1 + m, 2, K] complex (time first: 5x
@@ -347,7 +381,7 @@ def modal_sensitivities(
     weights = torch.zeros(batch, m, m_sub + 1, m, 2, n_slot, 2, dtype=torch.float64, device=dev)
     for c in range(m):  # [b, (c, j), (channel - 1, kind, slot, re/im)]
         weights[:, c, :, c] = torch.view_as_real(torch.stack([ell, dell - h * ell], 2)).transpose(0, 1)
-    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)  # [k, b, (Z | w | 0)]
+    buffer = _basis_buffer(T, batch, width, dev)  # [k, b, (Z | w | 0)]
     buffer[:, :, :n_free] = 0
     buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
     if n_t:
@@ -413,7 +447,7 @@ def modal_outputs(
     weights = torch.zeros(batch, m, m_sub + 1, m, n_slot, 2, dtype=torch.float64, device=dev)
     for c in range(m):  # [b, (c, j), (channel psi_c, slot, re/im)]
         weights[:, c, :, c] = torch.view_as_real(ell).transpose(0, 1)
-    buffer = torch.empty(T, batch, width, dtype=torch.float64, device=dev)
+    buffer = _basis_buffer(T, batch, width, dev)
     buffer[:, :, :n_free] = 0
     buffer[:, :, n_real : n_real + m] = window.transpose(0, 1)
     buffer[:, :, n_real + m :] = 0

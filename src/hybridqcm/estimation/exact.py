@@ -88,10 +88,13 @@ _DTYPE = torch.float64
 # products, ~1 ms + 0.3 ms per quarter car at 16 sub-steps, T = 100), the batch-innermost recursion
 # above (~19 ms for any small batch).
 _STACKED_MAX = 32
-# exact_outputs(method="auto") takes the modal path up to this many samples and the recursion above:
-# the modal path costs fewer ops (1.6 vs 3.1 ms for 16 quarter cars, 16 sub-steps, T = 100), but
+# exact_outputs(method="auto") in torch's ops takes the modal path up to this many samples and the recursion
+# above: the modal path costs fewer ops (1.6 vs 3.1 ms for 16 quarter cars, 16 sub-steps, T = 100), but
 # its eigen-decompositions (~10 us per sample) make it the slower one from about 190 samples on
-# (8.5 vs 6.8 ms for 384).
+# (8.5 vs 6.8 ms for 384). With the compiled loops the recursion is the faster one at every batch size
+# (its Van Loan maps and steps are two loops; the modal path keeps LAPACK's eigen-decomposition): 0.48 vs
+# 0.94 ms for 1 seat, 1.10 vs 1.48 ms for 16 quarter cars, 14.3 vs 31.6 ms for 1024 (T = 100, 16 sub-steps;
+# docs/measurements/roofline.md, eleventh session).
 _MODAL_OUTPUTS_MAX = 160
 
 
@@ -206,15 +209,17 @@ def exact_outputs(
     near the window's edges as accurate as inside it. ``held``: held_input of the same inputs and
     window, if the caller has it (the same result, without recomputing it). ``method``: "modal"
     (as in exact_sensitivities: a few hundred ops per call where the recursion takes about a
-    thousand, which is what a line search's small batches cost), "recursion", or "auto" (default:
-    whichever is faster for the batch size, _MODAL_OUTPUTS_MAX); they agree to round-off.
+    thousand, which is what a line search's small batches cost in torch), "recursion", or "auto" (default:
+    whichever is faster: the recursion where the compiled loops run, else by the batch size, _MODAL_OUTPUTS_MAX);
+    they agree to round-off.
     """
     if method not in OUTPUT_METHODS:
         raise ValueError(f"exact: unknown method {method!r}; choose one of {OUTPUT_METHODS}")
     params, x0, inputs, start, T = _prepare(model, params, x0, inputs, h, hold, substeps, start, n_steps, spline_degree)
     held = _held(held, inputs, hold, substeps, start, T, spline_degree, window=T > 1)
     if method == "auto":
-        method = "modal" if params.shape[0] <= _MODAL_OUTPUTS_MAX else "recursion"
+        small = params.shape[0] <= _MODAL_OUTPUTS_MAX and not _compiled_applies(params)
+        method = "modal" if small else "recursion"
     if method == "recursion" or T == 1:
         return _recursion_outputs(model, params, x0, inputs, h, hold, substeps, start, T, held)
     A, B, C, E = model.matrices(params)
