@@ -94,6 +94,45 @@ def test_a_whole_sample_delay_is_the_input_shifted_by_one_sample():
     torch.testing.assert_close(delayed, shifted, rtol=0, atol=1e-5 * float(shifted.abs().max()))
 
 
+def test_the_compiled_delay_taps_equal_torchs_and_interpolate_a_cubic_exactly(monkeypatch):
+    """DelayedResponse._held (the held input at t - τ by four-point Lagrange taps on the fine grid) by the compiled
+    loop and by torch's gather: the same values and τ-derivatives to rounding, for delays before and after the
+    window, a whole fine step and beyond the margin (clamped alike). On a cubic in time the taps are exact: held
+    = the cubic at t - τ and its derivative in τ = -(its slope), an independent closed form."""
+    from hybridqcm.estimation import _kernels
+
+    h, start, n_steps = 0.01, 10, 120
+    response = DelayedResponse(ExactResponse(SeatBaseExcitation(), h, "spline", 16, "unknown"), 0.02)
+    tau = torch.tensor([0.0037, -0.0112, h / 16, 0.0, 0.05, -0.05], dtype=torch.float64)
+    drive = _drive(200).expand(tau.numel(), -1, -1).contiguous()
+    prepared = response.prepare(drive, start, n_steps)
+    assert _kernels.applies(prepared.held_by_sample)
+    compiled = [response._held(prepared, tau, derivative) for derivative in (True, False)]
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = [response._held(prepared, tau, derivative) for derivative in (True, False)]
+    for (held, dheld), (held_ref, dheld_ref) in zip(compiled, reference):
+        assert held.shape == held_ref.shape and held.stride() == held_ref.stride()
+        torch.testing.assert_close(held, held_ref, rtol=0, atol=1e-14 * float(held_ref.abs().max()))
+        if dheld_ref is None:
+            assert dheld is None
+        else:
+            torch.testing.assert_close(dheld, dheld_ref, rtol=0, atol=1e-14 * float(dheld_ref.abs().max()))
+    monkeypatch.delenv("HYBRIDQCM_KERNELS")
+    fine = response.fine_step
+    wide = prepared.held_by_sample
+    t = (torch.arange(wide.shape[2], dtype=torch.float64) - prepared.pad) * fine  # time of each fine sample
+    cubic = lambda x: 0.3 + 2.0 * x - 40.0 * x**2 + 900.0 * x**3  # noqa: E731
+    exact = type(prepared)(prepared.samples, cubic(t).expand_as(wide).contiguous(), start, n_steps, prepared.pad)
+    inside = tau[:4]  # within the margin: no clamp
+    held, dheld = response._held(exact[:4], inside)
+    m_sub = response.m_sub
+    times = t[prepared.pad : prepared.pad + held.shape[0] - m_sub][:, None] - inside[None, :]  # [n_fine, b]
+    slope = 2.0 - 80.0 * times + 2700.0 * times**2
+    torch.testing.assert_close(held[m_sub:, 0], cubic(times), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(dheld[m_sub:, 0], -slope, rtol=1e-9, atol=1e-9)
+    assert float(held[:m_sub].abs().max()) == 0.0 and float(dheld[:m_sub].abs().max()) == 0.0
+
+
 def test_delay_needs_samples_around_the_window():
     response = DelayedResponse(ExactResponse(SeatBaseExcitation(), 0.01, "spline", 16, "unknown"), 0.02)
     with pytest.raises(ValueError, match="input samples on both sides"):

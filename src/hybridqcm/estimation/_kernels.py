@@ -4,7 +4,8 @@ its state-and-tangent recursion and Van Loan maps with tangents; the Van Loan ma
 exponential and the folded sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
 modes' hold weights, the balancing, the eigenvectors' inverse and order, and the coefficients of the basis: V^-1 dA_j V,
 the Sylvester terms and the real form's weights), whose torch form is tens of small ops a call, the cost of a line
-search's trial at a few recordings (the coefficients: ~60 ops over [b, 1 + m, 2, K, o, W] complex tensors).
+search's trial at a few recordings (the coefficients: ~60 ops over [b, 1 + m, 2, K, o, W] complex tensors); and
+the channel delay's four-tap interpolation of the held input (a gather of the whole fine span in torch).
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
@@ -791,6 +792,22 @@ def _coefficients_loop(lam, V, V_inv, cond, B, C, E, dA, dB, dC, dE, x0, has_x0,
         ok[b] = good and np.isfinite(total)
 
 
+def _taps_loop(wide, first, w, lead, held):
+    """delay.DelayedResponse._held per sample: wide [b, m, W_wide], first [b] the index of tap 0 of fine sample 0, w
+    [b, 4] the Lagrange weights (or their derivatives) -> held [b, m, lead + n_fine]: ``lead`` zeros, then
+    sum_t w_t wide[first + f + t]."""
+    batch, n_in, width = held.shape
+    for b in range(batch):
+        f0 = first[b]
+        w0, w1, w2, w3 = w[b, 0], w[b, 1], w[b, 2], w[b, 3]
+        for c in range(n_in):
+            row = wide[b, c, f0:]
+            out = held[b, c, lead:]
+            held[b, c, :lead] = 0.0
+            for f in range(width - lead):
+                out[f] = row[f] * w0 + row[f + 1] * w1 + row[f + 2] * w2 + row[f + 3] * w3
+
+
 def _check(name: str, got, want) -> None:
     """The loops index without bounds checks (numba's default): a shape that does not match is refused here."""
     if tuple(got) != tuple(want):
@@ -836,6 +853,28 @@ def modal_coefficients(lam, V, V_inv, cond, ok, matrices, derivatives, x0, with_
         float(limits[0]), float(limits[1]), coef_all, flags,
     )  # fmt: skip
     return torch.from_numpy(coef_all), torch.from_numpy(flags)
+
+
+def delay_taps(wide: Tensor, first: Tensor, w: Tensor, dw: Tensor | None, lead: int, n_fine: int):
+    """delay.DelayedResponse._held's four-tap interpolation: wide [b, m, W_wide] float64, first [b] (int) the index of
+    tap 0 of the first fine sample, w and dw [b, 4] -> (held, dheld or None) [b, m, lead + n_fine] with ``lead``
+    leading zeros. Every tap inside wide (the caller clamps): checked here, as the loop indexes without checks."""
+    batch, n_in, n_wide = wide.shape
+    _check("w", w.shape, (batch, 4))
+    if dw is not None:
+        _check("dw", dw.shape, (batch, 4))
+    first_np = first.detach().to(torch.int64).contiguous().numpy()
+    if batch and (first_np.min() < 0 or first_np.max() + n_fine + 3 > n_wide):
+        raise ValueError(
+            f"_kernels: delay taps from {first_np.min()} to {first_np.max() + n_fine + 2} outside 0..{n_wide - 1}"
+        )
+    wide_np = _numpy(wide)
+    out = []
+    for weights in (w,) if dw is None else (w, dw):
+        values = np.empty((batch, n_in, lead + n_fine))
+        _kernel("_taps_loop")(wide_np, first_np, _numpy(weights), int(lead), values)
+        out.append(torch.from_numpy(values))
+    return out[0], (out[1] if dw is not None else None)
 
 
 def linear_states(phi: Tensor, forcing: Tensor, states: Tensor) -> None:

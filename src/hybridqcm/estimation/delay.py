@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ._kernels import applies as _compiled_applies
+from ._kernels import delay_taps as _compiled_taps
 from .exact import exact_outputs, exact_sensitivities
 from .hold import held_input
 from .response import ExactResponse, PreparedInputs, ResponseModel, _as_3d
@@ -134,6 +136,13 @@ class DelayedResponse(ResponseModel):
         base = position.floor()
         u = position - base
         w, dw = _lagrange(u)
+        if _compiled_applies(wide):  # the same sums per fine sample, compiled, straight into the exact layer's layout
+            held, dheld = _compiled_taps(wide, base.long() - 1, w, dw if derivative else None, self.m_sub, n_fine)
+            held = held.permute(2, 1, 0)
+            if not derivative:
+                return held, None
+            dheld[..., self.m_sub :] *= -1.0 / self.fine_step  # du/dτ = -1/Δ (the leading zeros stay +0)
+            return held, dheld.permute(2, 1, 0)
         # the four taps (offsets -1 .. 2) of every fine sample: one gather of the span, its sliding windows
         # [b, m, n_fine, 4] (a view), times the weights as one product (5x faster than a gather per tap)
         index = (base.long() - 1)[:, None] + torch.arange(n_fine + 3, device=wide.device)[None, :]
