@@ -130,12 +130,16 @@ def _persons(n_modes: int, b: int, seed: int = 0) -> torch.Tensor:
     return torch.stack(cols, 1)
 
 
+@pytest.mark.parametrize("path", ["kernel", "torch"])
 @pytest.mark.parametrize("n_modes, vehicle", [(1, False), (2, False), (1, True)])
-def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_modes, vehicle, monkeypatch):
+def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_modes, vehicle, path, monkeypatch):
     """The eigen form of H and dH against the per-frequency LU solve (a different code path) for persons on the
     seat and in the road-driven quarter car (three outputs, B depending on p), against central differences of H
     in the seat's parameters, and the same numbers when some samples are handed to the LU path (a batch split by the
-    conditioning limit)."""
+    conditioning limit). On the seat (one output, one input) the modal form runs as a compiled loop per sample and
+    frequency, or in torch's ops (``path``)."""
+    if path == "torch":
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
     model = SeatOccupantBaseExcitation(n_modes)
     p = _persons(n_modes, 12)
     if vehicle:
@@ -165,9 +169,12 @@ def test_modal_frequency_response_matches_the_lu_solve_and_finite_differences(n_
     torch.testing.assert_close(dmixed, dH, rtol=1e-10, atol=1e-12 * float(dH.abs().max()))
 
 
-def test_a_pole_on_the_axis_gives_no_response(monkeypatch):
+@pytest.mark.parametrize("path", ["kernel", "torch"])
+def test_a_pole_on_the_axis_gives_no_response(path, monkeypatch):
     """A trial step to a singular A (the seat spring at zero and the body's at zero): NaN at DC on either path,
-    as the line search expects (not a finite number from an infinite one)."""
+    as the line search expects (not a finite number from an infinite one); the modal form compiled or in torch."""
+    if path == "torch":
+        monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
     model = SeatOccupantBaseExcitation(1)
     p = _persons(1, 2)
     p[0, 1] = 0.0

@@ -4,8 +4,10 @@ its state-and-tangent recursion and Van Loan maps with tangents; the Van Loan ma
 exponential and the folded sub-steps, batch innermost: vectorised across samples); and the per-sample setup of the modal evaluation (the
 modes' hold weights, the balancing, the eigenvectors' inverse and order, and the coefficients of the basis: V^-1 dA_j V,
 the Sylvester terms and the real form's weights), whose torch form is tens of small ops a call, the cost of a line
-search's trial at a few recordings (the coefficients: ~60 ops over [b, 1 + m, 2, K, o, W] complex tensors); and
-the channel delay's four-tap interpolation of the held input (a gather of the whole fine span in torch).
+search's trial at a few recordings (the coefficients: ~60 ops over [b, 1 + m, 2, K, o, W] complex tensors); the
+channel delay's four-tap interpolation of the held input (a gather of the whole fine span in torch); and the noise
+model's frequency response of a one-output, one-input model (the road-free seat) with its derivatives, per sample
+and frequency (in torch [b, F, n^2] complex tensors and their batched products).
 
 Why: in torch each step of these recursions is a few small ops over the whole batch, each bound by its own
 dispatch and a pass over the chunk's memory (sensitivity.py: ~8 ops a step; _modal._scan and
@@ -808,6 +810,61 @@ def _taps_loop(wide, first, w, lead, held):
                 out[f] = row[f] * w0 + row[f + 1] * w1 + row[f + 2] * w2 + row[f + 3] * w3
 
 
+def _response_loop(lam, CV, WB, E, omega, K, dB, dC, dE, derivatives, H, dH):
+    """noise._response_modal for one output and one input, per sample and frequency: lam, CV = (C V)_i, WB = (V^-1 B)_i
+    [b, n]; E [b]; omega [F]; with ``derivatives`` K [b, P, n, n] = V^-1 dA_j V, dB [b, P, n] = V^-1 dB_j, dC [b, P, n]
+    = dC_j V, dE [b, P] -> H [b, F] and dH [b, P, F] (complex). With g_i = 1 / (j w - lambda_i):
+    H = E + sum_i CV_i WB_i g_i, and dH_j = dE_j + sum_(i<=l) M_j,il g_i g_l + sum_i N_j,i g_i with, per sample,
+    M_j,il = CV_i K_j,il WB_l + CV_l K_j,li WB_i (i < l; CV_i K_j,ii WB_i on the diagonal: g_i g_l is symmetric)
+    and N_j,i = CV_i dB_j,i + dC_j,i WB_i."""
+    batch, n = lam.shape
+    n_f = omega.shape[0]
+    n_p = K.shape[1]
+    n_pairs = n * (n + 1) // 2
+    r = np.empty(n, dtype=np.complex128)
+    g = np.empty(n, dtype=np.complex128)
+    G = np.empty(n_pairs, dtype=np.complex128)
+    M = np.empty((n_p, n_pairs), dtype=np.complex128)
+    N = np.empty((n_p, n), dtype=np.complex128)
+    for b in range(batch):
+        for i in range(n):
+            r[i] = CV[b, i] * WB[b, i]
+        if derivatives:
+            for p in range(n_p):
+                t = 0
+                for i in range(n):
+                    N[p, i] = CV[b, i] * dB[b, p, i] + dC[b, p, i] * WB[b, i]
+                    for l in range(i, n):
+                        M[p, t] = CV[b, i] * K[b, p, i, l] * WB[b, l]
+                        if l != i:
+                            M[p, t] += CV[b, l] * K[b, p, l, i] * WB[b, i]
+                        t += 1
+        for k in range(n_f):
+            real = 0.0
+            imag = 0.0
+            for i in range(n):
+                re = -lam[b, i].real
+                im = omega[k] - lam[b, i].imag
+                inv = 1.0 / (re * re + im * im)
+                real += (r[i].real * re + r[i].imag * im) * inv
+                imag += (r[i].imag * re - r[i].real * im) * inv
+                g[i] = complex(re * inv, -im * inv)
+            H[b, k] = complex(real, imag) + E[b]
+            if derivatives:
+                t = 0
+                for i in range(n):
+                    for l in range(i, n):
+                        G[t] = g[i] * g[l]
+                        t += 1
+                for p in range(n_p):
+                    acc = complex(dE[b, p], 0.0)
+                    for t in range(n_pairs):
+                        acc += M[p, t] * G[t]
+                    for i in range(n):
+                        acc += N[p, i] * g[i]
+                    dH[b, p, k] = acc
+
+
 def _check(name: str, got, want) -> None:
     """The loops index without bounds checks (numba's default): a shape that does not match is refused here."""
     if tuple(got) != tuple(want):
@@ -875,6 +932,34 @@ def delay_taps(wide: Tensor, first: Tensor, w: Tensor, dw: Tensor | None, lead: 
         _kernel("_taps_loop")(wide_np, first_np, _numpy(weights), int(lead), values)
         out.append(torch.from_numpy(values))
     return out[0], (out[1] if dw is not None else None)
+
+
+def one_channel_response(lam, CV, WB, E, omega, modal_derivatives=None):
+    """noise._response_modal for one output and one input: lam, CV, WB [b, n] complex, E [b], omega [F] (rad/s) and,
+    for dH, modal_derivatives = (V^-1 dA_j V [b, P, n, n], V^-1 dB_j [b, P, n], dC_j V [b, P, n], dE_j [b, P]) ->
+    (H [b, F], dH [b, P, F] or None) complex128, as _response_loop writes them."""
+    batch, n = lam.shape
+    _check("CV", CV.shape, (batch, n))
+    _check("WB", WB.shape, (batch, n))
+    _check("E", E.shape, (batch,))
+    cx = lambda t: t.detach().to(torch.complex128).contiguous().numpy()  # noqa: E731
+    derivatives = modal_derivatives is not None
+    if derivatives:
+        K, dB, dC, dE = modal_derivatives
+        n_p = K.shape[1]
+        _check("V^-1 dA V", K.shape, (batch, n_p, n, n))
+        _check("V^-1 dB", dB.shape, (batch, n_p, n))
+        _check("dC V", dC.shape, (batch, n_p, n))
+        _check("dE", dE.shape, (batch, n_p))
+        arrays = (cx(K), cx(dB), cx(dC), _numpy(dE))
+    else:
+        n_p = 0
+        arrays = (np.zeros((1, 1, 1, 1), np.complex128), np.zeros((1, 1, 1), np.complex128),
+                  np.zeros((1, 1, 1), np.complex128), np.zeros((1, 1)))  # fmt: skip
+    H = np.empty((batch, omega.shape[0]), dtype=np.complex128)
+    dH = np.empty((batch, n_p, omega.shape[0]) if derivatives else (1, 1, 1), dtype=np.complex128)
+    _kernel("_response_loop")(cx(lam), cx(CV), cx(WB), _numpy(E), _numpy(omega), *arrays, derivatives, H, dH)
+    return torch.from_numpy(H), (torch.from_numpy(dH) if derivatives else None)
 
 
 def linear_states(phi: Tensor, forcing: Tensor, states: Tensor) -> None:

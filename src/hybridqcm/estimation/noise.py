@@ -65,6 +65,8 @@ from torch import Tensor
 from hybridqcm.physics.linear_models import LinearModel
 
 from ._expm import balance
+from ._kernels import applies as _compiled_applies
+from ._kernels import one_channel_response as _compiled_response
 from ._modal import _eigen
 
 _COMPLEX = torch.complex128
@@ -170,6 +172,8 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
     """frequency_response from A = V diag(lam) V^-1 (frequency_response's docstring). Shapes as there; u = C V diag(g)
     [b, K, o, n] and w = diag(g) V^-1 B [b, K, n, m] are Y's and X's modal coordinates, and every product runs over
     (K, o, m) rows at once."""
+    if matrices[0].shape[-1] * matrices[1].shape[-2] == 1 and _compiled_applies(lam):
+        return _response_one_channel(model, params, lam, V, V_inv, matrices, jw, derivatives)
     B, C, E = (x.to(_COMPLEX) for x in matrices)
     # g = 1 / (j w - lam) = (re - j im) / (re² + im²) [b, K, n], by real arithmetic (torch's complex division: 2x)
     re = (-lam.real)[:, None, :].expand(-1, jw.numel(), -1)
@@ -203,6 +207,25 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
     modal_dC = (dC @ V[:, None]).permute(0, 3, 1, 2).reshape(b, n, P * o)  # dC_j V, [b, n, (P, o)]
     dH = dH + (w.reshape(b, K * m, n) @ modal_dC).view(b, K, m, P, o).permute(0, 1, 4, 2, 3)
     return H, dH.permute(0, 4, 1, 2, 3) + dE[:, :, None]
+
+
+def _response_one_channel(model, params, lam, V, V_inv, matrices, jw, derivatives):
+    """_response_modal for one output and one input (the road-free seat) by a compiled loop per sample and frequency
+    (_kernels.one_channel_response: the same sums, the residues' and the derivatives' modal terms formed here),
+    instead of [b, K, n^2] tensors and their batched products."""
+    B, C, E = matrices
+    CV = (C.to(_COMPLEX) @ V)[:, 0]  # [b, n]
+    WB = (V_inv @ B.to(_COMPLEX))[..., 0]  # [b, n]
+    modal = None
+    if derivatives:
+        dA, dB, dC, dE = (d.to(_COMPLEX) for d in model.matrix_derivatives(params.double()))  # [b, P, ...]
+        modal = ((V_inv[:, None] @ dA @ V[:, None]), (V_inv[:, None] @ dB)[..., 0], (dC @ V[:, None])[:, :, 0],
+                 dE[:, :, 0, 0].real)  # fmt: skip
+    H, dH = _compiled_response(lam, CV, WB, E[:, 0, 0], jw.imag, modal)
+    H = H[:, :, None, None]
+    # an eigenvalue on the axis (a trial step to a singular A): no response there, NaN as the LU path gives
+    H = torch.where(torch.isfinite(H), H, torch.full_like(H, complex(math.nan, math.nan)))
+    return H, (None if dH is None else dH[..., None, None])
 
 
 def spectral_matrix(H: Tensor | None, v_out: Tensor, v_in: Tensor | None) -> Tensor:
