@@ -802,16 +802,19 @@ def test_the_compiled_van_loan_maps_with_tangents_equal_the_block_exponential(ca
 
 def test_the_compiled_van_loan_maps_keep_a_non_finite_sample_to_itself():
     """A NaN parameter gives that sample NaN maps, with and without tangents; the batch's other samples get the maps
-    they get alone (the scaling is chosen from the finite samples), and a mismatched shape is refused in one line."""
+    they get alone, also beside a sample whose matrix is 1e6 times larger (the scaling 2^-s is chosen per sample: a
+    profile's wide trial must not move its batch mates' maps), and a mismatched shape is refused in one line."""
     from hybridqcm.estimation import _kernels
     from hybridqcm.estimation._expm import van_loan_maps, van_loan_maps_batch_first
 
     model = QuarterCarRoad()
-    p = reference_params().expand(3, 10).clone()
+    p = reference_params().expand(4, 10).clone()
     p[1, 0] = math.nan
+    p[3] *= 1e6
     phi, lam = van_loan_maps(model, p, H, "spline", 4, False)
     assert bool(phi[..., 1].isnan().all()) and bool(lam[..., 1].isnan().all())
-    for i in (0, 2):
+    assert bool(torch.isfinite(phi[..., 3]).all())
+    for i in (0, 2, 3):
         alone = van_loan_maps(model, p[i : i + 1], H, "spline", 4, False)
         torch.testing.assert_close(phi[..., i : i + 1], alone[0], rtol=0, atol=0)
         torch.testing.assert_close(lam[..., i : i + 1], alone[1], rtol=0, atol=0)

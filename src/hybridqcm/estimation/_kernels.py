@@ -266,8 +266,8 @@ def _hold_loop(lam, tau, zoh, inv_fact, ell, dell):
 def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
     """_expm.van_loan_maps without tangents, batch innermost: M [N, N, b] the Van Loan matrices (N = n + 2m), d [b, N]
     their balancing -> phi_out [n, n, b], lam_out [M_sub + 1, n, m, b] (written). exp(M) as _expm._expm_inner
-    computes it: D^-1 M D, scaled by 2^-s to a 1-norm <= theta (one s for the batch, from its finite samples),
-    degree-11 Taylor by Paterson-Stockmeyer, s squarings, D back; then the sub-steps folded as there. Every product
+    computes it: D^-1 M D, scaled by 2^-s to a 1-norm <= theta (s per sample, so that a sample's maps do not depend
+    on its batch mates), degree-11 Taylor by Paterson-Stockmeyer, s squarings, D back; then the sub-steps folded as there. Every product
     runs over the batch innermost (vectorised across samples); a sample whose matrix is not finite gets NaN maps."""
     size, batch = M.shape[0], M.shape[2]
     m = (size - n) // 2
@@ -275,7 +275,7 @@ def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
     work = np.empty((5, size, size, batch))  # X, X^2, X^3, S (the sum), T (a product)
     X, X2, S, T = work[0], work[1], work[3], work[4]
     column = np.zeros(batch)
-    norm = 0.0
+    norm = np.zeros(batch)
     for j in range(size):
         for b in range(batch):
             column[b] = 0.0
@@ -284,16 +284,22 @@ def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
                 X[i, j, b] = M[i, j, b] * d[b, j] / d[b, i]
                 column[b] += abs(X[i, j, b])
         for b in range(batch):
-            if np.isfinite(column[b]) and column[b] > norm:
-                norm = column[b]
+            if column[b] > norm[b] or not np.isfinite(column[b]):
+                norm[b] = column[b]
+    # s per sample (a sample's maps do not depend on its batch mates); the loop runs the batch's largest s and a
+    # sample's S stops changing after its own
+    own = np.zeros(batch, dtype=np.int64)
+    scale = np.ones(batch)
     squarings = 0
-    if norm > theta:
-        squarings = int(math.ceil(math.log2(norm / theta)))
-    scale = 2.0**-squarings
+    for b in range(batch):
+        if np.isfinite(norm[b]) and norm[b] > theta:
+            own[b] = int(math.ceil(math.log2(norm[b] / theta)))
+            scale[b] = 2.0 ** -own[b]
+            squarings = max(squarings, own[b])
     for i in range(size):
         for j in range(size):
             for b in range(batch):
-                X[i, j, b] *= scale
+                X[i, j, b] *= scale[b]
     # The products in order, each (out, left, right) slots of ``work``, written once (each copy of a product's loops
     # costs seconds of compilation): X^2, X^3, then X^3 S per Horner step, then S S per squaring.
     blocks = (coef.shape[0] - 1) // 3
@@ -327,10 +333,11 @@ def _van_loan_loop(M, d, n, zoh, coef, theta, phi_out, lam_out):
                             a + coef[3 * block + 1] * X[i, j, b] + coef[3 * block + 2] * X2[i, j, b]
                         )
         elif op >= 2 + blocks:
+            squaring = op - 2 - blocks
             for i in range(size):
                 for j in range(size):
                     for b in range(batch):
-                        S[i, j, b] = T[i, j, b]
+                        S[i, j, b] = T[i, j, b] if squaring < own[b] else S[i, j, b]
     for i in range(size):
         for j in range(size):
             for b in range(batch):
