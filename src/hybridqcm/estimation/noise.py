@@ -211,8 +211,9 @@ def _response_modal(model, params, lam, V, V_inv, matrices, jw, derivatives):
 
 def _response_one_channel(model, params, lam, V, V_inv, matrices, jw, derivatives):
     """_response_modal for one output and one input (the road-free seat) by a compiled loop per sample and frequency
-    (_kernels.one_channel_response: the same sums, the residues' and the derivatives' modal terms formed here),
-    instead of [b, K, n^2] tensors and their batched products."""
+    (_kernels.one_channel_response: H by the same sums; dH_j as a sum over the symmetric products g_i g_l, n (n + 1) / 2
+    a frequency instead of n^2; the derivatives' modal terms formed here), instead of [b, K, n^2] tensors and their
+    batched products."""
     B, C, E = matrices
     CV = (C.to(_COMPLEX) @ V)[:, 0]  # [b, n]
     WB = (V_inv @ B.to(_COMPLEX))[..., 0]  # [b, n]
