@@ -17,7 +17,7 @@ Each loop is the torch code's arithmetic, step by step; the results agree with i
 multiply-adds and summation orders differ), checked in tests/test_sensitivity.py and tests/test_exact.py
 against the torch paths. The loops release the GIL, so the solver's chunk threads (SolverConfig.thread_chunks)
 run them on several cores at once. They compile at the first call (about a second each; the Van Loan maps 2-3 s,
-the modal coefficients 4-6 s) into numba's cache beside this file, which later processes load; ``preload`` lets a run
+the modal coefficients about 6 s) into numba's cache beside this file, which later processes load; ``preload`` lets a run
 load numba before its solve's clock starts.
 
 ``HYBRIDQCM_KERNELS=torch`` in the environment turns them off (the torch code everywhere); where numba is
