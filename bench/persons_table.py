@@ -281,7 +281,30 @@ def _speed_once(tree: Path, name: str, method: str, n: int, folder: Path) -> dic
     if proc.returncode != 0:
         sys.exit(f"{name} {method} ({tree}): qcm-estimate failed: {proc.stderr.strip().splitlines()[-1:]}")
     summary = json.loads((folder / "summary.json").read_text())
-    return {"wall": float(summary["seconds_solve"]), "cpu": float(summary["cpu_seconds_blocks"])}
+    # the selection's CPU seconds by phase (estimation/occupant.PhaseClock; absent from trees before it)
+    phases = (summary.get("seconds_phases") or {}).get("cpu")
+    return {"wall": float(summary["seconds_solve"]), "cpu": float(summary["cpu_seconds_blocks"]), "phases": phases}
+
+
+def _phase_table(times: dict, trees: list, files: list) -> None:
+    """Where the default's CPU went (summary.json's seconds_phases, medians over the runs), each phase over the
+    rigid model's whole solve CPU; trees without the phase clock are left out."""
+    from hybridqcm.estimation.occupant import PHASES
+
+    rows = []
+    for t in range(len(trees)):
+        for name in files:
+            runs = [x["phases"] for x in times[(t, name, "persons")] if x.get("phases")]
+            if not runs:
+                continue
+            rigid = float(np.median([x["cpu"] for x in times[(t, name, "rigid")]]))
+            cells = [float(np.median([r.get(p, float("nan")) for r in runs])) for p in (*PHASES, "total")]
+            rows.append(f"| tree{t} | {name} | " + " | ".join(f"{c:.2f} ({c / rigid:.1f}×)" for c in cells) + " |")
+    if rows:
+        print("\nThe default's CPU s by phase (× the rigid model's solve CPU):\n")
+        print("| tree | file | " + " | ".join((*PHASES, "total")) + " |")
+        print("|---|---|" + "---|" * (len(PHASES) + 1))
+        print("\n".join(rows))
 
 
 def speed(args) -> None:
@@ -315,6 +338,7 @@ def speed(args) -> None:
                 f"{p['wall'] / r['wall']:.1f}× ({p['cpu'] / r['cpu']:.1f}×) | {args.n / r['wall']:.1f} | "
                 f"{args.n / p['wall']:.2f} |"
             )
+    _phase_table(times, trees, args.files)
     if len(trees) > 1:  # each tree's time over the first one's, measured in the same run
         print("\n| tree | file | rigid / tree0 | default / tree0 (cpu) |")
         print("|---|---|---|---|")

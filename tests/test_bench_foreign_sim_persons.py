@@ -9,6 +9,7 @@ the 1/sqrt(T) law of the bound's information on a stationary input.
 import csv
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -241,6 +242,31 @@ def test_the_persons_table_shows_the_honesty_bound_of_each_row(tmp_path, monkeyp
     assert cell == f"1.00 % ({100 * crb.dishonest_at_bound(x, 0.97):.2f} %)"
     (tmp_path / "crb_mixed_n0.json").write_text(json.dumps({"per_recording_rel_sd_at_unit_noise": rel}))
     assert table._honesty_bound("mixed_n0", 3, 0.97) is None
+
+
+def test_the_speed_table_puts_each_phase_beside_the_rigid_fit(capsys):
+    """bench/persons_table.py speed's phase table: the default's CPU seconds by phase (summary.json's
+    seconds_phases), the median over the runs, and each over the rigid model's median solve CPU; a tree whose
+    summaries have no phases (a tree before the phase clock) has no row."""
+    from hybridqcm.estimation.occupant import PHASES
+
+    table = _load("persons_table")
+    phases = [
+        {p: 1.0 + i for i, p in enumerate((*PHASES, "total"))},
+        {p: 3.0 + i for i, p in enumerate((*PHASES, "total"))},
+    ]
+    times = {
+        (0, "rigid_n5", "rigid"): [{"cpu": 2.0, "phases": None}, {"cpu": 2.0, "phases": None}],
+        (0, "rigid_n5", "persons"): [{"cpu": 40.0, "phases": phases[0]}, {"cpu": 44.0, "phases": phases[1]}],
+        (1, "rigid_n5", "rigid"): [{"cpu": 2.0, "phases": None}],
+        (1, "rigid_n5", "persons"): [{"cpu": 40.0, "phases": None}],
+    }
+    table._phase_table(times, ["old", "new"], ["rigid_n5"])
+    rows = [line for line in capsys.readouterr().out.splitlines() if re.match(r"\| tree\d", line)]
+    assert len(rows) == 1 and rows[0].startswith("| tree0 | rigid_n5 |")
+    cells = rows[0].strip("|").split("|")[2:]
+    assert cells[0].strip() == "2.00 (1.0×)"  # fits: median(1, 3) = 2 over the rigid fit's 2 s
+    assert cells[-1].strip() == f"{8.0:.2f} ({8.0 / 2:.1f}×)"  # total: median(7, 9)
 
 
 def test_persons_outside_the_literatures_ranges_are_drawn_where_asked():

@@ -408,3 +408,64 @@ def test_the_candidates_carry_the_prior_their_covariance_holds(tmp_path):
             )
             checked += int(weighed.sum())
     assert checked >= 2
+
+
+def test_a_selections_seconds_are_accounted_by_phase(tmp_path):
+    """OccupantSelection.refine's PhaseClock: the phases (PHASES) run one after another inside "total", so their
+    wall seconds sum to at most it, and "total" is the refine call as the caller's own clock sees it; each
+    candidate's own fit ran inside "fits"; CPU seconds are this process's, every one finite and >= 0."""
+    import json
+    import time
+
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.occupant import PHASES
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
+
+    _foreign(tmp_path / "p.h5", n=2, seed=21, occupant="body1", noise=0.05)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=2"])
+    plan = validate(cfg)
+    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
+    outputs = module.prepare(build_inputs(cfg, plan))
+    t0 = time.perf_counter()
+    record = selection.refine(outputs)
+    outer = time.perf_counter() - t0
+    seconds = json.loads(json.dumps(record["phase_seconds"]))  # what a shard's marker holds
+    wall, cpu, fit_wall = seconds["wall"], seconds["cpu"], seconds["fit_wall"]
+    assert set(wall) == set(cpu) == {*PHASES, "total"}
+    assert all(math.isfinite(v) and v >= 0 for v in [*wall.values(), *cpu.values(), *fit_wall.values()])
+    assert sum(wall[p] for p in PHASES) <= wall["total"] <= outer
+    assert wall["total"] >= 0.9 * outer  # nothing of the call outside the clock but the record's key
+    assert set(fit_wall) == set(selection.candidates)
+    assert max(fit_wall.values()) <= wall["fits"]
+    assert wall["fits"] > 0 and wall["weigh"] > 0 and wall["interval"] > 0
+
+
+def test_summary_sums_a_selections_phases_over_blocks(tmp_path):
+    """summary.json's seconds_phases: the markers' PhaseClock seconds summed over the blocks (two blocks of one
+    recording here), each block's "total" within the block's own seconds (the marker's clock around the solve
+    and its tables); null for the plain rigid fit, which runs no selection."""
+    import json
+
+    _foreign(tmp_path / "late.h5", n=2, seed=4, delay_ms=5)
+    common = ["plots=false", "tensorboard=false", "progress=false", f"data.path={tmp_path / 'late.h5'}"]
+    app_in_process(
+        "estimate", tmp_path / "run", "experiment=occupant_roadfree", "occupant.models=[rigid]", "delay=estimate",
+        "batch_size=1", *common,
+    )  # fmt: skip
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    phases = summary["seconds_phases"]
+    assert summary["blocks"] == 2 and set(phases) == {"wall", "cpu", "fit_wall"}
+    assert set(phases["fit_wall"]) == {"rigid"}
+    blocks = sum(summary["seconds_blocks_per_process"])
+    assert 0 < phases["wall"]["total"] <= blocks
+    assert phases["wall"]["delay_fits"] > 0  # the winner's delay variant ran on both recordings
+    app_in_process(
+        "estimate", tmp_path / "plain", "experiment=occupant_roadfree", "occupant.models=[rigid]", "delay=null",
+        *common,
+    )  # fmt: skip
+    assert json.loads((tmp_path / "plain" / "summary.json").read_text())["seconds_phases"] is None

@@ -48,8 +48,10 @@ no body mode).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -75,6 +77,36 @@ class SelectionLayout:
     @property
     def n_theta(self) -> int:
         return len(self.theta_names)
+
+
+@dataclass
+class PhaseClock:
+    """Seconds of one block's selection by phase (``PHASES``; "total": the whole of ``refine``, so what it holds
+    beyond the phases is the records' assembly): ``wall`` and this process's ``cpu`` seconds — the phases run
+    one after another, so each is exact, while the threads of a phase (``workers``) overlap inside it — and
+    ``fit_wall``: each candidate's own fit, wall seconds on its thread. summary.json sums them over the blocks
+    (``seconds_phases``): where a selection's time goes, without a profiler."""
+
+    wall: dict[str, float] = field(default_factory=dict)
+    cpu: dict[str, float] = field(default_factory=dict)
+    fit_wall: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = self.wall.get(name, 0.0) + time.perf_counter() - t0
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - c0
+
+    def as_dict(self) -> dict:
+        return {"wall": dict(self.wall), "cpu": dict(self.cpu), "fit_wall": dict(self.fit_wall)}
+
+
+# the selection's phases, in order: the candidates' fits, their weighing (the common noise model, the nests, the
+# polishes, the evidence), the winners' delay variants and their weighing, the rescue fits, the m3 interval
+PHASES = ("fits", "weigh", "delay_fits", "delay_weigh", "rescue", "interval")
 
 
 def _union_layout(candidates: Mapping[str, GaussNewtonRefinement]) -> SelectionLayout:
@@ -211,18 +243,31 @@ class OccupantSelection:
         return self.refine(outputs, module)
 
     def refine(self, outputs: Mapping, module=None) -> dict:
+        """The block's record (module docstring), with ``phase_seconds``: PhaseClock.as_dict()."""
+        clock = PhaseClock()
+        with clock.phase("total"):
+            record = self._refine(outputs, module, clock)
+        record["phase_seconds"] = clock.as_dict()
+        return record
+
+    def _refine(self, outputs: Mapping, module, clock: PhaseClock) -> dict:
         init = outputs["init"].double()[:, : self.n_lead]  # the batch's own vehicle per recording
         b = init.shape[0]
 
         def fit(name: str) -> dict:
+            t0 = time.perf_counter()
             extra = self.starts.get(name, torch.zeros(0, dtype=torch.float64))
             start = torch.cat([init, extra.expand(b, -1)], 1)
-            return fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
+            record = fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
+            clock.fit_wall[name] = time.perf_counter() - t0  # one thread per candidate: no two write one key
+            return record
 
         names = list(self.candidates)
-        records = dict(zip(names, self.solve_all(fit, names, [self.cost(n, b) for n in names])))
-        logz, fits = self._weigh(outputs, records, names)
-        choice = self._choose(logz, fits, names)
+        with clock.phase("fits"):
+            records = dict(zip(names, self.solve_all(fit, names, [self.cost(n, b) for n in names])))
+        with clock.phase("weigh"):
+            logz, fits = self._weigh(outputs, records, names)
+            choice = self._choose(logz, fits, names)
         # The winner once more, with the channel delay. Where a candidate the data reject (misfit) has more
         # evidence than the winner, or none fits — noise-free data from two clocks leave the one-clock
         # models misfit, and a flexible one may absorb the delay's phase into a wrong fit — every candidate
@@ -247,30 +292,33 @@ class OccupantSelection:
             own = records[name]["params"][rows, : self.candidates[name].response.n_params].double()
             start = torch.cat([own, torch.zeros(rows.numel(), 1, dtype=torch.float64)], 1)
             jobs.append((name, rows, won, {**select_rows(outputs, rows, b), "init": start}))
-        done = self.solve_all(
-            lambda job: fit_candidate(self.delayed[job[0]], job[3], module),
-            jobs,
-            [self.cost(f"{name}+delay", rows.numel()) for name, rows, _, _ in jobs],
-        )
-        for (name, rows, won, _), record in sorted(zip(jobs, done), key=lambda pair: self.names.index(pair[0][0])):
-            variant = f"{name}+delay"
-            scatter(records[variant], record, rows)
-            rows = won.nonzero().squeeze(1)
-            if rows.numel() == 0:
-                continue
-            self._compare(outputs, records, logz, fits, choice, rows, [name, variant])
-        rows = every.nonzero().squeeze(1)
-        if self.delayed and rows.numel() > 0:
-            self._compare(
-                outputs, records, logz, fits, choice, rows, list(self.candidates) + [f"{n}+delay" for n in self.delayed]
+        with clock.phase("delay_fits"):
+            done = self.solve_all(
+                lambda job: fit_candidate(self.delayed[job[0]], job[3], module),
+                jobs,
+                [self.cost(f"{name}+delay", rows.numel()) for name, rows, _, _ in jobs],
             )
-        self._rescue(outputs, records, logz, fits, choice, module)
+        with clock.phase("delay_weigh"):
+            for (name, rows, won, _), record in sorted(zip(jobs, done), key=lambda pair: self.names.index(pair[0][0])):
+                variant = f"{name}+delay"
+                scatter(records[variant], record, rows)
+                rows = won.nonzero().squeeze(1)
+                if rows.numel() == 0:
+                    continue
+                self._compare(outputs, records, logz, fits, choice, rows, [name, variant])
+            rows = every.nonzero().squeeze(1)
+            if self.delayed and rows.numel() > 0:
+                everyone = list(self.candidates) + [f"{n}+delay" for n in self.delayed]
+                self._compare(outputs, records, logz, fits, choice, rows, everyone)
+        with clock.phase("rescue"):
+            self._rescue(outputs, records, logz, fits, choice, module)
         record = merge(self, records, choice)
         logz_t = torch.stack([logz[n] for n in self.names], 1)  # [b, C]
         fits_t = torch.stack([fits[n] for n in self.names], 1)
-        record["m3_low"], record["m3_high"], profiled = static_mass_interval(
-            self, outputs, records, logz_t, fits_t, choice
-        )
+        with clock.phase("interval"):
+            record["m3_low"], record["m3_high"], profiled = static_mass_interval(
+                self, outputs, records, logz_t, fits_t, choice
+            )
         extra = {"occupant_model": [self.names[int(c)] for c in choice]}
         for j, name in enumerate(self.names):
             extra[f"logz_{name}"] = logz_t[:, j]

@@ -112,6 +112,7 @@ class ShardStore:
         seconds: tuple[float, float] = (float("nan"), float("nan")),
         device: str | None = None,
         device_memory_mib: float | None = None,
+        phase_seconds: dict | None = None,
     ) -> None:
         atomic_write_csv(self.path(block, ".csv"), header, estimates)
         atomic_write_csv(self.path(block, ".status.csv"), status_header, status)
@@ -127,6 +128,8 @@ class ShardStore:
             "pid": os.getpid(),
             "device": device,  # where the predict step (the networks) ran, e.g. cuda:0
             "device_memory_mib": device_memory_mib,  # peak of GN on that device (gn_device=accelerator)
+            # an occupant selection's seconds by phase (estimation/occupant.PhaseClock), else None
+            "phase_seconds": phase_seconds,
         }
         atomic_write_text(self.path(block, ".done.json"), json.dumps(record) + "\n")
 
@@ -241,10 +244,11 @@ class ShardWriter(BasePredictionWriter):
         t0, c0 = time.perf_counter(), time.process_time()
         block = int(batch["block"])
         tables, stats = None, {}
-        memory = None
+        memory, phases = None, None
         if int(batch["index"].shape[0]):  # a block of windows all kept from the fit has nothing to refine
             record, memory = self._refine(prediction, pl_module, block)
             tables, stats = self.tables(record), self.stage_stats(record)
+            phases = record.get("phase_seconds")
             true = batch.get("true")
             tables[2]["true"] = None if true is None else true.detach().cpu().double()
         skipped = batch.get("skipped_index")
@@ -265,6 +269,7 @@ class ShardWriter(BasePredictionWriter):
             (time.perf_counter() - t0, time.process_time() - c0),
             str(pl_module.device),
             memory,
+            phases,
         )
 
 

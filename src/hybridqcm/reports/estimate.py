@@ -300,6 +300,21 @@ def finish_run(cfg, plan, solved, run_dir: Path, seat, inputs_used, t_start: flo
     return summary
 
 
+def _phase_seconds(markers: list[dict]) -> dict | None:
+    """{"wall" | "cpu" | "fit_wall": {phase or candidate: seconds}} summed over the blocks' markers that have
+    them (an occupant selection's), None where none has."""
+    timed = [m["phase_seconds"] for m in markers if m.get("phase_seconds")]
+    if not timed:
+        return None
+    total: dict[str, dict[str, float]] = {}
+    for phases in timed:
+        for kind, seconds in phases.items():
+            into = total.setdefault(kind, {})
+            for name, value in seconds.items():
+                into[name] = into.get(name, 0.0) + float(value)
+    return total
+
+
 def run_summary(cfg, plan, solved, run_dir: Path) -> dict:
     """summary.json's account of the run before its metrics: data, settings resolved by the plan, the
     stages' losses and statuses (logged to TensorBoard with tensorboard=true), blocks, processes, seconds."""
@@ -336,6 +351,8 @@ def run_summary(cfg, plan, solved, run_dir: Path) -> dict:
         # per process: seconds spent solving blocks (the rest of seconds_solve is start-up and reading)
         "seconds_blocks_per_process": _per_process_seconds(markers),
         "cpu_seconds_blocks": sum(float(m.get("cpu_seconds", math.nan)) for m in markers),
+        # an occupant selection's seconds by phase, summed over the blocks (estimation/occupant.PhaseClock)
+        "seconds_phases": _phase_seconds(markers),
         "predict_devices": sorted({m["device"] for m in markers if m.get("device")}),  # the networks' device(s)
         "gn_device": str(cfg.get("gn_device", "cpu")),
         # the CPU solves' step recursions compiled (estimation/_kernels.py) or in torch (HYBRIDQCM_KERNELS=torch)
