@@ -326,6 +326,24 @@ def test_a_person_outside_the_model_set_is_never_a_converged_wrong_answer(tmp_pa
     assert not bool((converged & wrong & outside).any()), [(r["status"], r["m3"]) for r in rows]
 
 
+def _default_selection(tmp_path, n: int):
+    """occupant_roadfree's default selection as qcm-estimate builds it, and the prepared batch (its outputs), on
+    another simulator's n seated persons (one body mode) at 5 % noise."""
+    from hydra import compose, initialize_config_dir
+
+    from hybridqcm.config import CONFIG_DIR
+    from hybridqcm.estimation.blocks import build_inputs
+    from hybridqcm.estimation.plan import validate
+    from hybridqcm.estimation.runner import build_module, build_refinement
+
+    _foreign(tmp_path / "p.h5", n=n, seed=21, occupant="body1", noise=0.05)
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", f"n_samples={n}"])
+    plan = validate(cfg)
+    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
+    return selection, module.prepare(build_inputs(cfg, plan))
+
+
 def test_every_evidence_of_a_recording_is_weighed_under_one_noise_model(tmp_path, monkeypatch):
     """Each weighing fits the noise at its own most flexible candidate (phase one: body2; the winner's delay
     comparison: its delay variant); a log Z is comparable with another only under the same variances, and a
@@ -333,20 +351,9 @@ def test_every_evidence_of_a_recording_is_weighed_under_one_noise_model(tmp_path
     noise, 312 nats off the others, chose the rigid drive's model). Occupant_roadfree's default selection on
     persons at 5 % noise: per recording, the variances each candidate with a finite log Z was last weighed under
     are the same for all of them."""
-    from hydra import compose, initialize_config_dir
-
     import hybridqcm.estimation.occupant as occupant
-    from hybridqcm.config import CONFIG_DIR
-    from hybridqcm.estimation.blocks import build_inputs
-    from hybridqcm.estimation.plan import validate
-    from hybridqcm.estimation.runner import build_module, build_refinement
 
-    _foreign(tmp_path / "p.h5", n=3, seed=21, occupant="body1", noise=0.05)
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=3"])
-    plan = validate(cfg)
-    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
-    outputs = module.prepare(build_inputs(cfg, plan))
+    selection, outputs = _default_selection(tmp_path, 3)
     seen = {}  # (recording index, candidate) -> the variances it was last weighed under
 
     def spy(selection_, name, outputs_, record, rows, variances):
@@ -378,20 +385,10 @@ def test_the_candidates_carry_the_prior_their_covariance_holds(tmp_path):
     applies the body prior) carry per candidate and recording the literature's body prior (physics/occupant.py's
     ranges: precision 1/std²) on the body parameters and none on p1, p2; NaN only where a candidate was not
     weighed."""
-    from hydra import compose, initialize_config_dir
-
-    from hybridqcm.config import CONFIG_DIR
-    from hybridqcm.estimation.blocks import build_inputs
-    from hybridqcm.estimation.plan import validate
-    from hybridqcm.estimation.runner import build_module, build_refinement
     from hybridqcm.physics.occupant import N_MODES, body_prior
 
-    _foreign(tmp_path / "p.h5", n=2, seed=21, occupant="body1", noise=0.05)
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=2"])
-    plan = validate(cfg)
-    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
-    record = selection.refine(module.prepare(build_inputs(cfg, plan)))
+    selection, outputs = _default_selection(tmp_path, 2)
+    record = selection.refine(outputs)
     cand = record["candidates"]
     checked = 0
     for j, name in enumerate(selection.names):
@@ -417,20 +414,9 @@ def test_a_selections_seconds_are_accounted_by_phase(tmp_path):
     import json
     import time
 
-    from hydra import compose, initialize_config_dir
-
-    from hybridqcm.config import CONFIG_DIR
-    from hybridqcm.estimation.blocks import build_inputs
     from hybridqcm.estimation.occupant import PHASES
-    from hybridqcm.estimation.plan import validate
-    from hybridqcm.estimation.runner import build_module, build_refinement
 
-    _foreign(tmp_path / "p.h5", n=2, seed=21, occupant="body1", noise=0.05)
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("estimate", ["experiment=occupant_roadfree", f"data.path={tmp_path / 'p.h5'}", "n_samples=2"])
-    plan = validate(cfg)
-    selection, module = build_refinement(cfg, plan), build_module(cfg, plan)
-    outputs = module.prepare(build_inputs(cfg, plan))
+    selection, outputs = _default_selection(tmp_path, 2)
     t0 = time.perf_counter()
     record = selection.refine(outputs)
     outer = time.perf_counter() - t0
