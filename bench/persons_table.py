@@ -6,6 +6,7 @@
     .venv/bin/python bench/persons_table.py table [--out docs/results/persons.md]              # the table
     .venv/bin/qcm-results --tables-only                                # and into docs/RESULTS.md
     .venv/bin/python bench/persons_table.py speed --n 32 --files rigid_n5 [--trees OLD .]      # the time ratio
+    .venv/bin/python bench/persons_table.py floor --n 400 [--budget 8 5]                       # the fits' floor
 
 The recordings come from the second simulator (bench/foreign_sim.py; data/persons/*.h5, made as its
 docstring says, 400 each) and the bounds from bench/occupant_crb.py (data/persons/crb_<file>.json). `run`
@@ -19,7 +20,11 @@ recordings of each file, one process each (`trainer=cpu batch_size=N`), alternat
 seconds_solve (wall) and the process's CPU seconds of each, the ratio default / rigid (issue 28's target ≤ 4×) and
 the recordings per second of seconds_solve (issue 33's target ≥ 800 for the default on rigid recordings); with
 `--trees` the same for each source tree (its src/ and configs/, e.g. an exported copy of main), side by side in
-one run so that the machine's load falls on all alike.
+one run so that the machine's load falls on all alike. `floor` times what the default's three candidates' fits
+alone cost when none runs more iterations than the rigid fit does (the stages capped at --budget, no restarts, no
+delay variant, one worker; each candidate's own CPU from seconds_phases.fit_cpu), beside the rigid model capped
+alike and as `speed` times it: the floor, on this machine, of a selection that fits every candidate with this
+solver, whatever its iterations (docs/measurements/persons.md, "The floor of fitting every candidate").
 """
 
 from __future__ import annotations
@@ -253,6 +258,7 @@ def table(args) -> None:
             lines += [
                 f"- {name}, {n} recordings: before {a:.1f} s, after {b:.1f} s: {b / a:.0f}×" for name, n, a, b in speed
             ]
+    lines += _floor_lines(args.floor_runs, args.files)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
@@ -261,11 +267,17 @@ def table(args) -> None:
 
 def _speed_once(tree: Path, name: str, method: str, n: int, folder: Path) -> dict:
     """One timed run of ``method`` on the first ``n`` recordings of ``name`` with the code of ``tree``."""
+    return _timed_run(tree, name, METHODS[method], n, folder)
+
+
+def _timed_run(tree: Path, name: str, overrides: list[str], n: int, folder: Path) -> dict:
+    """One timed run of qcm-estimate with ``overrides`` on the first ``n`` recordings of ``name`` with the code of
+    ``tree``, one process: its seconds_solve, CPU seconds and seconds_phases (None without a selection)."""
     import os
 
     command = [
         str(Path(sys.executable).parent / "qcm-estimate"),
-        *METHODS[method],
+        *overrides,
         f"data.path={DATA / (name + '.h5')}",
         f"n_samples={n}",
         f"hydra.run.dir={folder}",
@@ -279,11 +291,16 @@ def _speed_once(tree: Path, name: str, method: str, n: int, folder: Path) -> dic
     env = {**os.environ, "PYTHONPATH": str(tree / "src")}
     proc = subprocess.run(command, capture_output=True, text=True, cwd=tree, env=env)
     if proc.returncode != 0:
-        sys.exit(f"{name} {method} ({tree}): qcm-estimate failed: {proc.stderr.strip().splitlines()[-1:]}")
+        sys.exit(f"{name} {' '.join(overrides)} ({tree}): qcm-estimate failed: {proc.stderr.strip().splitlines()[-1:]}")
     summary = json.loads((folder / "summary.json").read_text())
-    # the selection's CPU seconds by phase (estimation/occupant.PhaseClock; absent from trees before it)
-    phases = (summary.get("seconds_phases") or {}).get("cpu")
-    return {"wall": float(summary["seconds_solve"]), "cpu": float(summary["cpu_seconds_blocks"]), "phases": phases}
+    # the selection's CPU seconds by phase and by candidate (estimation/occupant.PhaseClock; absent from trees before it)
+    seconds = summary.get("seconds_phases") or {}
+    return {
+        "wall": float(summary["seconds_solve"]),
+        "cpu": float(summary["cpu_seconds_blocks"]),
+        "phases": seconds.get("cpu"),
+        "fits": seconds.get("fit_cpu"),
+    }
 
 
 def _phase_table(times: dict, trees: list, files: list) -> None:
@@ -355,6 +372,118 @@ def speed(args) -> None:
                 )
 
 
+CANDIDATES = ("rigid", "body1", "body2")
+
+
+def _budget(w30: int, seat: int) -> str:
+    """The default's two stages with their iterations capped at ``w30`` and ``seat`` (each pass of the last)."""
+    return (
+        f"stages=[{{name: seat_w30, channels: all, n_steps: 30, max_iterations: {w30}}},"
+        f"{{name: seat, channels: all, max_iterations: {seat}}}]"
+    )
+
+
+def _floor_runs(budget: tuple[int, int]) -> dict[str, list[str]]:
+    """The floor's three runs: the rigid model as `speed` times it, the rigid model with its stages capped at
+    ``budget``, and the default's three candidates, each fitted once (no delay variant, no restarts), one worker,
+    at the same caps. Without restarts on both sides a capped fit is never run twice."""
+    capped = [_budget(*budget), "restarts.count=0"]
+    return {
+        "rigid": METHODS["rigid"],
+        "rigid_capped": [*METHODS["rigid"], *capped],
+        "candidates": [
+            "experiment=occupant_roadfree",
+            f"occupant.models=[{','.join(CANDIDATES)}]",
+            "delay=null",
+            "occupant.workers=1",
+            *capped,
+        ],
+    }
+
+
+def _floor_table(times: dict, files: list, n: int, budget: tuple[int, int]) -> list[str]:
+    """The floor's rows (medians over the runs): each candidate's own fit CPU at the budget (its thread's,
+    seconds_phases.fit_cpu) over the capped rigid model's solve CPU, and the three together over the rigid model
+    as `speed` times it (issue 28's ≤ 4× compares the default with that)."""
+    lines = [
+        f"| file | rigid model s (cpu) | rigid model at {budget[0]} + {budget[1]} iterations, cpu s | "
+        + " | ".join(f"{c} fit, cpu s (×)" for c in CANDIDATES)
+        + " | the three fits, cpu s | × the capped rigid model | × the rigid model |",
+        "|---|---|---|" + "---|" * len(CANDIDATES) + "---|---|---|",
+    ]
+    for name in files:
+        rigid = {k: float(np.median([x[k] for x in times[(name, "rigid")]])) for k in ("wall", "cpu")}
+        capped = float(np.median([x["cpu"] for x in times[(name, "rigid_capped")]]))
+        fits = {c: float(np.median([x["fits"][c] for x in times[(name, "candidates")]])) for c in CANDIDATES}
+        total = sum(fits.values())
+        lines.append(
+            f"| {name} | {rigid['wall']:.2f} ({rigid['cpu']:.2f}) | {capped:.2f} | "
+            + " | ".join(f"{fits[c]:.2f} ({fits[c] / capped:.1f}×)" for c in CANDIDATES)
+            + f" | {total:.2f} | {total / capped:.1f}× | {total / rigid['cpu']:.1f}× |"
+        )
+    return lines
+
+
+def _floor_lines(runs: Path, files: list) -> list[str]:
+    """The table's floor lines from the last `floor` runs in ``runs`` (<file>__rigid, __rigid_capped and
+    __candidates each, with summary.json); none where a file has not all three."""
+    rows = []
+    for name in files:
+        found = {k: runs / f"{name}__{k}" / "summary.json" for k in _floor_runs((1, 1))}
+        if not all(path.is_file() for path in found.values()):
+            continue
+        summary = {k: json.loads(path.read_text()) for k, path in found.items()}
+        fits = (summary["candidates"].get("seconds_phases") or {}).get("fit_cpu") or {}
+        if set(fits) != set(CANDIDATES):
+            continue
+        total = sum(fits[c] for c in CANDIDATES)
+        rigid, capped = (float(summary[k]["cpu_seconds_blocks"]) for k in ("rigid", "rigid_capped"))
+        rows.append(
+            f"- {name}, {summary['rigid']['n_samples']} recordings: the three candidates' fits "
+            + " + ".join(f"{fits[c]:.1f}" for c in CANDIDATES)
+            + f" = {total:.1f} CPU s, {total / rigid:.1f}× the rigid model's {rigid:.2f} ({total / capped:.1f}× the rigid "
+            "model at the same budget)"
+        )
+    if not rows:
+        return []
+    return [
+        "",
+        "The floor of fitting every candidate (`bench/persons_table.py floor`: the default's stages capped at the rigid "
+        f"fit's own iterations, no restarts, no delay variant, one worker; each candidate's thread CPU; the runs in "
+        f"`{runs.resolve().relative_to(ROOT) if runs.resolve().is_relative_to(ROOT) else runs}`): even if every body "
+        "candidate converged in the rigid fit's iterations,",
+        "",
+        *rows,
+    ]
+
+
+def floor(args) -> None:
+    """What the three candidates' fits alone cost when each runs no more iterations than the rigid fit does (the
+    default's stages capped at --budget), beside the rigid model, side by side in one run: the floor of any
+    selection that fits every candidate with this solver, below which no tuning of iterations can go."""
+    budget = tuple(args.budget)
+    runs = _floor_runs(budget)
+    args.runs = args.runs.resolve()
+    times: dict = {}
+    for repeat in range(args.repeat):
+        for name in args.files:
+            if not (DATA / f"{name}.h5").is_file():
+                sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
+            for kind, overrides in runs.items():
+                took = _timed_run(ROOT, name, overrides, args.n, args.runs / f"{name}__{kind}")
+                if kind == "candidates" and set(took["fits"] or ()) != set(CANDIDATES):
+                    sys.exit(
+                        f"{name}: the run's summary.json has no fit_cpu of {', '.join(CANDIDATES)} (an older tree?)"
+                    )
+                times.setdefault((name, kind), []).append(took)
+                print(f"# {name} {kind} run {repeat + 1}: {took['wall']:.2f} s, cpu {took['cpu']:.2f} s", flush=True)
+    print(
+        f"\n{args.n} recordings each, one process, {args.repeat} alternating run(s) (median); the stages capped at "
+        f"seat_w30 {budget[0]} and seat {budget[1]} iterations (each pass), no restarts:\n"
+    )
+    print("\n".join(_floor_table(times, args.files, args.n, budget)))
+
+
 def import_run(args) -> None:
     """An estimates.csv of the "after" command made on another machine, filed as FILE's run (no timing)."""
     import shutil
@@ -390,6 +519,12 @@ def main(argv=None) -> None:
         help="folders of timing runs (<file> and <file>__rigid each), one time list per folder that has them "
         "(persons_speed400: links to `speed --n 400`'s runs)",
     )
+    t.add_argument(
+        "--floor-runs",
+        type=Path,
+        default=ROOT / "outputs" / "persons_floor_bench",
+        help="the folder of `floor`'s runs (its --runs): the floor's lines where they are all there",
+    )
     i = sub.add_parser("import", help="file an estimates.csv made elsewhere as a file's after-run")
     i.add_argument("--csv", required=True)
     i.add_argument("--file", required=True, choices=FILES)
@@ -399,8 +534,24 @@ def main(argv=None) -> None:
     v.add_argument("--repeat", type=int, default=1, help="alternating runs of each (the median is printed)")
     v.add_argument("--trees", nargs="+", default=[str(ROOT)], help="source trees (their src/ and configs/)")
     v.add_argument("--runs", type=Path, default=ROOT / "outputs" / "persons_speed_bench")
+    f = sub.add_parser("floor", help="the candidates' fits at the rigid fit's iteration budget, beside the rigid model")
+    f.add_argument("--n", type=int, default=400)
+    f.add_argument("--files", nargs="+", default=["rigid_n5", "body1_n5"])
+    f.add_argument(
+        "--budget",
+        type=int,
+        nargs=2,
+        default=[8, 5],
+        metavar=("W30", "SEAT"),
+        help="iterations of seat_w30 and of each pass of seat (default: the rigid candidate's own, 8.3 and 5.6 / 4.0 "
+        "on rigid_n5's first 96 in the default)",
+    )
+    f.add_argument("--repeat", type=int, default=2, help="alternating runs of each (the median is printed)")
+    f.add_argument("--runs", type=Path, default=ROOT / "outputs" / "persons_floor_bench")
     args = ap.parse_args(argv)
-    {"run": run, "table": table, "import": import_run, "speed": speed}[args.command](args)
+    if args.command == "floor" and min(args.budget) < 1:
+        ap.error(f"floor --budget {args.budget[0]} {args.budget[1]}: iterations must be >= 1")
+    {"run": run, "table": table, "import": import_run, "speed": speed, "floor": floor}[args.command](args)
 
 
 if __name__ == "__main__":

@@ -269,6 +269,67 @@ def test_the_speed_table_puts_each_phase_beside_the_rigid_fit(capsys):
     assert cells[-1].strip() == f"{8.0:.2f} ({8.0 / 2:.1f}×)"  # total: median(7, 9)
 
 
+def test_the_floor_fits_every_candidate_within_the_rigid_fits_budget(tmp_path, capsys):
+    """bench/persons_table.py floor: its runs compose, as qcm-estimate composes them, to the default's stages capped
+    at the budget with no restarts (the uncapped rigid run keeps the default's stages); the candidates' run fits
+    rigid, body1 and body2 once each within the cap (summary.json's iterations by stage) and records each one's own CPU
+    seconds (seconds_phases.fit_cpu); the table divides each fit by the capped rigid model and the three together
+    by both rigid runs, and the results page's floor line reads the runs' summaries."""
+    from hydra import compose, initialize_config_dir
+
+    from conftest import app_in_process, make_foreign
+    from hybridqcm.config import CONFIG_DIR
+
+    table = _load("persons_table")
+    runs = table._floor_runs((3, 2))
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        composed = {kind: compose("estimate", overrides=overrides) for kind, overrides in runs.items()}
+    assert [s.max_iterations for s in composed["rigid"].stages] == [10, 30]  # the default's, as `speed` runs it
+    for kind in ("rigid_capped", "candidates"):
+        assert [s.max_iterations for s in composed[kind].stages] == [3, 2] and composed[kind].restarts.count == 0
+    assert list(composed["candidates"].occupant.models) == ["rigid", "body1", "body2"]
+    assert composed["candidates"].delay is None and composed["candidates"].occupant.workers == 1
+
+    make_foreign(tmp_path / "two.h5", n=2, seed=3, occupant="body1", noise=0.05)
+    summary = app_in_process(
+        "estimate", tmp_path / "run", *runs["candidates"], f"data.path={tmp_path / 'two.h5'}",
+        "plots=false", "tensorboard=false", "progress=false",
+    )  # fmt: skip
+    fit_cpu = summary["seconds_phases"]["fit_cpu"]
+    assert set(fit_cpu) == {"rigid", "body1", "body2"} and all(v > 0 for v in fit_cpu.values())
+    for candidate in fit_cpu:  # each stage's mean iterations per recording, within its cap
+        stages = summary["stages"]
+        assert (
+            0 < stages[f"{candidate}/seat_w30_iterations_mean"] <= 3
+            and 0 < stages[f"{candidate}/seat_iterations_mean"] <= 2
+        )
+
+    runs = tmp_path / "floor"  # the table's line from the runs as `floor` leaves them
+    for kind, summary_of in (("candidates", summary), ("rigid", {"cpu_seconds_blocks": 0.5}), ("rigid_capped", {})):
+        (runs / f"two__{kind}").mkdir(parents=True)
+        (runs / f"two__{kind}" / "summary.json").write_text(
+            json.dumps({"n_samples": 2, "cpu_seconds_blocks": 0.25, **summary_of})
+        )
+    line = table._floor_lines(runs, ["two", "absent"])[-1]
+    total = sum(fit_cpu.values())
+    assert (
+        line.startswith("- two, 2 recordings:")
+        and f"= {total:.1f} CPU s, {total / 0.5:.1f}× the rigid model's 0.50" in line
+    )
+    assert f"({total / 0.25:.1f}× the rigid model at the same budget)" in line
+    assert table._floor_lines(tmp_path / "nothing", ["two"]) == []
+
+    times = {
+        ("rigid_n5", "rigid"): [{"wall": 2.0, "cpu": 2.0}, {"wall": 2.2, "cpu": 2.4}],
+        ("rigid_n5", "rigid_capped"): [{"cpu": 1.0}, {"cpu": 1.0}],
+        ("rigid_n5", "candidates"): [{"fits": {"rigid": 1.0, "body1": 2.0, "body2": 5.0}}] * 2,
+    }
+    row = table._floor_table(times, ["rigid_n5"], 400, (3, 2))[-1]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3:6] == ["1.00 (1.0×)", "2.00 (2.0×)", "5.00 (5.0×)"]
+    assert cells[6:] == ["8.00", "8.0×", f"{8.0 / 2.2:.1f}×"]  # over median(2.0, 2.4) CPU s of the rigid model
+
+
 def test_persons_outside_the_literatures_ranges_are_drawn_where_asked():
     """draw_persons(body1=...): the same random draws scaled to other ranges (the default ranges give today's
     persons bit for bit); the mode's frequency, damping ratio and rigid share recomputed from the stored masses,

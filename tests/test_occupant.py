@@ -410,7 +410,9 @@ def test_the_candidates_carry_the_prior_their_covariance_holds(tmp_path):
 def test_a_selections_seconds_are_accounted_by_phase(tmp_path):
     """OccupantSelection.refine's PhaseClock: the phases (PHASES) run one after another inside "total", so their
     wall seconds sum to at most it, and "total" is the refine call as the caller's own clock sees it; each
-    candidate's own fit ran inside "fits"; CPU seconds are this process's, every one finite and >= 0."""
+    candidate's own fit ran inside "fits"; CPU seconds are this process's, every one finite and >= 0, and a
+    candidate's own CPU seconds (its thread's) are within its wall seconds and together within the process's over
+    "fits" (one thread cannot run longer than the clock, nor the threads than the process)."""
     import json
     import time
 
@@ -421,9 +423,14 @@ def test_a_selections_seconds_are_accounted_by_phase(tmp_path):
     record = selection.refine(outputs)
     outer = time.perf_counter() - t0
     seconds = json.loads(json.dumps(record["phase_seconds"]))  # what a shard's marker holds
-    wall, cpu, fit_wall = seconds["wall"], seconds["cpu"], seconds["fit_wall"]
+    wall, cpu, fit_wall, fit_cpu = seconds["wall"], seconds["cpu"], seconds["fit_wall"], seconds["fit_cpu"]
     assert set(wall) == set(cpu) == {*PHASES, "total"}
-    assert all(math.isfinite(v) and v >= 0 for v in [*wall.values(), *cpu.values(), *fit_wall.values()])
+    assert all(
+        math.isfinite(v) and v >= 0 for v in [*wall.values(), *cpu.values(), *fit_wall.values(), *fit_cpu.values()]
+    )
+    assert set(fit_cpu) == set(fit_wall)
+    assert all(0 < fit_cpu[n] <= fit_wall[n] + 0.02 for n in fit_cpu)  # the clocks' resolution
+    assert sum(fit_cpu.values()) <= cpu["fits"] + 0.02
     assert sum(wall[p] for p in PHASES) <= wall["total"] <= outer
     assert wall["total"] >= 0.9 * outer  # nothing of the call outside the clock but the record's key
     assert set(fit_wall) == set(selection.candidates)
@@ -445,8 +452,8 @@ def test_summary_sums_a_selections_phases_over_blocks(tmp_path):
     )  # fmt: skip
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     phases = summary["seconds_phases"]
-    assert summary["blocks"] == 2 and set(phases) == {"wall", "cpu", "fit_wall"}
-    assert set(phases["fit_wall"]) == {"rigid"}
+    assert summary["blocks"] == 2 and set(phases) == {"wall", "cpu", "fit_wall", "fit_cpu"}
+    assert set(phases["fit_wall"]) == set(phases["fit_cpu"]) == {"rigid"}
     blocks = sum(summary["seconds_blocks_per_process"])
     assert 0 < phases["wall"]["total"] <= blocks
     assert phases["wall"]["delay_fits"] > 0  # the winner's delay variant ran on both recordings

