@@ -265,6 +265,13 @@ def table(args) -> None:
     print("\n".join(lines))
 
 
+def _require(files: list) -> None:
+    """Every file's recordings present before the first timed run, else one line naming the first missing."""
+    for name in files:
+        if not (DATA / f"{name}.h5").is_file():
+            sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
+
+
 def _speed_once(tree: Path, name: str, method: str, n: int, folder: Path) -> dict:
     """One timed run of ``method`` on the first ``n`` recordings of ``name`` with the code of ``tree``."""
     return _timed_run(tree, name, METHODS[method], n, folder)
@@ -328,11 +335,10 @@ def speed(args) -> None:
     """Both methods' solve time on the same recordings, alternating, per tree (module docstring)."""
     trees = [Path(t).resolve() for t in args.trees]
     args.runs = args.runs.resolve()
+    _require(args.files)
     times: dict = {}
     for repeat in range(args.repeat):
         for name in args.files:
-            if not (DATA / f"{name}.h5").is_file():
-                sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
             for t, tree in enumerate(trees):
                 for method in METHODS:
                     folder = args.runs / f"{name}__{method}__tree{t}"
@@ -464,11 +470,10 @@ def floor(args) -> None:
     budget = tuple(args.budget)
     runs = _floor_runs(budget)
     args.runs = args.runs.resolve()
+    _require(args.files)
     times: dict = {}
     for repeat in range(args.repeat):
         for name in args.files:
-            if not (DATA / f"{name}.h5").is_file():
-                sys.exit(f"{DATA / name}.h5: missing; make it with bench/foreign_sim.py (see bench/persons_table.py)")
             for kind, overrides in runs.items():
                 took = _timed_run(ROOT, name, overrides, args.n, args.runs / f"{name}__{kind}")
                 if kind == "candidates" and set(took["fits"] or ()) != set(CANDIDATES):
