@@ -84,9 +84,9 @@ class PhaseClock:
     """Seconds of one block's selection by phase (``PHASES``; "total": the whole of ``refine``, so what it holds
     beyond the phases is the records' assembly): ``wall`` and this process's ``cpu`` seconds — the phases run
     one after another, so each is exact, while the threads of a phase (``workers``) overlap inside it — and
-    ``fit_wall`` and ``fit_cpu``: each candidate's own fit, wall seconds and CPU seconds of its thread (a fit runs
-    on one thread, its ops on one intra-op thread: ``_blas.parallel_map``), so the candidates' costs stay apart
-    when they overlap on the workers. summary.json sums them over the blocks (``seconds_phases``): where a
+    ``fit_wall`` and ``fit_cpu``: each candidate's own fit, wall seconds and CPU seconds of its thread (on the
+    workers each fit's ops run on one intra-op thread, ``_blas.parallel_map``; with one worker they sum to the
+    process's CPU over "fits"), so the candidates' costs stay apart when they overlap. summary.json sums them over the blocks (``seconds_phases``): where a
     selection's time goes, without a profiler."""
 
     wall: dict[str, float] = field(default_factory=dict)
