@@ -77,6 +77,9 @@ def interrupted_exit(error: KeyboardInterrupt) -> NoReturn:
     """Exit after Ctrl-C / SIGTERM with 128 + signal number (130 / 143) and one line."""
     import signal
 
+    from hybridqcm.atomic import remove_temporaries
+
+    remove_temporaries()  # what a writer stopped before its own cleanup left (atomic.new_temporary)
     signum = getattr(error, "signum", signal.SIGINT)
     name = signal.Signals(signum).name
     print(f"error: interrupted by {name}; temporary files removed, outputs left as they were", file=sys.stderr)

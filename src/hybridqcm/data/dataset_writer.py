@@ -10,13 +10,13 @@ from __future__ import annotations
 import json
 import os
 import sys
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from hybridqcm.atomic import forget, new_temporary
 from hybridqcm.data.h5file import GuardedFile, open_guarded, raise_if_failed
 from hybridqcm.data.hdf5 import LAYOUT, SCHEMA, trailing_shape
 from hybridqcm.errors import DatasetError
@@ -78,12 +78,10 @@ class DatasetWriter:
                 file=sys.stderr,
             )
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent)
+            self._tmp = new_temporary(self.path, ".partial")
         except BaseException:
             self._release()
             raise
-        os.close(fd)
-        self._tmp = Path(tmp)
         # While the file is open a stop request is recorded, never raised where it lands: HDF5 writes through
         # the GuardedFile's Python methods also when h5py objects are garbage-collected in the middle of other
         # work, and an exception raised in there breaks the file (the close then segfaulted). It is raised at
@@ -109,6 +107,8 @@ class DatasetWriter:
         return self
 
     def _release(self) -> None:
+        if self._tmp is not None:  # renamed into place or removed by now (a stopped one: the app's exit removes it)
+            forget(self._tmp)
         if self._lock is not None:
             self._lock.unlink(missing_ok=True)
             self._lock = None

@@ -13,12 +13,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from hybridqcm.atomic import forget, new_temporary
 from hybridqcm.data.csv_checks import RecordingError
 from hybridqcm.data.h5file import open_guarded, raise_if_failed, writing
 from hybridqcm.data.importer import ImportedRecordings, RecordingLayout, iter_windows, scan_recordings
@@ -59,9 +59,7 @@ def _temporary(output: Path, overwrite: bool, split: str) -> Path:
     if not split or "/" in split:
         raise RecordingError(f"{output}: split = {split!r} is not a valid group name")
     output.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{output.name}.", suffix=".partial", dir=output.parent)
-    os.close(fd)
-    return Path(tmp)
+    return new_temporary(output, ".partial")
 
 
 def write_windows(
@@ -98,8 +96,10 @@ def write_windows(
         raise_if_failed(guard, output)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
+        forget(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        forget(tmp)
         if guard is not None:
             raise_if_failed(guard, output)  # a full disk is the cause of whatever HDF5 raised
         raise
@@ -207,8 +207,10 @@ def write_recordings(
         raise_if_failed(guard, output)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; a dataset is meant to be shared
         os.replace(tmp, output)
+        forget(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
+        forget(tmp)
         if guard is not None:
             raise_if_failed(guard, output)  # a full disk is the cause of whatever HDF5 raised
         raise

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,6 +47,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from hybridqcm.atomic import forget, new_temporary
 from hybridqcm.errors import CheckpointError, ConfigError
 from hybridqcm.models.networks import ParameterCNN
 from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
@@ -296,15 +296,16 @@ class SBIPeer(nn.Module):
         """Write the checkpoint atomically (temporary file beside it, renamed into place)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-        os.close(fd)
+        tmp = new_temporary(path)
         try:
             torch.save(self.checkpoint(), tmp)
             os.chmod(tmp, 0o644)
             os.replace(tmp, path)
         except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+            tmp.unlink(missing_ok=True)
             raise
+        finally:
+            forget(tmp)
         return path
 
     @classmethod

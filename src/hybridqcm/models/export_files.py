@@ -13,11 +13,11 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import tempfile
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from hybridqcm.atomic import new_temporary
 from hybridqcm.errors import ConfigError
 
 FORMATS = ("torchscript", "onnx")
@@ -41,9 +41,7 @@ def load_for_export(path: str):
 
 
 def _temporary(path: Path) -> Path:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
+    return new_temporary(path)
 
 
 def _publish(tmp: Path, path: Path, overwrite: bool = False) -> Path:
