@@ -123,3 +123,27 @@ def test_the_sbi_peers_save_writes_whole_or_nothing_without_the_sbi_extra(tmp_pa
         SBIPeer.save(Broken(), tmp_path / "other.ckpt")
     assert [p.name for p in tmp_path.iterdir()] == ["peer.ckpt"]
     assert not any(name.startswith(str(tmp_path)) for name in atomic._LIVE)
+
+
+def test_a_plot_is_written_whole_or_not_at_all(tmp_path):
+    """plots.save_figure: a PNG (its signature) with mode 0644 and nothing else beside it; a drawing that fails
+    half-way leaves the earlier plot of that name as it was and no temporary file."""
+    from hybridqcm.plots import close, plt, save_figure
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    path = tmp_path / "plots" / "m3.png"
+    save_figure(fig, path)
+    first = path.read_bytes()
+    assert first[:8] == b"\x89PNG\r\n\x1a\n" and oct(path.stat().st_mode & 0o777) == "0o644"
+
+    def half_drawn(target, **kwargs):
+        with open(target, "wb") as handle:
+            handle.write(b"\x89PNG half")
+        raise OSError("disk full")
+
+    fig.savefig = half_drawn
+    with pytest.raises(OSError, match="disk full"):
+        save_figure(fig, path)
+    assert path.read_bytes() == first and [p.name for p in path.parent.iterdir()] == ["m3.png"]
+    close(fig)

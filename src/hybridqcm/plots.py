@@ -6,6 +6,7 @@ also save it as PNG. The Agg backend is used so nothing needs a display.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -15,14 +16,25 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from hybridqcm.atomic import forget, new_temporary  # noqa: E402
 
-def _save(fig, path: str | Path | None):
+
+def save_figure(fig, path: str | Path | None):
+    """``fig`` as a PNG at ``path`` (none: not saved), whole or not at all: drawn into a temporary file of its own
+    beside it (atomic.new_temporary: two plots of one name never share it, a stop leaves none), then renamed."""
     if path is not None:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.tmp.png")
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        tmp.replace(path)
+        tmp = new_temporary(path, ".png")  # the suffix tells matplotlib the format
+        try:
+            fig.savefig(tmp, dpi=110, bbox_inches="tight")
+            os.chmod(tmp, 0o644)  # mkstemp creates 0600; a plot is meant to be shared
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        finally:
+            forget(tmp)
     return fig
 
 
@@ -51,7 +63,7 @@ def plot_sorted_predictions(
     ax.set_title(title or f"{name}: sorted predictions")
     ax.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
 
 
@@ -73,7 +85,7 @@ def plot_overlays(
     axes[-1, 0].set_xlabel("time [s]")
     fig.suptitle(title)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
 
 
@@ -95,7 +107,7 @@ def plot_histogram(
     ax.set_ylabel("samples")
     ax.set_title(title)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     return fig
 
 
@@ -114,7 +126,7 @@ def plot_rank_histograms(
         ax.set_xlabel("rank")
     if title:
         fig.suptitle(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_tarp_curve(ecp: np.ndarray, alpha: np.ndarray, path=None, title=None):
@@ -127,7 +139,7 @@ def plot_tarp_curve(ecp: np.ndarray, alpha: np.ndarray, path=None, title=None):
     ax.legend(loc="upper left")
     if title:
         ax.set_title(title)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def close(fig) -> None:
@@ -171,7 +183,7 @@ def plot_apparent_mass(
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_running_estimate(
@@ -196,4 +208,4 @@ def plot_running_estimate(
     ax.set_title(title or "running estimate")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -56,7 +56,7 @@ def known_loads(path, split: str, n_samples: int | None) -> np.ndarray:
 
 def plot_k3(path: Path, seat: SeatLaw, loads, p2, used) -> None:
     """K3 over the load: each recording's K3 = p2 (load + pan) and the fitted law."""
-    from hybridqcm.plots import close, plt
+    from hybridqcm.plots import close, plt, save_figure
 
     fig, ax = plt.subplots(figsize=(6, 4))
     k3 = p2 * (loads + seat.pan_mass)
@@ -69,8 +69,7 @@ def plot_k3(path: Path, seat: SeatLaw, loads, p2, used) -> None:
     ax.set_ylabel("K3 [kN/m]")
     ax.set_title(f"seat calibration: pan {seat.pan_mass:.2f} kg")
     ax.legend(fontsize=8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path)
     close(fig)
 
 

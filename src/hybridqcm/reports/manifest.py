@@ -8,8 +8,9 @@ The pipeline runner (pipelines/runner.py) writes it with `record_stage`, `qcm-re
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
+
+from hybridqcm.atomic import atomic_write_text
 
 
 def manifest_path(root: str) -> Path:
@@ -47,7 +48,6 @@ def record_stage(root: str, pipeline: str, dataset: str, record: dict | None, re
     records = {r["name"]: r for r in load_manifest(path)["stages"]} if path.exists() else {}
     if record is not None and (replace or record["name"] not in records):
         records[record["name"]] = record
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".json.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"pipeline": pipeline, "dataset": dataset, "stages": list(records.values())}, indent=2))
-    tmp.replace(path)
+    atomic_write_text(
+        path, json.dumps({"pipeline": pipeline, "dataset": dataset, "stages": list(records.values())}, indent=2)
+    )
