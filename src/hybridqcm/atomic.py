@@ -65,15 +65,15 @@ def atomic_write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Seq
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | Path, mode: str = "w", **kwargs):
-    """A file handle for a large output written piece by piece: it appears at `path`, complete,
-    when the block ends, and never appears if the block raises (the temporary file is removed)."""
+def replacing(path: str | Path, suffix: str = ""):
+    """The path of a new temporary file beside ``path``, for a writer that writes by name (torch.save, savefig):
+    it replaces ``path`` (mode 0644: results are meant to be shared), complete, when the block ends, and is
+    removed if the block raises."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = new_temporary(path)
+    tmp = new_temporary(path, suffix)
     try:
-        with open(tmp, mode, **kwargs) as handle:
-            yield handle
+        yield tmp
         os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
@@ -81,6 +81,14 @@ def atomic_open(path: str | Path, mode: str = "w", **kwargs):
         raise
     finally:
         forget(tmp)
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path, mode: str = "w", **kwargs):
+    """A file handle for a large output written piece by piece: it appears at `path`, complete,
+    when the block ends, and never appears if the block raises (the temporary file is removed)."""
+    with replacing(path) as tmp, open(tmp, mode, **kwargs) as handle:
+        yield handle
 
 
 def atomic_create_text(path: str | Path, text: str, overwrite: bool = False) -> Path:

@@ -6,7 +6,6 @@ also save it as PNG. The Agg backend is used so nothing needs a display.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,25 +15,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hybridqcm.atomic import forget, new_temporary  # noqa: E402
+from hybridqcm.atomic import replacing  # noqa: E402
 
 
 def save_figure(fig, path: str | Path | None):
     """``fig`` as a PNG at ``path`` (none: not saved), whole or not at all: drawn into a temporary file of its own
-    beside it (atomic.new_temporary: two plots of one name never share it, a stop leaves none), then renamed."""
+    beside it (atomic.replacing: two plots of one name never share it, a stop leaves none), then renamed."""
     if path is not None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = new_temporary(path, ".png")  # the suffix tells matplotlib the format
-        try:
+        with replacing(path, ".png") as tmp:  # the suffix tells matplotlib the format
             fig.savefig(tmp, dpi=110, bbox_inches="tight")
-            os.chmod(tmp, 0o644)  # mkstemp creates 0600; a plot is meant to be shared
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        finally:
-            forget(tmp)
     return fig
 
 

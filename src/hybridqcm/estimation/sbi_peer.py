@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from hybridqcm.atomic import forget, new_temporary
+from hybridqcm.atomic import replacing
 from hybridqcm.errors import CheckpointError, ConfigError
 from hybridqcm.models.networks import ParameterCNN
 from hybridqcm.physics.parameters import CHANNELS, PARAM_NAMES
@@ -296,16 +296,8 @@ class SBIPeer(nn.Module):
         """Write the checkpoint atomically (temporary file beside it, renamed into place)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = new_temporary(path)
-        try:
+        with replacing(path) as tmp:
             torch.save(self.checkpoint(), tmp)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
-        finally:
-            forget(tmp)
         return path
 
     @classmethod
