@@ -379,6 +379,7 @@ def speed(args) -> None:
 
 
 CANDIDATES = ("rigid", "body1", "body2")
+FLOOR_RUNS = ("rigid", "rigid_capped", "candidates")  # _floor_runs' keys, the run folders' suffixes
 
 
 def _budget(w30: int, seat: int) -> str:
@@ -435,7 +436,7 @@ def _floor_lines(runs: Path, files: list) -> list[str]:
     __candidates each, with summary.json); none where a file has not all three."""
     rows = []
     for name in files:
-        found = {k: runs / f"{name}__{k}" / "summary.json" for k in _floor_runs((1, 1))}
+        found = {k: runs / f"{name}__{k}" / "summary.json" for k in FLOOR_RUNS}
         if not all(path.is_file() for path in found.values()):
             continue
         summary = {k: json.loads(path.read_text()) for k, path in found.items()}

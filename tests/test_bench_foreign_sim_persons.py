@@ -282,6 +282,7 @@ def test_the_floor_fits_every_candidate_within_the_rigid_fits_budget(tmp_path, c
 
     table = _load("persons_table")
     runs = table._floor_runs((3, 2))
+    assert tuple(runs) == table.FLOOR_RUNS  # the folders the results page reads
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         composed = {kind: compose("estimate", overrides=overrides) for kind, overrides in runs.items()}
     assert [s.max_iterations for s in composed["rigid"].stages] == [10, 30]  # the default's, as `speed` runs it
