@@ -86,8 +86,8 @@ class PhaseClock:
     one after another, so each is exact, while the threads of a phase (``workers``) overlap inside it — and
     ``fit_wall`` and ``fit_cpu``: each candidate's own fit, wall seconds and CPU seconds of its thread (on the
     workers each fit's ops run on one intra-op thread, ``_blas.parallel_map``; with one worker they sum to the
-    process's CPU over "fits"), so the candidates' costs stay apart when they overlap. summary.json sums them over the blocks (``seconds_phases``): where a
-    selection's time goes, without a profiler."""
+    process's CPU over "fits"), so the candidates' costs stay apart when they overlap. summary.json sums them
+    over the blocks (``seconds_phases``): where a selection's time goes, without a profiler."""
 
     wall: dict[str, float] = field(default_factory=dict)
     cpu: dict[str, float] = field(default_factory=dict)

@@ -295,8 +295,7 @@ class SBIPeer(nn.Module):
     def save(self, path: str | os.PathLike) -> Path:
         """Write the checkpoint atomically (temporary file beside it, renamed into place)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with replacing(path) as tmp:
+        with replacing(path) as tmp:  # the folder made if missing
             torch.save(self.checkpoint(), tmp)
         return path
 

@@ -40,10 +40,6 @@ def load_for_export(path: str):
         raise ConfigError(str(error)) from None
 
 
-def _temporary(path: Path) -> Path:
-    return new_temporary(path)
-
-
 def _publish(tmp: Path, path: Path, overwrite: bool = False) -> Path:
     """Put the finished temporary file in place: replacing `path` only with overwrite, else exclusively
     (os.link fails if the path appeared meanwhile: another export's or the user's file is never replaced)."""
@@ -153,7 +149,7 @@ def export(
                 # The time axis is fixed at export by design (padding is computed from it); the tracer says so per layer.
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)
                 traced = torch.jit.trace(graph, example, check_trace=False)
-            tmp = _temporary(path)
+            tmp = new_temporary(path)
             try:
                 torch.jit.save(traced, str(tmp))
                 _publish(tmp, path, overwrite)
@@ -168,7 +164,7 @@ def export(
             sidecar["parity"]["onnx"] = _export_onnx(graph, example, x, path, model, reference, overwrite)
     sidecar["tolerance"] = tol
     contract_path = out / f"{stem}.json"
-    tmp = _temporary(contract_path)
+    tmp = new_temporary(contract_path)
     try:
         tmp.write_text(json.dumps(sidecar, indent=2) + "\n")
         _publish(tmp, contract_path, overwrite)
@@ -192,8 +188,7 @@ def _export_onnx(graph, example, x, path: Path, model, reference, overwrite: boo
 
     from hybridqcm.models.export import parity_error
 
-    reserved = _temporary(path)  # a unique name; the exporter wants the .onnx suffix
-    tmp = reserved.with_suffix(".onnx")
+    tmp = new_temporary(path, ".onnx")  # the exporter wants the .onnx suffix
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
     try:
         with warnings.catch_warnings():
@@ -211,7 +206,7 @@ def _export_onnx(graph, example, x, path: Path, model, reference, overwrite: boo
             )
         _publish(tmp, path, overwrite)
     finally:
-        reserved.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         for leftover in path.parent.glob(f"{tmp.name}*"):  # ours only: a concurrent export's stay
             leftover.unlink(missing_ok=True)
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])

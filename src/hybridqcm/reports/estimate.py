@@ -301,8 +301,8 @@ def finish_run(cfg, plan, solved, run_dir: Path, seat, inputs_used, t_start: flo
 
 
 def _phase_seconds(markers: list[dict]) -> dict | None:
-    """{"wall" | "cpu" | "fit_wall" | "fit_cpu": {phase or candidate: seconds}} summed over the blocks' markers that have
-    them (an occupant selection's), None where none has."""
+    """{"wall" | "cpu" | "fit_wall" | "fit_cpu": {phase or candidate: seconds}} summed over the blocks' markers
+    that have them (an occupant selection's), None where none has."""
     timed = [m["phase_seconds"] for m in markers if m.get("phase_seconds")]
     if not timed:
         return None
