@@ -27,6 +27,7 @@ import argparse
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -57,7 +58,7 @@ def make_big_file(n: int, source: Path = SOURCE, split: str = "test") -> Path:
         for key in ("accel", "road", "params"):
             data = group[key]
             out = dst.create_dataset(
-                f"{split}/{key}", shape=(n, *data.shape[1:]), dtype=data.dtype, chunks=(256, *data.shape[1:])
+                f"{split}/{key}", shape=(n, *data.shape[1:]), dtype=data.dtype, chunks=(min(256, n), *data.shape[1:])
             )
             piece = data[()]
             for start in range(0, n, m):
@@ -67,8 +68,19 @@ def make_big_file(n: int, source: Path = SOURCE, split: str = "test") -> Path:
     return path
 
 
-def estimate(overrides: list[str], run_dir: Path, threads: int | None = None) -> tuple[float, dict, int]:
-    """(wall seconds, summary.json, peak RSS in MiB of the command and its children)."""
+class RowTimeout(Exception):
+    """A run ended by estimate's ``timeout`` (its process group killed); ``run_dir`` holds the finished blocks."""
+
+    def __init__(self, run_dir: Path, seconds: float):
+        super().__init__(f"stopped after {seconds:.0f} s")
+        self.run_dir, self.seconds = run_dir, seconds
+
+
+def estimate(
+    overrides: list[str], run_dir: Path, threads: int | None = None, timeout: float | None = None
+) -> tuple[float, dict, int]:
+    """(wall seconds, summary.json, peak RSS in MiB of the command and its children). ``timeout`` [s]: the run
+    and its children are killed after it and RowTimeout raised (shard_progress reads what it finished)."""
     probe = (
         "import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
         "print('MAXRSS', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
@@ -80,12 +92,43 @@ def estimate(overrides: list[str], run_dir: Path, threads: int | None = None) ->
     if threads:  # torch threads per process (Lightning gives spawned ranks cores / ranks unless set)
         env["OMP_NUM_THREADS"] = str(threads)
     t0 = time.perf_counter()
-    result = subprocess.run(command, capture_output=True, text=True, env=env)
+    # its own process group: a timeout stops the estimate under the probe too, not the probe alone
+    proc = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True
+    )
+    try:
+        stdout, stderr = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise RowTimeout(run_dir, time.perf_counter() - t0) from None
     wall = time.perf_counter() - t0
-    if result.returncode != 0:
-        sys.exit(f"qcm-estimate failed:\n{(result.stdout + result.stderr)[-3000:]}")
-    rss = next(int(line.split()[1]) for line in result.stdout.splitlines() if line.startswith("MAXRSS"))
+    if proc.returncode != 0:
+        sys.exit(f"qcm-estimate failed:\n{(stdout + stderr)[-3000:]}")
+    rss = next(int(line.split()[1]) for line in stdout.splitlines() if line.startswith("MAXRSS"))
     return wall, json.loads((run_dir / "summary.json").read_text()), rss // 1024
+
+
+def shard_progress(run_dir: Path) -> dict:
+    """The finished blocks of a run (its shard markers, RUN/shards/*.done.json): blocks, rows, the blocks' GN
+    seconds (sum, min, max), the largest device memory of a block [MiB] and the status counts."""
+    markers = [json.loads(m.read_text()) for m in sorted((run_dir / "shards").glob("*.done.json"))]
+    statuses: dict[str, int] = {}
+    for m in sorted((run_dir / "shards").glob("*.status.csv")):
+        if m.with_name(m.name.replace(".status.csv", ".done.json")).exists():
+            for row in csv.DictReader(m.open()):
+                statuses[row["status"]] = statuses.get(row["status"], 0) + 1
+    seconds = [m["seconds"] for m in markers]
+    memory = [m["device_memory_mib"] for m in markers if m.get("device_memory_mib") is not None]
+    return {
+        "blocks": len(markers),
+        "rows": sum(m["rows"][1] - m["rows"][0] for m in markers),
+        "seconds": sum(seconds),
+        "seconds_min": min(seconds, default=float("nan")),
+        "seconds_max": max(seconds, default=float("nan")),
+        "device_memory_mib": max(memory, default=None),
+        "status_counts": statuses,
+    }
 
 
 def experiment_overrides(name: str, cnn: Path | None = None, unet: Path | None = None) -> list[str]:

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_estimate_scale import ROOT, estimate, make_big_file, read_estimates  # noqa: E402
+from bench_estimate_scale import ROOT, RowTimeout, estimate, make_big_file, read_estimates, shard_progress  # noqa: E402
 
 
 def gemm_gflops(device: str, n: int) -> float:
@@ -81,6 +81,12 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=17000, help="GPU: recordings per block")
     ap.add_argument("--chunk", type=int, default=17000, help="GPU: solver.chunk_size")
     ap.add_argument("--budget-s", type=float, default=420.0, help="skip the GPU sizes predicted to end later")
+    ap.add_argument(
+        "--row-timeout",
+        type=float,
+        default=None,
+        help="stop a run after this many seconds; its finished blocks are reported",
+    )
     ap.add_argument("overrides", nargs="*", help="Hydra overrides for every run")
     args = ap.parse_args()
     t_start = time.perf_counter()
@@ -97,10 +103,21 @@ def main() -> None:
     def row(label: str, n: int, extra: list[str]) -> Path | None:
         run_dir = out / f"{label.replace(' ', '')}_{n}"
         try:
-            wall, summary, rss = estimate([*base, f"n_samples={n}", *extra], run_dir)
+            wall, summary, rss = estimate([*base, f"n_samples={n}", *extra], run_dir, timeout=args.row_timeout)
         except SystemExit as failed:  # a failed run is reported and the others still run
             print(f"{label} {n}: {failed}", flush=True)
             return None
+        except RowTimeout as stopped:  # what it finished: its blocks' own seconds (no start-up, no merge)
+            done = shard_progress(run_dir)
+            rate = done["rows"] / done["seconds"] if done["seconds"] else float("nan")
+            print(
+                f"{label} {n}: {stopped}, {done['blocks']} blocks ({done['rows']} recordings) done at {rate:.1f} "
+                f"rec/s of their GN seconds ({done['seconds_min']:.1f}-{done['seconds_max']:.1f} s a block), "
+                f"GPU MiB {done['device_memory_mib']}   {done['status_counts']}",
+                flush=True,
+            )
+            first = run_dir / "shards" / "block-000000.csv"
+            return first if done["blocks"] else None
         rate = n / summary["seconds_solve"]
         rates[label] = rate
         ratio = rate / rates["cpu x1"] if "cpu x1" in rates else float("nan")
@@ -110,11 +127,16 @@ def main() -> None:
             f"{'-' if memory is None else f'{memory:8.0f}':>8}   {summary['status_counts']}",
             flush=True,
         )
-        return run_dir
+        return run_dir / "estimates.csv"
+
+    # a fresh machine's first process compiles the solver's loops into numba's cache (~10 s): not a row's time
+    t0 = time.perf_counter()
+    estimate([*base, "n_samples=16", "trainer=cpu", "batch_size=16"], out / "warmup")
+    print(f"warm-up (numba's cache): {time.perf_counter() - t0:.1f} s", flush=True)
 
     row("cpu x1", args.cpu_single, ["trainer=cpu", f"batch_size={args.cpu_single}"])
     p = args.cpu_processes
-    cpu_dir = row(
+    cpu_csv = row(
         f"cpu x{p}", args.cpu_size, ["trainer=ddp", f"trainer.devices={p}", f"batch_size={args.cpu_size // p}"]
     )
     if not cuda:
@@ -128,12 +150,12 @@ def main() -> None:
             print(f"gpu {n}: skipped, predicted {n * per_recording:.0f} s, {left:.0f} s of the budget left", flush=True)
             continue
         t0 = time.perf_counter()
-        run_dir = row("gpu", n, [*gpu, f"batch_size={min(args.batch, n)}"])
-        if run_dir is None:
+        gpu_csv = row("gpu", n, [*gpu, f"batch_size={min(args.batch, n)}"])
+        if gpu_csv is None:
             break
         per_recording = (time.perf_counter() - t0) / n
-        if n >= args.cpu_size and cpu_dir is not None:
-            print(compare(run_dir / "estimates.csv", cpu_dir / "estimates.csv"), flush=True)
+        if n >= args.cpu_size and cpu_csv is not None:
+            print(compare(gpu_csv, cpu_csv), flush=True)
     print(
         f"float64 GEMM: CPU 2048² {gemm_gflops('cpu', 2048):.0f} GFLOP/s, GPU 8192² {gemm_gflops('cuda', 8192):.0f} GFLOP/s"
     )

@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from ._blas import batched_matmul as _matmul
+from ._host import on_host
 from ._kernels import applies as _compiled_applies
 from ._kernels import hold_weights as _compiled_hold_weights
 from ._kernels import modal_coefficients as _compiled_coefficients
@@ -137,10 +138,10 @@ def _eig(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     OpenBLAS' decomposes it. The QR iteration can still fail to converge on a trial step's ill-conditioned
     matrix, and the call raises for the whole batch then; such a matrix is one not-ok sample (identity
     eigenvectors, zero eigenvalues), not an error. Samples on another device are decomposed on the CPU:
-    torch's CUDA eig is MAGMA's geev, a host routine called once per matrix, and the batch's copy costs less."""
+    torch's CUDA eig is MAGMA's geev, a host routine called once per matrix, and the batch's copy costs less
+    (in slices on the host's cores: _host.py)."""
     if M.device.type != "cpu":
-        lam, V, converged = _eig(M.cpu())
-        return lam.to(M.device), V.to(M.device), converged.to(M.device)
+        return on_host(_eig, M, rows=True)
     values = M.detach().numpy()
     kind = np.result_type(values.dtype, np.complex64)
     try:

@@ -68,6 +68,7 @@ from hybridqcm.physics.linear_models import LinearModel
 
 from ._blas import batched_matmul as _matmul
 from ._expm import balance, van_loan_maps, van_loan_maps_batch_first
+from ._host import on_host
 from ._kernels import applies as _compiled_applies
 from ._kernels import linear_states as _compiled_states
 from ._kernels import tangent_states as _compiled_tangent_states
@@ -338,7 +339,16 @@ def exact_sensitivities(
 
 
 def _fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held) -> Tensor:
-    """The step recursion for the samples the modal path leaves: stacked for a few, batch-innermost above."""
+    """The step recursion for the samples the modal path leaves: stacked for a few, batch-innermost above;
+    on the host for a batch on another device (a few samples' T steps: one compiled loop there, _host.py)."""
+    if params.device.type != "cpu":
+        return on_host(
+            lambda p, x, w, d: _fallback(model, p, x, w, h, hold, substeps, with_x0, start, T, d),
+            params,
+            x0,
+            inputs,
+            held,
+        )
     fallback = _stacked_sensitivities if params.shape[0] <= _STACKED_MAX else _recursion_sensitivities
     return fallback(model, params, x0, inputs, h, hold, substeps, with_x0, start, T, held)
 

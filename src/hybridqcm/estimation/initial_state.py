@@ -28,6 +28,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from ._host import on_host
+
 X0_STARTS = ("rest", "least_squares", "alternate")  # alternate: see GaussNewtonRefinement
 
 
@@ -80,7 +82,10 @@ def project_initial_state(
 
 def _min_norm_lstsq(design: Tensor, rhs: Tensor, rcond: float) -> Tensor:
     """argmin ‖design x - rhs‖ of minimum norm, design [b, r, n], rhs [b, r] -> x [b, n]; columns
-    scaled to unit norm first, singular values below rcond·s_max dropped; NaN where the data are not finite."""
+    scaled to unit norm first, singular values below rcond·s_max dropped; NaN where the data are not finite.
+    Off the CPU on the host's cores (_host.py: cuSOLVER's batched SVD of tall matrices is the slower)."""
+    if design.device.type != "cpu":
+        return on_host(lambda d, r: _min_norm_lstsq(d, r, rcond), design, rhs, rows=True)
     bad = ~(torch.isfinite(design).all(2).all(1) & torch.isfinite(rhs).all(1))
     design = torch.where(torch.isfinite(design), design, torch.zeros_like(design))
     rhs = torch.where(torch.isfinite(rhs), rhs, torch.zeros_like(rhs))

@@ -56,21 +56,41 @@ def estimates_header(theta_names: Sequence[str], n_params: int, extra: Sequence[
 SEAT_COLUMNS = ("occupant_mass", "occupant_mass_low", "occupant_mass_high")
 
 
-def status_row(record: Mapping, i: int, index: int, status: str) -> list:
-    """Row ``i`` of a block's status.csv (STATUS_HEADER) from the refinement's record (its final fit);
-    ``index`` is the recording's row in the file, ``status`` its label."""
+def status_rows(record: Mapping, index: Sequence[int], status: Sequence[str]) -> list[list]:
+    """A block's status.csv rows (STATUS_HEADER) from the refinement's record (its final fit); ``index``
+    [b] the recordings' rows in the file, ``status`` [b] their labels. Each column is read once (a row at
+    a time re-derived the condition numbers of the whole block per row: quadratic in the block)."""
     result = record["final"]
+    columns = (
+        result.iterations.tolist(),
+        result.loss.tolist(),
+        record["relative_loss"].tolist(),
+        record["restarts"].tolist(),
+        result.condition_number.tolist(),
+        result.relative_residual.tolist(),
+        result.whiteness.tolist(),
+    )
     return [
-        index,
-        status,
-        int(result.iterations[i]),
-        repr(float(result.loss[i])),
-        repr(float(record["relative_loss"][i])),
-        int(record["restarts"][i]),
-        repr(float(result.condition_number[i])),
-        repr(float(result.relative_residual[i])),
-        repr(float(result.whiteness[i])),
+        [
+            i,
+            label,
+            int(it),
+            repr(float(loss)),
+            repr(float(rel)),
+            int(rs),
+            repr(float(c)),
+            repr(float(rr)),
+            repr(float(w)),
+        ]
+        for i, label, it, loss, rel, rs, c, rr, w in zip(index, status, *columns, strict=True)
     ]
+
+
+def texts(values: torch.Tensor) -> list:
+    """The csv text of every entry of ``values`` [b, ...] (repr of the float), nested as the tensor."""
+    if values.dim() == 1:
+        return [repr(float(x)) for x in values.tolist()]
+    return [[repr(float(x)) for x in row] for row in values.flatten(1).tolist()]
 
 
 def block_tables(
@@ -93,7 +113,7 @@ def block_tables(
     theta, theta_std = record["params"], result.std
     params, std = theta[:, :n_params], theta_std[:, :n_params]
     x0, x0_std = theta[:, n_params:], theta_std[:, n_params:]
-    status = [STATUS_LABELS[int(s)] for s in result.status]
+    status = [STATUS_LABELS[s] for s in result.status.tolist()]
     m3, m3_std, m3_low, m3_high = m3_interval(params, std, K3)
     if "m3_low" in record:
         m3_low, m3_high = record["m3_low"].double(), record["m3_high"].double()
@@ -104,24 +124,26 @@ def block_tables(
         p2_high = (K3 / m3_low.double()).numpy()
         extra_values += [torch.as_tensor(c) for c in seat.occupant_interval(p2, p2_low, p2_high)]
     index = record["index"]
-    rows, status_rows = [], []
-    for i in range(params.shape[0]):
-        rows.append(
-            [
-                int(index[i]),
-                *[repr(float(x)) for x in params[i]],
-                status[i],
-                *[repr(float(x)) for x in std[i]],
-                repr(float(m3[i])),
-                repr(float(m3_std[i])),
-                repr(float(m3_low[i])),
-                repr(float(m3_high[i])),
-                *[repr(float(x)) for x in x0[i]],
-                *[repr(float(x)) for x in x0_std[i]],
-                *[v[i] if isinstance(v, list) else repr(float(v[i])) for v in extra_values],
-            ]
-        )
-        status_rows.append(status_row(record, i, int(index[i]), status[i]))
+    indices = [int(i) for i in index.tolist()]
+    extra_texts = [v if isinstance(v, list) else texts(torch.as_tensor(v)) for v in extra_values]
+    p_t, std_t, x0_t, x0_std_t = texts(params), texts(std), texts(x0), texts(x0_std)
+    m3_t, m3_std_t, low_t, high_t = texts(m3), texts(m3_std), texts(m3_low), texts(m3_high)
+    rows = [
+        [
+            indices[i],
+            *p_t[i],
+            status[i],
+            *std_t[i],
+            m3_t[i],
+            m3_std_t[i],
+            low_t[i],
+            high_t[i],
+            *x0_t[i],
+            *x0_std_t[i],
+            *[v[i] for v in extra_texts],
+        ]
+        for i in range(len(indices))
+    ]
     scored = n_params if n_scored is None else n_scored
     columns = {
         "index": index.long(),
@@ -133,7 +155,7 @@ def block_tables(
         "iterations": result.iterations.long(),
         "restarts": record["restarts"].long(),
     }
-    return rows, status_rows, columns
+    return rows, status_rows(record, indices, status), columns
 
 
 def skipped_tables(

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+import torch
+
 from hybridqcm.estimation.solver import STATUS_LABELS
-from hybridqcm.estimation.tables import status_row
+from hybridqcm.estimation.tables import status_rows, texts
 from hybridqcm.physics.vehicle_geometry import VehicleLayout
 
 
@@ -30,26 +32,17 @@ def vehicle_block_tables(record: Mapping, n_params: int, names: Sequence[str], l
     theta, theta_std = record["params"], result.std
     params, std = theta[:, :n_params], theta_std[:, :n_params]
     x0, x0_std = theta[:, n_params:], theta_std[:, n_params:]
-    status = [STATUS_LABELS[int(s)] for s in result.status]
+    status = [STATUS_LABELS[s] for s in result.status.tolist()]
     masses = [list(names).index(m) for m in layout.seat_mass_names()]
     low = params[:, masses] - 1.96 * std[:, masses]
     high = params[:, masses] + 1.96 * std[:, masses]
+    bounds = texts(torch.stack([low, high], dim=2))  # per seat: low, high
+    indices = [int(i) for i in record["index"].tolist()]
+    p_t, std_t, x0_t, x0_std_t = texts(params), texts(std), texts(x0), texts(x0_std)
+    rows = [
+        [indices[i], *p_t[i], status[i], *std_t[i], *bounds[i], *x0_t[i], *x0_std_t[i]] for i in range(len(indices))
+    ]
     index = record["index"]
-    rows, status_rows = [], []
-    for i in range(params.shape[0]):
-        bounds = [repr(float(v)) for pair in zip(low[i], high[i]) for v in pair]
-        rows.append(
-            [
-                int(index[i]),
-                *[repr(float(x)) for x in params[i]],
-                status[i],
-                *[repr(float(x)) for x in std[i]],
-                *bounds,
-                *[repr(float(x)) for x in x0[i]],
-                *[repr(float(x)) for x in x0_std[i]],
-            ]
-        )
-        status_rows.append(status_row(record, i, int(index[i]), status[i]))
     columns = {
         "index": index.long(),
         "params": params.double(),
@@ -58,7 +51,7 @@ def vehicle_block_tables(record: Mapping, n_params: int, names: Sequence[str], l
         "iterations": result.iterations.long(),
         "restarts": record["restarts"].long(),
     }
-    return rows, status_rows, columns
+    return rows, status_rows(record, indices, status), columns
 
 
 __all__ = ["vehicle_estimates_header", "vehicle_block_tables"]
