@@ -1,6 +1,7 @@
 """Gauss-Newton on a GPU against the CPU: qcm-estimate's time and memory on the same recordings (issue 33, item 3).
 
     python bench/bench_gpu.py [--data FILE] [--gpu-sizes 4096 17000 170000] [--cpu-size 4096] [--cpu-processes 16]
+        [--row-timeout S]
 
 Every run is one `qcm-estimate experiment=E` process (bench_estimate_scale.estimate: wall time, summary.json,
 peak RSS of the process and its children) on the first n recordings of one file, made by repeating the test
@@ -11,6 +12,11 @@ split of --data (bench_estimate_scale.make_big_file). Rows, each printed as soon
 - `gpu`: one process, `trainer.accelerator=gpu gn_device=accelerator` (GN on the GPU, float64), blocks of
   --batch recordings and solver chunks of --chunk (one Jacobian pass a block: a GPU wants few large kernels),
   for each of --gpu-sizes while the --budget-s allows (a size whose predicted time does not fit is skipped).
+
+A 16-recording CPU run first fills numba's cache (a fresh machine's first process compiles the solver's loops, ~10 s,
+not a row's time). ``--row-timeout``: a run still going after S seconds is stopped with its children and reported
+by the blocks it finished (their own seconds, recordings, GPU memory, statuses; its first block compared with the
+CPU's rows), so a row cut by the lease still says how fast it went.
 
 Columns: recordings, wall seconds of the command, seconds_solve (summary.json: the predict call, GN included),
 recordings per second of seconds_solve, the ratio of that rate to the one-process CPU rate, peak RSS (MiB) and
@@ -96,8 +102,6 @@ def main() -> None:
     big = make_big_file(max([*args.gpu_sizes, args.cpu_size, args.cpu_single]), args.data)
     base = [f"experiment={args.experiment}", f"data.path={big}", "block_samples=null", *args.overrides]
     out = ROOT / "outputs" / "bench_gpu"
-    head = f"{'run':<10} {'n':>7} {'wall s':>8} {'solve s':>8} {'rec/s':>9} {'x cpu1':>7} {'RSS MiB':>8} {'GPU MiB':>8}"
-    print(head, flush=True)
     rates: dict[str, float] = {}
 
     def row(label: str, n: int, extra: list[str]) -> Path | None:
@@ -133,6 +137,8 @@ def main() -> None:
     t0 = time.perf_counter()
     estimate([*base, "n_samples=16", "trainer=cpu", "batch_size=16"], out / "warmup")
     print(f"warm-up (numba's cache): {time.perf_counter() - t0:.1f} s", flush=True)
+    head = f"{'run':<10} {'n':>7} {'wall s':>8} {'solve s':>8} {'rec/s':>9} {'x cpu1':>7} {'RSS MiB':>8} {'GPU MiB':>8}"
+    print(head, flush=True)
 
     row("cpu x1", args.cpu_single, ["trainer=cpu", f"batch_size={args.cpu_single}"])
     p = args.cpu_processes
