@@ -13,9 +13,9 @@ Three kinds of per-sample work run faster on the CPU than on a GPU, and a GPU so
 their device; with ``rows`` the samples (dim 0 of every tensor) are cut into slices solved at once on the
 host's cores (the routines release the GIL). Every sample's result is the CPU path's at one torch thread:
 the routines are per sample, so a slice gives each sample the same arithmetic as the whole batch
-(tests/test_host.py). The call runs under
-``torch.device("cpu")``: a solve on a GPU is made under ``torch.device(gpu)`` (estimation/shards.py),
-whose default would otherwise put the function's own new tensors on the GPU.
+(tests/test_host.py). The call runs under ``torch.device("cpu")``: a solve on a GPU is made under
+``torch.device(gpu)`` (estimation/shards.py), whose default would otherwise put the function's own new
+tensors on the GPU.
 """
 
 from __future__ import annotations
