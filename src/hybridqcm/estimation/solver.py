@@ -391,20 +391,21 @@ class NonlinearLeastSquares(ABC):
         """The method's step δ [b, n_free] from the column-scaled normal equations, the predicted decrease
         δᵀJᵀR [b] and whether the full step is below the convergence tolerances [b]."""
         cfg = self.config
-        scale = fisher.diagonal(dim1=1, dim2=2).sqrt()  # column norms of J [b, n_free]
-        safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-        fisher_scaled = fisher / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1))
-        gradient_scaled = gradient / safe_scale
-        workers = chunk_workers(cfg)
-        if workers > 1 and index.numel() >= 2 * _STEP_PART:  # per-sample solves: on the chunk threads, bit for bit
-            parts = torch.arange(index.numel()).tensor_split(workers)
-            step = torch.cat(
-                parallel_map(lambda p: self.direction(fisher_scaled[p], gradient_scaled[p], index[p]), parts, workers)
-            )
+
+        def scaled_step(rows: slice) -> Tensor:
+            f, g = fisher[rows], gradient[rows]
+            scale = f.diagonal(dim1=1, dim2=2).sqrt()  # column norms of J [b, n_free]
+            safe_scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+            step = self.direction(f / (safe_scale.unsqueeze(2) * safe_scale.unsqueeze(1)), g / safe_scale, index[rows])
+            return torch.where(scale > 0, step / safe_scale, torch.zeros_like(step))
+
+        workers, b = chunk_workers(cfg), index.numel()
+        if workers > 1 and b >= 2 * _STEP_PART:  # per-sample work (scaling too): on the chunk threads, bit for bit
+            bounds = torch.arange(b).tensor_split(workers)
+            parts = [slice(int(p[0]), int(p[-1]) + 1) for p in bounds]
+            step = torch.cat(parallel_map(scaled_step, parts, workers))
         else:
-            step = self.direction(fisher_scaled, gradient_scaled, index)
-        step = step / safe_scale
-        step = torch.where(scale > 0, step, torch.zeros_like(step))
+            step = scaled_step(slice(None))
         predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
         full_rel_step = self._relative_step(step, run.params[index][:, run.free])
         stationary = (full_rel_step <= cfg.step_tol) | (predicted <= cfg.decrease_tol * loss_now)
