@@ -10,6 +10,7 @@ published atomically and exclusively (an existing export only replaced with over
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -17,7 +18,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from hybridqcm.atomic import new_temporary
+from hybridqcm.atomic import forget, new_temporary
 from hybridqcm.errors import ConfigError
 
 FORMATS = ("torchscript", "onnx")
@@ -54,6 +55,19 @@ def _publish(tmp: Path, path: Path, overwrite: bool = False) -> Path:
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+@contextlib.contextmanager
+def _publishing(path: Path, overwrite: bool, suffix: str = ""):
+    """A new temporary file beside ``path`` to write, put in place by :func:`_publish` when the block ends, and
+    removed (and forgotten: atomic.new_temporary) whether the block or the publication fails or not."""
+    tmp = new_temporary(path, suffix)
+    try:
+        yield tmp
+        _publish(tmp, path, overwrite)
+    finally:
+        tmp.unlink(missing_ok=True)
+        forget(tmp)
 
 
 def _targets(out: Path, stem: str, formats: Sequence[str]) -> list[Path]:
@@ -149,12 +163,8 @@ def export(
                 # The time axis is fixed at export by design (padding is computed from it); the tracer says so per layer.
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)
                 traced = torch.jit.trace(graph, example, check_trace=False)
-            tmp = new_temporary(path)
-            try:
+            with _publishing(path, overwrite) as tmp:
                 torch.jit.save(traced, str(tmp))
-                _publish(tmp, path, overwrite)
-            finally:
-                tmp.unlink(missing_ok=True)
             loaded = torch.jit.load(str(path))
             sidecar["files"]["torchscript"] = path.name
             sidecar["parity"]["torchscript"] = parity_error(model, reference, loaded(x))
@@ -164,12 +174,8 @@ def export(
             sidecar["parity"]["onnx"] = _export_onnx(graph, example, x, path, model, reference, overwrite)
     sidecar["tolerance"] = tol
     contract_path = out / f"{stem}.json"
-    tmp = new_temporary(contract_path)
-    try:
+    with _publishing(contract_path, overwrite) as tmp:
         tmp.write_text(json.dumps(sidecar, indent=2) + "\n")
-        _publish(tmp, contract_path, overwrite)
-    finally:
-        tmp.unlink(missing_ok=True)
     worst = {k: v for k, v in sidecar["parity"].items() if not v <= tol}
     if worst:
         raise ParityError(
@@ -188,27 +194,25 @@ def _export_onnx(graph, example, x, path: Path, model, reference, overwrite: boo
 
     from hybridqcm.models.export import parity_error
 
-    tmp = new_temporary(path, ".onnx")  # the exporter wants the .onnx suffix
     logging.getLogger("torch.onnx").setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                graph,
-                (example,),
-                str(tmp),
-                input_names=["accel"],
-                output_names=["params" if model.kind == "estimator" else "signals"],
-                dynamic_shapes={"x": {0: torch.export.Dim("batch")}},
-                dynamo=True,
-                verbose=False,
-                external_data=False,
-            )
-        _publish(tmp, path, overwrite)
-    finally:
-        tmp.unlink(missing_ok=True)
-        for leftover in path.parent.glob(f"{tmp.name}*"):  # ours only: a concurrent export's stay
-            leftover.unlink(missing_ok=True)
+    with _publishing(path, overwrite, ".onnx") as tmp:  # the exporter wants the .onnx suffix
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                torch.onnx.export(
+                    graph,
+                    (example,),
+                    str(tmp),
+                    input_names=["accel"],
+                    output_names=["params" if model.kind == "estimator" else "signals"],
+                    dynamic_shapes={"x": {0: torch.export.Dim("batch")}},
+                    dynamo=True,
+                    verbose=False,
+                    external_data=False,
+                )
+        finally:
+            for leftover in path.parent.glob(f"{tmp.name}?*"):  # the exporter's side files, ours only
+                leftover.unlink(missing_ok=True)
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (result,) = session.run(None, {"accel": x.numpy()})
     return parity_error(model, reference, torch.from_numpy(result))
