@@ -278,7 +278,7 @@ class ProblemEvaluation:
             gradient[where] = gram[:, 1:, 0]
             loss[where] = 0.5 * gram[:, 0, 0]
 
-        def one(chunk, start=None, fallback=False):
+        def one(chunk, where, fallback=False):
             model, args = problem.model, (params[chunk], road[chunk], *problem.window)
             if fallback:
                 out, redo = model.fallback_sensitivities(*args), None
@@ -299,26 +299,26 @@ class ProblemEvaluation:
             scores = None
             if band is not None:
                 scores = score_groups(out[..., cols], band, problem.noise is not None, self.jackknife, self.moments)
-            if start is None:
-                return gram, scores, redo
-            rows(slice(start, start + b), gram)
-            return None, scores, redo
+            rows(where, gram)  # the chunk's rows of the pass: a slice, or the fallback's positions
+            return scores, redo
 
         chunks = list(index.split(self.chunk_size))
         starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
-        parts = self._map(lambda part: one(part[1], part[0]), list(zip(starts, chunks)))
+        parts = self._map(
+            lambda part: one(part[1], slice(part[0], part[0] + part[1].numel())), list(zip(starts, chunks))
+        )
         # the samples each chunk left to the model's fallback, by position in ``index``: one pass for all
         redo = torch.cat(
-            [start + part[2].to(index.device) for start, part in zip(starts, parts)]
+            [start + part[1].to(index.device) for start, part in zip(starts, parts)]
             + [torch.zeros(0, dtype=torch.long, device=index.device)]
         )
-        scores = _cat_scores([part[1] for part in parts])
+        scores = _cat_scores([part[0] for part in parts])
         if redo.numel():
-            fixes = self._map(lambda chunk: one(chunk, fallback=True), list(index[redo].split(self.chunk_size)))
+            positions = redo.split(self.chunk_size)
+            fixes = self._map(lambda at: one(index[at], at.to(fisher.device), fallback=True), list(positions))
             redo = redo.to(fisher.device)
-            rows(redo, torch.cat([fix[0] for fix in fixes]))
             if scores is not None:
-                fixed = _cat_scores([fix[1] for fix in fixes])
+                fixed = _cat_scores([fix[0] for fix in fixes])
                 scores[0][redo] = fixed[0]
                 if scores[2] is not None:
                     scores[2][redo] = fixed[2]

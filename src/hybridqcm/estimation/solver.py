@@ -401,9 +401,8 @@ class NonlinearLeastSquares(ABC):
 
         workers, b = chunk_workers(cfg), index.numel()
         if workers > 1 and b >= 2 * _STEP_PART:  # per-sample work (scaling too): on the chunk threads, bit for bit
-            bounds = torch.arange(b).tensor_split(workers)
-            parts = [slice(int(p[0]), int(p[-1]) + 1) for p in bounds]
-            step = torch.cat(parallel_map(scaled_step, parts, workers))
+            size = -(-b // workers)
+            step = torch.cat(parallel_map(scaled_step, [slice(s, s + size) for s in range(0, b, size)], workers))
         else:
             step = scaled_step(slice(None))
         predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
