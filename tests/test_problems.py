@@ -4,9 +4,13 @@ gathered over the chunks of a pass, and the residual subtracted inside the model
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
+import hybridqcm.estimation.problems as problems_module
+from hybridqcm.estimation._kernels import compiled_loops
 from hybridqcm.estimation.exact import exact_sensitivities, fallback_sensitivities
 from hybridqcm.estimation.problems import LeastSquaresProblem, ProblemEvaluation
 from hybridqcm.estimation.response import ExactResponse
@@ -72,6 +76,49 @@ def test_threads_give_the_numbers_of_one_thread_bit_for_bit():
     loss_one = ProblemEvaluation(problem, chunk_size=2).loss_at(trial[index], index)
     loss_two = ProblemEvaluation(problem, chunk_size=2, workers=2).loss_at(trial[index], index)
     assert torch.equal(loss_one, loss_two)
+
+
+_COMPILED = pytest.mark.skipif(not compiled_loops(), reason="the pieces even out where the compiled loops run")
+
+
+@_COMPILED
+@pytest.mark.parametrize("workers", [2, 3])
+def test_pieces_cover_every_row_once_in_order_and_even_out_the_workers(workers):
+    evaluation = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512, workers=workers)
+    for n in (0, 1, 127, 255, 256, 300, 1000, 1500, 6928, 17000, 17001):
+        for size in (5, 512, 1024):
+            pieces = evaluation._pieces(n, size)
+            assert [r for p in pieces for r in range(p.start, p.stop)] == list(range(n))
+            lengths = [p.stop - p.start for p in pieces]
+            assert all(0 < length <= size for length in lengths)
+            assert len(pieces) <= -(-n // size) + workers - 1  # no more than one round of the workers more
+            if n >= problems_module._MIN_PIECE * workers:
+                assert max(lengths) - min(lengths) <= 1
+                # a multiple of the workers wherever the pieces keep their least rows
+                rounded = math.ceil(math.ceil(n / size) / workers) * workers
+                assert len(pieces) % workers == 0 or n // rounded < problems_module._MIN_PIECE
+    one = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512)._pieces(1500, 512)
+    assert [(p.start, p.stop) for p in one] == [(0, 512), (512, 1024), (1024, 1500)]  # one worker: as before
+    two = evaluation._pieces(1500, 512)
+    assert len(two) == (3 if workers == 3 else 4) and {p.stop - p.start for p in two} <= {375, 500}
+
+
+@_COMPILED
+def test_pieces_of_several_workers_give_one_workers_numbers_bit_for_bit(monkeypatch):
+    """Cut into other pieces than one worker's (the least rows lowered so that 40 samples are), every sample's
+    normal equations, scores and trial loss are the same bits: each sample is evaluated on its own."""
+    monkeypatch.setattr(problems_module, "_MIN_PIECE", 3)
+    problem, theta = _seat_problem(40)
+    index = torch.arange(40).flip(0)[::2]  # 20 samples: pieces of 7, 7, 6 on one worker, 5 x 4 on two
+    one = ProblemEvaluation(problem, chunk_size=7)
+    two = ProblemEvaluation(problem, chunk_size=7, workers=2)
+    assert [p.stop - p.start for p in one._pieces(20, 7)] == [7, 7, 6]
+    assert [p.stop - p.start for p in two._pieces(20, 7)] == [5, 5, 5, 5]
+    a, b = one.data_normal_equations(theta, index, band=3), two.data_normal_equations(theta, index, band=3)
+    for x, y in zip(a[:4], b[:4]):
+        assert torch.equal(x, y)
+    trial = theta * 1.01
+    assert torch.equal(one.loss_at(trial[index], index), two.loss_at(trial[index], index))
 
 
 def test_deferred_fallback_rows_are_those_fallback_sensitivities_gives():

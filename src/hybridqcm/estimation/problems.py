@@ -14,9 +14,14 @@ import torch
 from torch import Tensor
 
 from ._blas import gram_matrix
+from ._kernels import compiled_loops
 from .noise import SpectralNoise
 from .response import EulerResponse, PreparedInputs, ResponseModel
 from .uncertainty import score_groups
+
+# the fewest rows of a piece cut for another worker: a smaller one costs more in per-call work than its rows
+# (ProblemEvaluation._pieces)
+_MIN_PIECE = 64
 
 
 @dataclass
@@ -187,11 +192,11 @@ class ProblemEvaluation:
     whether they carry the jackknife's working-model moments (uncertainty.score_groups).
 
     ``workers`` > 1: the chunks of a pass run on that many threads at once (CPU tensors only; the
-    caller sets torch's intra-op threads to 1). The chunks are independent and their results are
-    joined in order, so the numbers are those of one thread, bit for bit; torch's ops and numpy's
-    products release the GIL, which is what makes this the way to use a second core for the many
-    small per-chunk operations (each op on two intra-op threads waits for the second one more than
-    it gains; docs/measurements/roofline.md)."""
+    caller sets torch's intra-op threads to 1), cut so that the threads finish together (_pieces). Each
+    sample is evaluated on its own and the results are joined in order, so the numbers are those of one
+    thread, bit for bit; torch's ops and numpy's products release the GIL, which is what makes this the
+    way to use a second core for the many small per-chunk operations (each op on two intra-op threads
+    waits for the second one more than it gains; docs/measurements/roofline.md)."""
 
     def __init__(
         self,
@@ -225,6 +230,23 @@ class ProblemEvaluation:
             full[:, :, self.problem.observed_index] = self.targets
             self._full_targets = full
         return self._full_targets
+
+    def _pieces(self, n: int, size: int) -> list[slice]:
+        """The rows 0..n-1 of a pass cut into pieces of at most ``size`` rows. One worker: ``size`` rows each and the
+        rest. Several: the fewest pieces, of equal length to one row, and their count a multiple of the workers'
+        where every piece keeps _MIN_PIECE rows (a pass of three pieces on two threads, or of 33 full ones and a
+        rest, waits for its last one alone). The compiled loops evaluate each sample on its own, so its numbers
+        are the same in any piece; torch's Van Loan maps, where they run instead, scale a whole batch by one power
+        of two, so there the pieces stay those of one worker."""
+        if self.workers == 1 or n == 0 or not compiled_loops():
+            return [slice(start, min(n, start + size)) for start in range(0, n, size)]
+        count = -(-n // size)
+        rounded = -(-count // self.workers) * self.workers
+        if n // rounded >= _MIN_PIECE:
+            count = rounded
+        base, extra = divmod(n, max(count, 1))
+        ends = torch.tensor([base + 1] * extra + [base] * (count - extra), dtype=torch.long).cumsum(0).tolist()
+        return [slice(end - base - (i < extra), end) for i, end in enumerate(ends)]
 
     def _map(self, fn: Callable, chunks: list) -> list:
         """[fn(chunk) for chunk in chunks], on ``workers`` threads when there are several chunks."""
@@ -302,7 +324,7 @@ class ProblemEvaluation:
             rows(where, gram)  # the chunk's rows of the pass: a slice, or the fallback's positions
             return scores, redo
 
-        chunks = list(index.split(self.chunk_size))
+        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size)]
         starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
         parts = self._map(
             lambda part: one(part[1], slice(part[0], part[0] + part[1].numel())), list(zip(starts, chunks))
@@ -343,8 +365,7 @@ class ProblemEvaluation:
             loss = 0.5 * residual.square().sum((1, 2))
             return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
 
-        step = self.chunk_size * 2
-        losses = self._map(one, [slice(start, start + step) for start in range(0, index.numel(), step)])
+        losses = self._map(one, self._pieces(index.numel(), self.chunk_size * 2))
         loss = torch.cat(losses)
         if problem.prior_mean is not None:
             precision, deviation = self.prior_terms(trial_params[:, torch.tensor(problem.free_index)], index)
