@@ -87,7 +87,7 @@ def test_pieces_cover_every_row_once_in_order_and_even_out_the_workers(workers):
     evaluation = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512, workers=workers)
     for n in (0, 1, 127, 255, 256, 300, 1000, 1500, 6928, 17000, 17001):
         for size in (5, 512, 1024):
-            pieces = evaluation._pieces(n, size)
+            pieces = evaluation._pieces(n, size, problems_module._MIN_PIECE)
             assert [r for p in pieces for r in range(p.start, p.stop)] == list(range(n))
             lengths = [p.stop - p.start for p in pieces]
             assert all(0 < length <= size for length in lengths)
@@ -97,23 +97,25 @@ def test_pieces_cover_every_row_once_in_order_and_even_out_the_workers(workers):
                 # a multiple of the workers wherever the pieces keep their least rows
                 rounded = math.ceil(math.ceil(n / size) / workers) * workers
                 assert len(pieces) % workers == 0 or n // rounded < problems_module._MIN_PIECE
-    one = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512)._pieces(1500, 512)
+    one = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512)._pieces(1500, 512, 64)
     assert [(p.start, p.stop) for p in one] == [(0, 512), (512, 1024), (1024, 1500)]  # one worker: as before
-    two = evaluation._pieces(1500, 512)
+    two = evaluation._pieces(1500, 512, 64)
     assert len(two) == (3 if workers == 3 else 4) and {p.stop - p.start for p in two} <= {375, 500}
+    assert len(evaluation._pieces(300, 1024, 256)) == 1 and len(evaluation._pieces(300, 1024, 64)) == workers
 
 
 @_COMPILED
 def test_pieces_of_several_workers_give_one_workers_numbers_bit_for_bit(monkeypatch):
-    """Cut into other pieces than one worker's (the least rows lowered so that 40 samples are), every sample's
+    """Cut into other pieces than one worker's (the least rows lowered so that 20 samples are), every sample's
     normal equations, scores and trial loss are the same bits: each sample is evaluated on its own."""
     monkeypatch.setattr(problems_module, "_MIN_PIECE", 3)
+    monkeypatch.setattr(problems_module, "_MIN_TRIAL_PIECE", 3)
     problem, theta = _seat_problem(40)
     index = torch.arange(40).flip(0)[::2]  # 20 samples: pieces of 7, 7, 6 on one worker, 5 x 4 on two
     one = ProblemEvaluation(problem, chunk_size=7)
     two = ProblemEvaluation(problem, chunk_size=7, workers=2)
-    assert [p.stop - p.start for p in one._pieces(20, 7)] == [7, 7, 6]
-    assert [p.stop - p.start for p in two._pieces(20, 7)] == [5, 5, 5, 5]
+    assert [p.stop - p.start for p in one._pieces(20, 7, 3)] == [7, 7, 6]
+    assert [p.stop - p.start for p in two._pieces(20, 7, 3)] == [5, 5, 5, 5]
     a, b = one.data_normal_equations(theta, index, band=3), two.data_normal_equations(theta, index, band=3)
     for x, y in zip(a[:4], b[:4]):
         assert torch.equal(x, y)

@@ -19,9 +19,11 @@ from .noise import SpectralNoise
 from .response import EulerResponse, PreparedInputs, ResponseModel
 from .uncertainty import score_groups
 
-# the fewest rows of a piece cut for another worker: a smaller one costs more in per-call work than its rows
-# (ProblemEvaluation._pieces)
+# the fewest rows of a piece cut for another worker (ProblemEvaluation._pieces), in a Jacobian pass and in a
+# line search's trial losses (rows about a fifth as costly): below, a call's own cost and the threads' wait for
+# each other's Python outweigh the rows'
 _MIN_PIECE = 64
+_MIN_TRIAL_PIECE = 256
 
 
 @dataclass
@@ -231,18 +233,18 @@ class ProblemEvaluation:
             self._full_targets = full
         return self._full_targets
 
-    def _pieces(self, n: int, size: int) -> list[slice]:
-        """The rows 0..n-1 of a pass cut into pieces of at most ``size`` rows. One worker: ``size`` rows each and the
-        rest. Several: the fewest pieces, of equal length to one row, and their count a multiple of the workers'
-        where every piece keeps _MIN_PIECE rows (a pass of three pieces on two threads, or of 33 full ones and a
-        rest, waits for its last one alone). The compiled loops evaluate each sample on its own, so its numbers
-        are the same in any piece; torch's Van Loan maps, where they run instead, scale a whole batch by one power
-        of two, so there the pieces stay those of one worker."""
+    def _pieces(self, n: int, size: int, least: int) -> list[slice]:
+        """The rows 0..n-1 of a pass cut into pieces of at most ``size`` rows. One worker: ``size`` rows each and
+        the rest. Several: the fewest pieces, of equal length to one row, and their count a multiple of the
+        workers' where every piece keeps ``least`` rows (a pass of three pieces on two threads, or of 33 full
+        ones and a rest, waits for its last one alone). The compiled loops evaluate each sample on its own, so
+        its numbers are the same in any piece; torch's Van Loan maps, where they run instead, scale a whole batch
+        by one power of two, so there the pieces stay those of one worker."""
         if self.workers == 1 or n == 0 or not compiled_loops():
             return [slice(start, min(n, start + size)) for start in range(0, n, size)]
         count = -(-n // size)
         rounded = -(-count // self.workers) * self.workers
-        if n // rounded >= _MIN_PIECE:
+        if n // rounded >= least:
             count = rounded
         base, extra = divmod(n, max(count, 1))
         ends = torch.tensor([base + 1] * extra + [base] * (count - extra), dtype=torch.long).cumsum(0).tolist()
@@ -324,7 +326,7 @@ class ProblemEvaluation:
             rows(where, gram)  # the chunk's rows of the pass: a slice, or the fallback's positions
             return scores, redo
 
-        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size)]
+        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size, _MIN_PIECE)]
         starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
         parts = self._map(
             lambda part: one(part[1], slice(part[0], part[0] + part[1].numel())), list(zip(starts, chunks))
@@ -365,7 +367,7 @@ class ProblemEvaluation:
             loss = 0.5 * residual.square().sum((1, 2))
             return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
 
-        losses = self._map(one, self._pieces(index.numel(), self.chunk_size * 2))
+        losses = self._map(one, self._pieces(index.numel(), self.chunk_size * 2, _MIN_TRIAL_PIECE))
         loss = torch.cat(losses)
         if problem.prior_mean is not None:
             precision, deviation = self.prior_terms(trial_params[:, torch.tensor(problem.free_index)], index)
