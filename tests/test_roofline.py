@@ -226,3 +226,48 @@ def test_the_iterations_are_timed_and_counted_on_chunk_threads(roofline, threads
         assert all(seconds > 0 for seconds in best.values())
         assert term["jacobian"]["flops"] > 0 and term["line_search"]["flops"] > 0, name
     assert terms["euler"]["jacobian"]["flops"] == roofline.euler_kernel_flops(48, 12, 11, True)
+
+
+def test_product_flops_match_the_dispatched_products(roofline):
+    """_product_flops (the --floor table's count of a batched product) against torch's own FLOP counter for real
+    operands, broadcast included; a complex multiply-add is 8 real FLOPs, 4x a real one (2)."""
+    for a_shape, b_shape in (((5, 7, 3), (5, 3, 4)), ((2, 5, 7, 3), (3, 6)), ((7, 3), (4, 3, 2))):
+        a, b = torch.randn(a_shape, dtype=torch.float64), torch.randn(b_shape, dtype=torch.float64)
+        counter = FlopCounterMode(display=False)
+        with counter:
+            torch.matmul(a, b)
+        assert roofline._product_flops(a, b) == counter.get_total_flops()
+    a, b = torch.randn(5, 7, 3, dtype=torch.complex128), torch.randn(5, 3, 4, dtype=torch.complex128)
+    assert roofline._product_flops(a, b) == 5 * 7 * 4 * 3 * 8
+
+
+def test_the_floor_is_the_sum_of_its_parts_and_leaves_no_wrapper_behind(roofline, capsys):
+    """--floor end to end on a small batch: the library calls it times were seen inside the iteration, its floor is
+    the products' FLOPs at the small-product rate plus the eigen-decompositions plus one trial row a sample (the
+    products made within a trial row not counted again), and every function it wrapped is the original again
+    afterwards."""
+    import argparse
+
+    import numpy as np
+
+    from hybridqcm.estimation import _blas
+    from hybridqcm.estimation.solver import GaussNewton
+
+    originals = (np.linalg.eig, _blas.batched_matmul, _modal._matmul, exact._recursion_outputs, GaussNewton._iterate)
+    threads = torch.get_num_threads()
+    args = argparse.Namespace(samples=40, steps=20, margin=4, substeps=4, chunk=16, repeats=1, quick=True)
+    best = roofline.floor(args)
+    assert (np.linalg.eig, _blas.batched_matmul, _modal._matmul, exact._recursion_outputs, GaussNewton._iterate) == (
+        originals
+    )
+    assert torch.get_num_threads() == threads
+    for part in ("LAPACK eig", "modal basis products", "Gram of (R | J)", "trial outputs"):
+        assert best[f"s:{part}"] > 0, part
+    assert best["r:trial outputs"] >= 40  # each searching sample is tried at least once
+    products = sum(v for k, v in best.items() if k.startswith("f:") and " within " not in k)  # not twice
+    assert any(" within trial outputs" in k for k in best)  # the forcing's products: in the trial rows' time
+    one_row = best["s:trial outputs"] / best["r:trial outputs"] * 40
+    expected = best["s:LAPACK eig"] + one_row + products / 1e9 / best["rate"]
+    assert best["floor"] == pytest.approx(expected, rel=1e-12)
+    assert best["floor"] < best["seconds"]
+    assert "the exact iteration's floor" in capsys.readouterr().out
