@@ -5,6 +5,7 @@ equations F = JᵀJ, JᵀR with the Gaussian prior's terms (SPEC §8)."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -246,9 +247,9 @@ class ProblemEvaluation:
         rounded = -(-count // self.workers) * self.workers
         if n // rounded >= least:
             count = rounded
-        base, extra = divmod(n, max(count, 1))
-        ends = torch.tensor([base + 1] * extra + [base] * (count - extra), dtype=torch.long).cumsum(0).tolist()
-        return [slice(end - base - (i < extra), end) for i, end in enumerate(ends)]
+        base, extra = divmod(n, count)
+        lengths = [base + 1] * extra + [base] * (count - extra)
+        return [slice(end - length, end) for length, end in zip(lengths, itertools.accumulate(lengths))]
 
     def _map(self, fn: Callable, chunks: list) -> list:
         """[fn(chunk) for chunk in chunks], on ``workers`` threads when there are several chunks."""
