@@ -139,3 +139,37 @@ def test_restarts_alternate_the_x0_start(drive):
     assert bool((restarts[:4, 10:] == 0).all())  # restart 1: at rest
     again = project_initial_state(response, restarts[4:], road, accel, (True,) * 3, start=BEFORE)
     assert bool((restarts[4:, 10:].abs().amax(1) > 0).all()) and torch.allclose(restarts[4:], again, rtol=1e-12, atol=0)
+
+
+def test_a_refinements_steps_between_solves_run_at_its_solves_torch_threads(drive, monkeypatch):
+    """With the solves' chunks on two threads (each op on one), the x0 projection between solves runs at one torch
+    thread too (op_threads), as a one-thread run's does: torch rounds a large reduction by its thread count, so at
+    two it gave other numbers (exp 5, 2 048 recordings: up to 5e-5 relative). The estimates are one thread's."""
+    import hybridqcm.estimation.refinement as refinement_module
+    from hybridqcm.estimation.solver import SolverConfig
+
+    params, road, accel, _ = drive
+    seen = []
+    original = refinement_module.project_initial_state
+    monkeypatch.setattr(
+        refinement_module,
+        "project_initial_state",
+        lambda *a, **k: seen.append(torch.get_num_threads()) or original(*a, **k),
+    )
+    outputs = {"targets": accel, "road": road, "pu": params[:, 9] - params[:, 8], "init": params * 1.05}
+    outputs.update(index=torch.arange(4), input_offset=BEFORE)
+    results = {}
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)  # the process's own count, which the refinement must not inherit between solves
+    try:
+        for threads in (1, 2):
+            seen.clear()
+            stage = GaussNewtonStage("gn", GaussNewton(SolverConfig(max_iterations=4, num_threads=threads)))
+            settings = RefinementSettings(response=_response(), x0_start="least_squares", peer_factor=None)
+            refinement = GaussNewtonRefinement([stage], settings)
+            results[threads] = refinement.refine(outputs)["final"]
+            assert seen == [1], threads
+            assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(results[1].params, results[2].params) and torch.equal(results[1].status, results[2].status)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from hybridqcm.physics.parameters import CHANNELS
 
-from ._blas import torch_threads
+from ._blas import op_threads, torch_threads
 from .front import HybridEstimator
 from .initial_state import X0_STARTS, project_initial_state
 from .noise import SpectralNoise
@@ -407,8 +407,9 @@ class GaussNewtonRefinement(Callback):
 
     def refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
         """Run every stage (and restarts) on one prepared batch; returns per-sample results. The noise
-        model and the tests between solves run at the solver's thread count too (torch_threads)."""
-        with torch_threads(self.stages[0].solver.config.num_threads):
+        model and the tests between solves run at the solves' own torch thread count (op_threads: one where
+        the solves' chunks run on threads), so a batch's numbers do not depend on SolverConfig.num_threads."""
+        with torch_threads(op_threads(self.stages[0].solver.config)):
             return self._refine(outputs, module)
 
     def _refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
