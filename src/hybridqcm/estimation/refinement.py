@@ -408,7 +408,8 @@ class GaussNewtonRefinement(Callback):
     def refine(self, outputs: Mapping[str, Tensor], module: Any = None) -> dict:
         """Run every stage (and restarts) on one prepared batch; returns per-sample results. The noise
         model and the tests between solves run at the solves' own torch thread count (op_threads: one where
-        the solves' chunks run on threads), so a batch's numbers do not depend on SolverConfig.num_threads."""
+        the solves' chunks run on threads), so with thread_chunks (the default) a batch's numbers do not depend
+        on SolverConfig.num_threads."""
         with torch_threads(op_threads(self.stages[0].solver.config)):
             return self._refine(outputs, module)
 
