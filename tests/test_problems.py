@@ -11,9 +11,11 @@ import torch
 
 import hybridqcm.estimation.problems as problems_module
 from hybridqcm.estimation._kernels import compiled_loops
-from hybridqcm.estimation.exact import exact_sensitivities, fallback_sensitivities
+from hybridqcm.estimation.delay import DelayedResponse
+from hybridqcm.estimation.exact import exact_outputs, exact_sensitivities, fallback_sensitivities
+from hybridqcm.estimation.hold import held_input
 from hybridqcm.estimation.problems import LeastSquaresProblem, ProblemEvaluation
-from hybridqcm.estimation.response import ExactResponse
+from hybridqcm.estimation.response import EulerResponse, ExactResponse
 from hybridqcm.estimation.sensitivity import euler_sensitivities
 from hybridqcm.physics import reference_params
 from hybridqcm.physics.linear_models import QuarterCarRoad, SeatBaseExcitation
@@ -87,7 +89,7 @@ def test_pieces_cover_every_row_once_in_order_and_even_out_the_workers(workers):
     evaluation = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512, workers=workers)
     for n in (0, 1, 127, 255, 256, 300, 1000, 1500, 6928, 17000, 17001):
         for size in (5, 512, 1024):
-            pieces = evaluation._pieces(n, size, problems_module._MIN_PIECE)
+            pieces = evaluation._pieces(n, size, problems_module._MIN_PIECE, True)
             assert [r for p in pieces for r in range(p.start, p.stop)] == list(range(n))
             lengths = [p.stop - p.start for p in pieces]
             assert all(0 < length <= size for length in lengths)
@@ -97,30 +99,73 @@ def test_pieces_cover_every_row_once_in_order_and_even_out_the_workers(workers):
                 # a multiple of the workers wherever the pieces keep their least rows
                 rounded = math.ceil(math.ceil(n / size) / workers) * workers
                 assert len(pieces) % workers == 0 or n // rounded < problems_module._MIN_PIECE
-    one = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512)._pieces(1500, 512, 64)
-    assert [(p.start, p.stop) for p in one] == [(0, 512), (512, 1024), (1024, 1500)]  # one worker: as before
-    two = evaluation._pieces(1500, 512, 64)
+    before = [(0, 512), (512, 1024), (1024, 1500)]
+    one = ProblemEvaluation(_seat_problem(4)[0], chunk_size=512)._pieces(1500, 512, 64, True)
+    assert [(p.start, p.stop) for p in one] == before  # one worker: as before
+    assert [(p.start, p.stop) for p in evaluation._pieces(1500, 512, 64, False)] == before  # not apart: as before
+    two = evaluation._pieces(1500, 512, 64, True)
     assert len(two) == (3 if workers == 3 else 4) and {p.stop - p.start for p in two} <= {375, 500}
-    assert len(evaluation._pieces(300, 1024, 256)) == 1 and len(evaluation._pieces(300, 1024, 64)) == workers
+    assert (
+        len(evaluation._pieces(300, 1024, 256, True)) == 1 and len(evaluation._pieces(300, 1024, 64, True)) == workers
+    )
+
+
+def test_which_passes_a_model_lets_a_solve_cut_anywhere():
+    problem, _ = _seat_problem(4)
+    delayed = DelayedResponse(problem.model)
+    assert EulerResponse(0.01).outputs_apart and EulerResponse(0.01).sensitivities_apart
+    assert problem.model.outputs_apart and not problem.model.sensitivities_apart  # ExactResponse
+    assert not delayed.outputs_apart and not delayed.sensitivities_apart
+
+
+def test_the_exact_models_sensitivities_depend_on_their_batch_mates_modes():
+    """Why ExactResponse.sensitivities_apart is False: an under-damped seat's sensitivities are other bits beside an
+    over-damped one (the modal basis is as wide as the batch's largest number of propagated modes), its outputs
+    are not (the step recursion: per sample). If this ever holds bit for bit, the Jacobian pass may be cut too."""
+    model = SeatBaseExcitation()
+    g = torch.Generator().manual_seed(5)
+    zeta = torch.tensor([0.2, 0.3, 2.5, 0.25], dtype=F64)
+    params = torch.stack([2 * zeta * 300.0**0.5, torch.full((4,), 300.0, dtype=F64)], 1)
+    x0 = 0.01 * torch.randn(4, 2, generator=g, dtype=F64)
+    inputs = torch.randn(4, 116, 1, generator=g, dtype=F64)
+    window = dict(start=8, n_steps=100)
+    with_mate = exact_sensitivities(model, params, x0, inputs, 0.01, "spline", 4, **window)[[0, 1, 3]]
+    alone = exact_sensitivities(model, params[[0, 1, 3]], x0[[0, 1, 3]], inputs[[0, 1, 3]], 0.01, "spline", 4, **window)
+    assert not torch.equal(with_mate, alone)
+    torch.testing.assert_close(with_mate, alone, rtol=1e-12, atol=1e-15 * float(alone.abs().max()))
+    # the outputs from the held input prepared once for the whole problem (as a solve holds it), batch first
+    held = held_input(inputs, "spline", 4, 8, 100).permute(2, 1, 0).contiguous().permute(2, 1, 0)
+    rows = torch.tensor([0, 1, 3])
+    outputs = exact_outputs(model, params, x0, inputs, 0.01, "spline", 4, **window, held=held)[rows]
+    alone = exact_outputs(
+        model, params[rows], x0[rows], inputs[rows], 0.01, "spline", 4, **window, held=held[..., rows]
+    )
+    assert torch.equal(outputs, alone)
 
 
 @_COMPILED
 def test_pieces_of_several_workers_give_one_workers_numbers_bit_for_bit(monkeypatch):
-    """Cut into other pieces than one worker's (the least rows lowered so that 20 samples are), every sample's
-    normal equations, scores and trial loss are the same bits: each sample is evaluated on its own."""
+    """Cut into other pieces than one worker's (the least rows lowered so that 20 samples are): the Euler model's
+    normal equations, scores and trial losses, and the exact model's trial losses, are the same bits, each sample
+    evaluated on its own."""
     monkeypatch.setattr(problems_module, "_MIN_PIECE", 3)
     monkeypatch.setattr(problems_module, "_MIN_TRIAL_PIECE", 3)
-    problem, theta = _seat_problem(40)
+    data = synthetic_samples(40, n_steps=60, seed=4)
+    euler = LeastSquaresProblem(data["accel"], data["road"], 0.01)
+    theta = data["params"] * (1 + 0.05 * torch.randn(40, 10, generator=torch.Generator().manual_seed(2), dtype=F64))
     index = torch.arange(40).flip(0)[::2]  # 20 samples: pieces of 7, 7, 6 on one worker, 5 x 4 on two
-    one = ProblemEvaluation(problem, chunk_size=7)
-    two = ProblemEvaluation(problem, chunk_size=7, workers=2)
-    assert [p.stop - p.start for p in one._pieces(20, 7, 3)] == [7, 7, 6]
-    assert [p.stop - p.start for p in two._pieces(20, 7, 3)] == [5, 5, 5, 5]
+    one = ProblemEvaluation(euler, chunk_size=7)
+    two = ProblemEvaluation(euler, chunk_size=7, workers=2)
+    assert [p.stop - p.start for p in one._pieces(20, 7, 3, True)] == [7, 7, 6]
+    assert [p.stop - p.start for p in two._pieces(20, 7, 3, True)] == [5, 5, 5, 5]
     a, b = one.data_normal_equations(theta, index, band=3), two.data_normal_equations(theta, index, band=3)
     for x, y in zip(a[:4], b[:4]):
         assert torch.equal(x, y)
-    trial = theta * 1.01
-    assert torch.equal(one.loss_at(trial[index], index), two.loss_at(trial[index], index))
+    assert torch.equal(one.loss_at(theta[index] * 1.01, index), two.loss_at(theta[index] * 1.01, index))
+    seat, seat_theta = _seat_problem(40)  # damped near critically every fourth sample, the others apart
+    trial = seat_theta[index] * 1.01
+    one, two = ProblemEvaluation(seat, chunk_size=4), ProblemEvaluation(seat, chunk_size=4, workers=2)
+    assert torch.equal(one.loss_at(trial, index), two.loss_at(trial, index))
 
 
 def test_deferred_fallback_rows_are_those_fallback_sensitivities_gives():

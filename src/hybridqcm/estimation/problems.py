@@ -234,14 +234,15 @@ class ProblemEvaluation:
             self._full_targets = full
         return self._full_targets
 
-    def _pieces(self, n: int, size: int, least: int) -> list[slice]:
+    def _pieces(self, n: int, size: int, least: int, apart: bool) -> list[slice]:
         """The rows 0..n-1 of a pass cut into pieces of at most ``size`` rows. One worker: ``size`` rows each and
         the rest. Several: the fewest pieces, of equal length to one row, and their count a multiple of the
         workers' where every piece keeps ``least`` rows (a pass of three pieces on two threads, or of 33 full
-        ones and a rest, waits for its last one alone). The compiled loops evaluate each sample on its own, so
-        its numbers are the same in any piece; torch's Van Loan maps, where they run instead, scale a whole batch
-        by one power of two, so there the pieces stay those of one worker."""
-        if self.workers == 1 or n == 0 or not compiled_loops():
+        ones and a rest, waits for its last one alone), where the model evaluates each sample of this pass on its
+        own (``apart``: the model's outputs_apart or sensitivities_apart) with the compiled loops: then its numbers
+        are the same in any piece. Elsewhere the pieces stay those of one worker (torch's Van Loan maps scale a
+        whole batch by one power of two; ResponseModel.outputs_apart)."""
+        if self.workers == 1 or n == 0 or not apart or not compiled_loops():
             return [slice(start, min(n, start + size)) for start in range(0, n, size)]
         count = -(-n // size)
         rounded = -(-count // self.workers) * self.workers
@@ -327,7 +328,8 @@ class ProblemEvaluation:
             rows(where, gram)  # the chunk's rows of the pass: a slice, or the fallback's positions
             return scores, redo
 
-        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size, _MIN_PIECE)]
+        apart = problem.model.sensitivities_apart
+        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size, _MIN_PIECE, apart)]
         starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
         parts = self._map(
             lambda part: one(part[1], slice(part[0], part[0] + part[1].numel())), list(zip(starts, chunks))
@@ -368,7 +370,8 @@ class ProblemEvaluation:
             loss = 0.5 * residual.square().sum((1, 2))
             return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
 
-        losses = self._map(one, self._pieces(index.numel(), self.chunk_size * 2, _MIN_TRIAL_PIECE))
+        pieces = self._pieces(index.numel(), self.chunk_size * 2, _MIN_TRIAL_PIECE, problem.model.outputs_apart)
+        losses = self._map(one, pieces)
         loss = torch.cat(losses)
         if problem.prior_mean is not None:
             precision, deviation = self.prior_terms(trial_params[:, torch.tensor(problem.free_index)], index)

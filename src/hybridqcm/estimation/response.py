@@ -46,6 +46,14 @@ class ResponseModel:
     def n_theta(self) -> int:
         return len(self.theta_names)
 
+    # Whether each sample's outputs (a line search's trial losses) / sensitivities (a Jacobian pass) are the same
+    # bits in any batch it is evaluated in, where the compiled loops run, so that a solve may cut those passes
+    # anywhere (ProblemEvaluation._pieces). Not by default: a model may choose its method or its layout by the
+    # batch (the exact model's fallback stacked up to 32 samples a call; its modal basis as wide as the batch's
+    # largest number of propagated modes).
+    outputs_apart: bool = False
+    sensitivities_apart: bool = False
+
     @property
     def positive(self) -> Tensor:
         """[n_theta] bool: entries that must stay > 0 (a final estimate outside is `diverged`)."""
@@ -142,6 +150,8 @@ class EulerResponse(ResponseModel):
 
     output_names = CHANNELS
     n_params = 10
+
+    outputs_apart = sensitivities_apart = True  # the recursion runs each sample on its own
 
     def __init__(self, h: float = 0.01, scaled_road: bool = False, initial_state: str = "rest") -> None:
         if initial_state not in INITIAL_STATES:
@@ -249,6 +259,12 @@ class ExactResponse(ResponseModel):
 
     def sensitivities(self, theta: Tensor, inputs, start: int = 0, n_steps: int | None = None) -> Tensor:
         return self._sensitivities(exact_sensitivities, theta, inputs, start, n_steps)
+
+    # the outputs by the step recursion with per-sample Van Loan maps, elementwise states and per-sample products;
+    # not the sensitivities: a sample's modal basis is as wide as its batch's largest number of propagated modes,
+    # and the product's other width rounds otherwise (an under-damped seat beside an over-damped one: 1e-18 of the
+    # largest entry)
+    outputs_apart = True
 
     def _own_sensitivities(self) -> bool:
         """A subclass with sensitivities of its own (e.g. a delay): the deferred and residual forms below
