@@ -195,11 +195,11 @@ class ProblemEvaluation:
     whether they carry the jackknife's working-model moments (uncertainty.score_groups).
 
     ``workers`` > 1: the chunks of a pass run on that many threads at once (CPU tensors only; the
-    caller sets torch's intra-op threads to 1), cut so that the threads finish together (_pieces). Each
-    sample is evaluated on its own and the results are joined in order, so the numbers are those of one
-    thread, bit for bit; torch's ops and numpy's products release the GIL, which is what makes this the
-    way to use a second core for the many small per-chunk operations (each op on two intra-op threads
-    waits for the second one more than it gains; docs/measurements/roofline.md)."""
+    caller sets torch's intra-op threads to 1), cut so that the threads finish together where the model
+    evaluates each sample on its own, else as one thread cuts them (_pieces); the results are joined in
+    order, so the numbers are those of one thread, bit for bit. torch's ops and numpy's products release
+    the GIL, which is what makes this the way to use a second core for the many small per-chunk operations
+    (each op on two intra-op threads waits for the second one more than it gains; docs/measurements/roofline.md)."""
 
     def __init__(
         self,
