@@ -167,3 +167,16 @@ def test_the_solver_stops_at_a_pending_stop_request(monkeypatch):
     monkeypatch.setattr(interrupt, "_pending", 2)  # SIGINT recorded (in another thread's handler)
     with pytest.raises(interrupt.Interrupted):
         build_solver("gauss_newton", max_iterations=5).solve(problem, start)
+
+
+def test_even_slices_cover_the_rows_once_in_order_with_lengths_one_apart():
+    from hybridqcm.estimation._blas import even_slices
+
+    for n in (0, 1, 2, 5, 10, 17000, 17001):
+        for parts in (1, 2, 3, 7):
+            slices = even_slices(n, parts)
+            assert [r for s in slices for r in range(s.start, s.stop)] == list(range(n))
+            lengths = [s.stop - s.start for s in slices]
+            assert len(slices) == min(parts, n) and all(length > 0 for length in lengths)
+            assert lengths == sorted(lengths, reverse=True) and (not lengths or lengths[0] - lengths[-1] <= 1)
+    assert [(s.start, s.stop) for s in even_slices(10, 3)] == [(0, 4), (4, 7), (7, 10)]

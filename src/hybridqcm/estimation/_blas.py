@@ -4,6 +4,7 @@ torch's thread count for those small per-step operations; and independent solves
 
 from __future__ import annotations
 
+import itertools
 import os
 import platform
 from collections.abc import Callable, Iterable, Iterator
@@ -99,6 +100,17 @@ def available_cores() -> int:
     if not local and torch.distributed.is_available() and torch.distributed.is_initialized():
         local = torch.distributed.get_world_size()
     return max(1, cores // max(1, local))
+
+
+def even_slices(n: int, parts: int) -> list[slice]:
+    """Rows 0..n-1 as ``parts`` consecutive slices (at most n) whose lengths differ by one at the most, the longer
+    first: how a batch of per-sample work is shared among threads."""
+    parts = min(max(1, int(parts)), n)
+    if parts == 0:
+        return []
+    base, extra = divmod(n, parts)
+    lengths = [base + 1] * extra + [base] * (parts - extra)
+    return [slice(end - length, end) for length, end in zip(lengths, itertools.accumulate(lengths))]
 
 
 def parallel_map(function: Callable, items: Iterable, workers: int) -> list:

@@ -20,13 +20,12 @@ tensors on the GPU.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from hybridqcm.estimation._blas import available_cores, parallel_map
+from hybridqcm.estimation._blas import available_cores, even_slices, parallel_map
 
 # below this many samples a slice's thread costs more than it saves (numpy's eig of [6, 6]: ~10 us each)
 _MIN_SLICE = 1024
@@ -43,10 +42,10 @@ def on_host(function: Callable, *tensors: Tensor | None, rows: bool = False):
         if pieces <= 1:
             out = function(*host)
         else:
-            size = math.ceil(batch / pieces)
-            starts = range(0, batch, size)
             parts = parallel_map(
-                lambda s: function(*[None if t is None else t[s : s + size] for t in host]), starts, pieces
+                lambda rows: function(*[None if t is None else t[rows] for t in host]),
+                even_slices(batch, pieces),
+                pieces,
             )
             out = tuple(torch.cat(p) for p in zip(*parts)) if isinstance(parts[0], tuple) else torch.cat(parts)
     if isinstance(out, tuple):

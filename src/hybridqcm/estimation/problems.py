@@ -5,7 +5,6 @@ equations F = JᵀJ, JᵀR with the Gaussian prior's terms (SPEC §8)."""
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -14,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._blas import gram_matrix
+from ._blas import even_slices, gram_matrix
 from ._kernels import compiled_loops
 from .noise import SpectralNoise
 from .response import EulerResponse, PreparedInputs, ResponseModel
@@ -248,9 +247,7 @@ class ProblemEvaluation:
         rounded = -(-count // self.workers) * self.workers
         if n // rounded >= least:
             count = rounded
-        base, extra = divmod(n, count)
-        lengths = [base + 1] * extra + [base] * (count - extra)
-        return [slice(end - length, end) for length, end in zip(lengths, itertools.accumulate(lengths))]
+        return even_slices(n, count)
 
     def _map(self, fn: Callable, chunks: list) -> list:
         """[fn(chunk) for chunk in chunks], on ``workers`` threads when there are several chunks."""
@@ -328,15 +325,11 @@ class ProblemEvaluation:
             rows(where, gram)  # the chunk's rows of the pass: a slice, or the fallback's positions
             return scores, redo
 
-        apart = problem.model.sensitivities_apart
-        chunks = [index[piece] for piece in self._pieces(index.numel(), self.chunk_size, _MIN_PIECE, apart)]
-        starts = torch.tensor([0] + [c.numel() for c in chunks[:-1]]).cumsum(0).tolist()
-        parts = self._map(
-            lambda part: one(part[1], slice(part[0], part[0] + part[1].numel())), list(zip(starts, chunks))
-        )
+        pieces = self._pieces(index.numel(), self.chunk_size, _MIN_PIECE, problem.model.sensitivities_apart)
+        parts = self._map(lambda piece: one(index[piece], piece), pieces)
         # the samples each chunk left to the model's fallback, by position in ``index``: one pass for all
         redo = torch.cat(
-            [start + part[1].to(index.device) for start, part in zip(starts, parts)]
+            [piece.start + part[1].to(index.device) for piece, part in zip(pieces, parts)]
             + [torch.zeros(0, dtype=torch.long, device=index.device)]
         )
         scores = _cat_scores([part[0] for part in parts])

@@ -31,7 +31,7 @@ from torch import Tensor
 
 from hybridqcm.interrupt import check_stop
 
-from ._blas import chunk_workers, op_threads, parallel_map, torch_threads
+from ._blas import chunk_workers, even_slices, op_threads, parallel_map, torch_threads
 from ._linalg import pseudo_inverse_solve
 from .boundary import applies, boundary_test, initial_held, without_held
 from .line_search import line_search
@@ -401,8 +401,7 @@ class NonlinearLeastSquares(ABC):
 
         workers, b = chunk_workers(cfg), index.numel()
         if workers > 1 and b >= 2 * _STEP_PART:  # per-sample work (scaling too): on the chunk threads, bit for bit
-            size = -(-b // workers)
-            step = torch.cat(parallel_map(scaled_step, [slice(s, s + size) for s in range(0, b, size)], workers))
+            step = torch.cat(parallel_map(scaled_step, even_slices(b, workers), workers))
         else:
             step = scaled_step(slice(None))
         predicted = (step * gradient).sum(1)  # gᵀJᵀR ≥ 0 for a descent direction
