@@ -84,6 +84,56 @@ def make_foreign(path, n: int = 6, **options):
         return f["test/truth_m3"][()]
 
 
+def read_estimates(path):
+    """estimates.csv -> (labels, values [n, k], stds [n, k]): labels per row are the status and any text column
+    (the chosen occupant model); values are the estimate columns (parameters, m3, x0, not the intervals);
+    stds are each one's standard deviation column (std_X or X_std), NaN where it has none."""
+    import csv
+
+    import numpy as np
+
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    first = rows[0]
+    text = [c for c in first if not _numeric(first[c])]
+    keep = [
+        c for c in first if c not in text and not c.startswith("std_") and not c.endswith(("_std", "_low", "_high"))
+    ]
+    labels = [tuple(r[c] for c in text) for r in rows]
+    values = np.array([[float(r[c]) for c in keep] for r in rows])
+    std_of = [f"std_{c}" if f"std_{c}" in first else f"{c}_std" if f"{c}_std" in first else None for c in keep]
+    stds = np.array([[float(r[s]) if s else np.nan for s in std_of] for r in rows])
+    return labels, values, stds
+
+
+def _numeric(value: str) -> bool:
+    try:
+        float(value)
+    except ValueError:
+        return False
+    return True
+
+
+def assert_same_answer(path, reference, *, rtol=1e-7, std_fraction=None):
+    """Two runs' estimates.csv give one answer: the same statuses (and chosen models), and each estimate within
+    ``rtol`` of the reference's or, with ``std_fraction``, within that fraction of its own standard deviation
+    (a fit stopped by a tolerance ends where the arithmetic's path takes it; the device or kernel must move it
+    by far less than the data's uncertainty). Columns without a standard deviation keep ``rtol``."""
+    import numpy as np
+
+    labels, values, _ = read_estimates(path)
+    ref_labels, ref_values, ref_stds = read_estimates(reference)
+    assert labels == ref_labels
+    atol = np.full_like(ref_values, 1e-9)
+    if std_fraction is not None:
+        atol = np.where(np.isfinite(ref_stds), std_fraction * ref_stds, atol)
+        rtol = np.where(np.isfinite(ref_stds), 0.0, rtol)
+    bad = np.abs(values - ref_values) > atol + rtol * np.abs(ref_values)
+    assert not bad.any(), (
+        f"{int(bad.sum())} estimates apart, the largest by {np.abs(values - ref_values)[bad].max():.3g}"
+    )
+
+
 def app_in_process(app: str, run_dir: Path, *overrides: str) -> dict:
     """What `qcm-<app> overrides` runs (app: simulate or estimate), in this process: the configuration composed
     as the app composes it, run_dir the run folder; returns the run's summary. A console start (torch,

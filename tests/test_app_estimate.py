@@ -327,3 +327,36 @@ def test_the_jackknife_test_reaches_the_rigid_candidate_and_not_the_body_ones(ti
     plain = _cfg(["experiment=occupant_roadfree", f"data.path={tiny_dataset}", "occupant.models=[rigid]"])
     plain.delay = None
     assert build_refinement(plain, validate(plain)).stages[-1].solver.config.jackknife_test == 0.05
+
+
+def test_torch_kernels_give_the_compiled_loops_answer(tmp_path, monkeypatch):
+    """The path a GPU takes (torch's kernels, HYBRIDQCM_KERNELS=torch) against the CPU's compiled loops, a whole
+    noisy run (exp 8: noise model, intervals): the same statuses, every estimate within a thousandth of its
+    standard deviation (measured: 4e-5 of it, and 1.5e-5 relative: fits end at the solver's tolerance, so
+    rtol=1e-7 would not hold). tests/test_front_gpu.py holds a GPU run to the same rule."""
+    from conftest import app_in_process, assert_same_answer, make_foreign
+    from hybridqcm.estimation._kernels import compiled_loops
+
+    if not compiled_loops():
+        pytest.skip("numba absent: only torch's kernels here")
+    data = tmp_path / "foreign.h5"
+    make_foreign(data, n=8, seed=3)
+    overrides = [
+        "experiment=exp8_occupant_only",
+        "n_samples=8",
+        "noise_sigma=0.05",
+        "init.cnn=false",
+        f"data.path={data}",
+        "batch_size=4",
+        "progress=false",
+        "plots=false",
+        "tensorboard=false",
+    ]
+    summary = app_in_process("estimate", tmp_path / "compiled", *overrides)
+    assert summary["compiled_loops"]
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    assert not app_in_process("estimate", tmp_path / "torch", *overrides)["compiled_loops"]
+    compiled, torch_run = tmp_path / "compiled" / "estimates.csv", tmp_path / "torch" / "estimates.csv"
+    assert_same_answer(torch_run, compiled, std_fraction=1e-3)
+    with pytest.raises(AssertionError, match="estimates apart"):  # the rule bites: these runs are not bit-equal
+        assert_same_answer(torch_run, compiled, rtol=1e-7)

@@ -3,13 +3,11 @@
 
 from __future__ import annotations
 
-import csv
-
-import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from conftest import assert_same_answer
 from hybridqcm.apps.estimate import run
 from hybridqcm.config import CONFIG_DIR
 from hybridqcm.estimation.front import HybridEstimator, equation_error_params
@@ -21,26 +19,6 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a C
 def _cfg(overrides):
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose("estimate", overrides=list(overrides))
-
-
-def _estimates(path):
-    """(statuses, the estimate columns): parameters, m3, x0; not the intervals, which on these
-    noise-free recordings sit at the rounding floor and follow GN's path, not only its end point."""
-    with open(path, newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    status = [r.pop("status") for r in rows]
-    keep = [c for c in rows[0] if not c.startswith("std_") and c not in ("m3_std", "m3_low", "m3_high")]
-    text = [c for c in keep if not _numeric(rows[0][c])]  # the chosen occupant model: compared as the status
-    status = [(s, *(r[c] for c in text)) for s, r in zip(status, rows)] if text else status
-    return status, np.array([[float(r[c]) for c in keep if c not in text] for r in rows])
-
-
-def _numeric(value: str) -> bool:
-    try:
-        float(value)
-    except ValueError:
-        return False
-    return True
 
 
 def test_equation_error_init_runs_on_the_inputs_device():
@@ -85,39 +63,35 @@ def test_exp10_on_the_gpu_gives_the_cpu_estimates(tiny_dataset, tmp_path, monkey
         "plots=false",
         "tensorboard=false",
     ]
-    results = {}
     for accelerator in ("cpu", "gpu"):
         (tmp_path / accelerator).mkdir()
         monkeypatch.chdir(tmp_path / accelerator)  # the run's folder when Hydra is not running
         summary = run(_cfg([*common, f"trainer.accelerator={accelerator}"]))
         assert summary["predict_devices"] == (["cuda:0"] if accelerator == "gpu" else ["cpu"])
-        results[accelerator] = _estimates(tmp_path / accelerator / "estimates.csv")
     assert devices == [("cpu", "cpu")] * 2 + [("cuda", "cuda")] * 2  # 2 blocks each; networks where the batch is
-    (status_cpu, cpu), (status_gpu, gpu) = results["cpu"], results["gpu"]
-    assert status_gpu == status_cpu
-    np.testing.assert_allclose(gpu, cpu, rtol=1e-6, atol=1e-9)
+    assert_same_answer(tmp_path / "gpu" / "estimates.csv", tmp_path / "cpu" / "estimates.csv", rtol=1e-6)
 
 
 @pytest.mark.parametrize(
-    "experiment",
+    ("experiment", "within"),
     [
-        ["experiment=exp5_random_init", "n_samples=8"],  # the exact model, x0 unknown, restarts
-        [
-            "experiment=exp8_occupant_only",
-            "n_samples=8",
-            "noise_sigma=0.05",
-            "init.cnn=false",
-        ],  # noise model, intervals
+        # the exact model, x0 unknown, restarts; noise-free: every fit ends at the rounding floor
+        (["experiment=exp5_random_init", "n_samples=8"], {"rtol": 1e-7}),
+        # the noise model and intervals: fits end at the solver's tolerance, so the device may move them, by far
+        # less than their uncertainty (CPU kernels against torch's: tests/test_app_estimate.py, 4e-5 of it)
+        (
+            ["experiment=exp8_occupant_only", "n_samples=8", "noise_sigma=0.05", "init.cnn=false"],
+            {"std_fraction": 1e-3},
+        ),
     ],
     ids=["exp5", "exp8_noise"],
 )
-def test_gauss_newton_on_the_gpu_gives_the_cpu_estimates(experiment, tmp_path, monkeypatch):
+def test_gauss_newton_on_the_gpu_gives_the_cpu_estimates(experiment, within, tmp_path, monkeypatch):
     from conftest import make_foreign
 
     data = tmp_path / "foreign.h5"
     make_foreign(data, n=8, seed=3)
     common = [*experiment, f"data.path={data}", "batch_size=4", "progress=false", "plots=false", "tensorboard=false"]
-    results = {}
     for where in ("cpu", "gpu"):
         (tmp_path / where).mkdir()
         monkeypatch.chdir(tmp_path / where)
@@ -125,7 +99,4 @@ def test_gauss_newton_on_the_gpu_gives_the_cpu_estimates(experiment, tmp_path, m
         summary = run(_cfg([*common, *extra]))
         if where == "gpu":
             assert summary["gn_device"] == "accelerator" and summary["device_memory_mib"] > 0  # GN ran on the GPU
-        results[where] = _estimates(tmp_path / where / "estimates.csv")
-    (status_cpu, cpu), (status_gpu, gpu) = results["cpu"], results["gpu"]
-    assert status_gpu == status_cpu
-    np.testing.assert_allclose(gpu, cpu, rtol=1e-7, atol=1e-9)
+    assert_same_answer(tmp_path / "gpu" / "estimates.csv", tmp_path / "cpu" / "estimates.csv", **within)
