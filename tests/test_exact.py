@@ -867,6 +867,29 @@ def test_the_compiled_modes_equal_torchs_and_rebuild_A(sort, monkeypatch):
         assert bool((key[good].diff(dim=1) >= 0).all())
 
 
+def test_a_balancing_that_underflows_is_not_ok_and_raises_nothing(monkeypatch):
+    """A wild trial's matrix (entries 1e300 and 1e-300: a body fit run off on a recording it cannot explain) balances
+    to a scale of 0 and inf. The compiled loop once divided V^-1 by that 0 in complex arithmetic, which numba turns
+    into ZeroDivisionError whatever its error model (`qcm-estimate experiment=occupant_roadfree
+    occupant.models=[body1] delay=null` on a delayed file stopped so); now the sample is not ok, as by torch's ops."""
+    from hybridqcm.estimation import _kernels
+    from hybridqcm.estimation._expm import balance
+    from hybridqcm.estimation._modal import _decompose
+
+    A = torch.zeros(2, 4, 4, dtype=F64)
+    A[:, 2, 3], A[:, 3, 2], A[:, 2, 1] = 1.0, -1.0, 1.0
+    A[0, 0, 1], A[0, 1, 0], A[0, 1, 2] = 1e300, 1e-300, 1e-300
+    A[1, 0, 1], A[1, 1, 0], A[1, 1, 2] = 2.0, -3.0, 0.5  # an ordinary batch mate
+    scale = balance(A)
+    assert (scale[0] == 0).any() and _kernels.applies(A)
+    compiled = _decompose(A, scale, True)
+    monkeypatch.setenv("HYBRIDQCM_KERNELS", "torch")
+    reference = _decompose(A, scale, True)
+    assert compiled[4].tolist() == reference[4].tolist() == [False, True]
+    for mine, theirs in zip(compiled[:4], reference[:4]):
+        torch.testing.assert_close(mine[1], theirs[1], rtol=1e-12, atol=1e-12)
+
+
 def _person_case(name: str, batch: int, n_in: int, seed: int):
     """A person (one or two body modes) on the road-free seat or in the quarter car, parameters scattered by 30 %
     around a 5 Hz body: derivatives per sample (the models are not linear in their parameters)."""

@@ -641,7 +641,10 @@ def _modes_loop(lam_in, Vb, scale, sort, work, lam, V, V_inv, cond, ok, n_first)
             lam[b, s] = lam_in[b, k]
             for i in range(n):
                 V[b, i, s] = Vb[b, i, k] * scale[b, i]
-                V_inv[b, s, i] = (work[k, n + i] if invertible else 0.0) / scale[b, i]
+                if scale[b, i] != 0:
+                    V_inv[b, s, i] = (work[k, n + i] if invertible else 0.0) / scale[b, i]
+                else:  # a balancing underflowed by a wild trial's matrix (not ok there): numba's complex division raises
+                    V_inv[b, s, i] = complex(np.nan, np.nan)
 
 
 def _coefficients_loop(lam, V, V_inv, cond, B, C, E, dA, dB, dC, dE, x0, has_x0, with_x0, omega, n_t, limit,
