@@ -239,6 +239,17 @@ def spectral_matrix(H: Tensor | None, v_out: Tensor, v_in: Tensor | None) -> Ten
     return S
 
 
+def _cholesky(S: Tensor) -> Tensor:
+    """L [b, K, o, o] with S = L L^H per frequency; NaN for a sample whose S is not positive definite at some
+    frequency (a trial step run off to a response that overflows): its loss is then not finite, which the line
+    search counts as a failed trial, as the one-output path's square root does, instead of stopping the run."""
+    L, info = torch.linalg.cholesky_ex(S)
+    bad = (info != 0).flatten(1).any(1)
+    if bool(bad.any()):
+        L = torch.where(bad.view(-1, *([1] * (L.ndim - 1))), torch.full_like(L, math.nan), L)
+    return L
+
+
 def _solve_psd(A: Tensor, y: Tensor, rcond: float = 1e-12) -> Tensor:
     """x [b, J] with A x = y for symmetric positive semi-definite A [b, J, J] (small J), by Gaussian
     elimination unrolled over J and vectorised over b (a batched LAPACK call costs ~10 us per
@@ -464,7 +475,7 @@ class SpectralNoise:
         if self.frozen_at is not None:
             if n_steps not in self._frozen_factor:
                 H, _ = frequency_response(self.model, self.frozen_at[:, : self.model.n_params], self.omega(n_steps))
-                self._frozen_factor[n_steps] = torch.linalg.cholesky(spectral_matrix(H, self.v_out, self.v_in))
+                self._frozen_factor[n_steps] = _cholesky(spectral_matrix(H, self.v_out, self.v_in))
             return self._frozen_factor[n_steps][index], None
         H, dH = frequency_response(self.model, params[:, : self.model.n_params], self.omega(n_steps), derivatives)
         v_in = self.v_in[index]
@@ -475,7 +486,7 @@ class SpectralNoise:
                 return L, None
             dS = 2 * (H.conj()[:, None] * dH * v_in[:, None, None, None, :]).real.sum(-1)  # [b, P, K, 1]
             return L, dS.to(_COMPLEX)[..., None]
-        L = torch.linalg.cholesky(spectral_matrix(H, v_out, v_in))
+        L = _cholesky(spectral_matrix(H, v_out, v_in))
         if not derivatives:
             return L, None
         HV = H * v_in.to(_COMPLEX)[:, None, None, :]  # [b, K, o, m]
