@@ -337,6 +337,12 @@ def test_bad_vehicle_inputs_are_one_line(files, tmp_path, tiny_dataset):
         (validate_vehicle, ["experiment=hcm_full_observation", hcm, "init.equation_error=maybe"], "choose false, true"),
         (
             validate_vehicle,
+            ["experiment=fcm_full_observation", fcm, "occupant.models=[rigid,body1]"],
+            "the full_car's model seats rigid occupants",
+        ),
+        (validate_vehicle, ["experiment=hcm_full_observation", hcm, "delay=5"], "the half_car is fitted on one clock"),
+        (
+            validate_vehicle,
             ["experiment=fcm_full_observation", fcm, "sensor=additive", "sensor.sigma=[0.01,0.02,0.03]"],
             "give one number each",
         ),

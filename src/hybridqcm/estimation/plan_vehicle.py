@@ -94,6 +94,18 @@ def _check_settings(cfg) -> tuple[str, str, int, str]:
         raise ConfigError(f"dynamics=euler: the {kind} is fitted by its exact continuous-time model only")
     if cfg.get("seat") is not None:
         raise ConfigError(f"seat={cfg.seat!r}: {name} fits every seat of the {kind} at once (drop seat=)")
+    models = (cfg.get("occupant") or {}).get("models", ["rigid"])
+    if models is None or isinstance(models, str) or [str(m) for m in models] != ["rigid"]:
+        raise ConfigError(
+            f"occupant.models={models}: the {kind}'s model seats rigid occupants; a seated person's body modes are "
+            f"fitted per seat without the road (experiment=occupant_roadfree seat=<name>)"
+        )
+    delay = cfg.get("delay", None)
+    if delay is not None:
+        raise ConfigError(
+            f"delay={delay!r}: the {kind} is fitted on one clock; the channel delay is estimated per seat without "
+            f"the road (experiment=occupant_roadfree seat=<name>)"
+        )
     if cfg.known_source not in ("file", "reference"):
         raise ConfigError(f"known_source={cfg.known_source!r}: choose file or reference")
     if cfg.n_samples is not None and int(cfg.n_samples) < 1:
