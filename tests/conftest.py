@@ -116,19 +116,22 @@ def _numeric(value: str) -> bool:
 
 def assert_same_answer(path, reference, *, rtol=1e-7, std_fraction=None):
     """Two runs' estimates.csv give one answer: the same statuses (and chosen models), and each estimate within
-    ``rtol`` of the reference's or, with ``std_fraction``, within that fraction of its own standard deviation
-    (a fit stopped by a tolerance ends where the arithmetic's path takes it; the device or kernel must move it
-    by far less than the data's uncertainty). Columns without a standard deviation keep ``rtol``."""
+    ``rtol`` of the reference's or, with ``std_fraction``, within the larger of that and this fraction of its own
+    standard deviation (a fit stopped by a tolerance ends where the arithmetic's path takes it; the device or
+    kernel must move it by far less than the data's uncertainty). NaN matches NaN only, inf the same inf."""
     import numpy as np
 
     labels, values, _ = read_estimates(path)
     ref_labels, ref_values, ref_stds = read_estimates(reference)
     assert labels == ref_labels
-    atol = np.full_like(ref_values, 1e-9)
+    tol = 1e-9 + rtol * np.abs(ref_values)
     if std_fraction is not None:
-        atol = np.where(np.isfinite(ref_stds), std_fraction * ref_stds, atol)
-        rtol = np.where(np.isfinite(ref_stds), 0.0, rtol)
-    bad = np.abs(values - ref_values) > atol + rtol * np.abs(ref_values)
+        tol = np.where(np.isfinite(ref_stds), np.maximum(tol, std_fraction * ref_stds), tol)
+    with np.errstate(invalid="ignore"):
+        close = (
+            (values == ref_values) | (np.abs(values - ref_values) <= tol) | (np.isnan(values) & np.isnan(ref_values))
+        )
+    bad = ~close
     assert not bad.any(), (
         f"{int(bad.sum())} estimates apart, the largest by {np.abs(values - ref_values)[bad].max():.3g}"
     )

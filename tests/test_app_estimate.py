@@ -360,3 +360,32 @@ def test_torch_kernels_give_the_compiled_loops_answer(tmp_path, monkeypatch):
     assert_same_answer(torch_run, compiled, std_fraction=1e-3)
     with pytest.raises(AssertionError, match="estimates apart"):  # the rule bites: these runs are not bit-equal
         assert_same_answer(torch_run, compiled, rtol=1e-7)
+
+
+def test_assert_same_answer_tells_a_different_answer_apart(tmp_path):
+    """conftest.assert_same_answer, the rule the GPU and kernel tests use: a move within a thousandth of the std
+    passes; another status, a NaN against a number, or a move beyond rtol without std_fraction does not."""
+    from conftest import assert_same_answer
+
+    def write(name, rows):
+        path = tmp_path / name
+        with open(path, "w", newline="") as handle:
+            out = csv.writer(handle)
+            out.writerow(["index", "p1", "status", "std_p1", "m3", "m3_std"])
+            out.writerows(rows)
+        return path
+
+    diverged = [1, "nan", "diverged", "nan", 70.0, 1.0]
+    reference = write("ref.csv", [[0, 1.0, "converged", 0.1, 80.0, 1.0], diverged])
+    moved = write("moved.csv", [[0, 1.0 + 1e-5, "converged", 0.1, 80.0 + 1e-4, 1.0], diverged])
+    assert_same_answer(moved, reference, std_fraction=1e-3)
+    with pytest.raises(AssertionError, match="2 estimates apart"):
+        assert_same_answer(moved, reference)
+    cases = {
+        "status.csv": [[0, 1.0, "misfit", 0.1, 80.0, 1.0], diverged],
+        "nan.csv": [[0, 1.0, "converged", 0.1, 80.0, 1.0], [1, 2.0, "diverged", "nan", 70.0, 1.0]],
+        "far.csv": [[0, 1.01, "converged", 0.1, 80.0, 1.0], diverged],
+    }
+    for name, rows in cases.items():
+        with pytest.raises(AssertionError):
+            assert_same_answer(write(name, rows), reference, std_fraction=1e-3)
